@@ -1,0 +1,1 @@
+"""Attack objects placed in scenes."""

@@ -1,0 +1,1 @@
+"""KITTI object-detection evaluator (official devkit semantics, CPU, float64)."""

@@ -1,0 +1,65 @@
+"""``robustbench3d`` command line.
+
+Each subcommand lives in its own module exposing ``add_arguments(parser)`` and ``run(args) -> int``.
+Those modules import only the standard library at module level (numpy, torch, onnxruntime are
+imported inside ``run``), so ``robustbench3d --help`` starts fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from robustbench3d import __version__
+from robustbench3d.errors import RobustBenchError
+
+#: name -> (module, one-line help). Nested groups use "group name".
+COMMANDS: dict[str, tuple[str, str]] = {
+    "eval": ("robustbench3d.eval.cli", "score KITTI result files against ground-truth labels"),
+    "data synth": ("robustbench3d.synth.cli", "generate the embedded procedural dataset in KITTI layout"),
+    "data stats": ("robustbench3d.synth.stats_cli", "compare LiDAR statistics of two KITTI-layout datasets"),
+    "show": ("robustbench3d.show", "draw a frame: image with 3D boxes and a bird's-eye view of the scan"),
+    "bench": ("robustbench3d.bench", "run speed/memory benchmarks and print a table"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="robustbench3d",
+        description="Benchmark physical adversarial roof objects against camera+LiDAR 3D car detectors.",
+    )
+    parser.add_argument("--version", action="version", version=f"robustbench3d {__version__}")
+    top = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    groups: dict[str, argparse._SubParsersAction] = {}
+    for name, (module, help_text) in COMMANDS.items():
+        parts = name.split()
+        target = top
+        if len(parts) == 2:
+            if parts[0] not in groups:
+                gp = top.add_parser(parts[0], help=f"{parts[0]} commands")
+                groups[parts[0]] = gp.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=True)
+            target = groups[parts[0]]
+        sub = target.add_parser(parts[-1], help=help_text, description=help_text)
+        sub.set_defaults(_module=module)
+        importlib.import_module(module).add_arguments(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    module = importlib.import_module(args._module)
+    try:
+        return int(module.run(args) or 0)
+    except RobustBenchError as exc:
+        print(f"robustbench3d: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("robustbench3d: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

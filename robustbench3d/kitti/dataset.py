@@ -1,0 +1,101 @@
+"""Lazy access to a dataset in the KITTI object layout (real KITTI or the embedded generator's output).
+
+    ROOT/ImageSets/{train,val,...}.txt
+    ROOT/training/{image_2/NNNNNN.png, velodyne/NNNNNN.bin, calib/NNNNNN.txt, label_2/NNNNNN.txt}
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from robustbench3d.errors import DataFormatError
+from robustbench3d.kitti.calib import Calibration, read_calibration
+from robustbench3d.kitti.image import read_image
+from robustbench3d.kitti.labels import Labels, read_labels
+from robustbench3d.kitti.splits import read_split
+from robustbench3d.kitti.velodyne import read_scan
+
+SUBDIRS = {"image": ("image_2", ".png"), "scan": ("velodyne", ".bin"),
+           "calib": ("calib", ".txt"), "labels": ("label_2", ".txt")}
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One KITTI frame.
+
+    Attributes:
+        frame_id: 6-digit id.
+        image: (H, W, 3) uint8 RGB of camera 2.
+        scan: (N, 4) float32 x, y, z (velodyne frame, m), reflectance.
+        calib: the frame's calibration.
+        labels: ground-truth objects (rect frame), or None where the split has no labels.
+    """
+
+    frame_id: str
+    image: np.ndarray
+    scan: np.ndarray
+    calib: Calibration
+    labels: Labels | None
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return int(self.image.shape[1]), int(self.image.shape[0])
+
+
+class KittiDataset:
+    """Frames of ``root/<subset>`` listed by ``root/ImageSets/<split>.txt`` (or every frame found).
+
+    Nothing but the split list is read at construction; each accessor reads only its own file.
+    """
+
+    def __init__(self, root: str | Path, split: str | None = "val", subset: str = "training"):
+        self.root = Path(root)
+        self.split = split
+        self.subset = subset
+        self.dir = self.root / subset
+        if not self.dir.is_dir():
+            raise DataFormatError(self.dir, "not a directory; expected the KITTI layout ROOT/training/...")
+
+    @cached_property
+    def frame_ids(self) -> list[str]:
+        if self.split is not None:
+            return read_split(self.root / "ImageSets" / f"{self.split}.txt")
+        labels_dir = self.dir / SUBDIRS["calib"][0]
+        return sorted(p.stem for p in labels_dir.glob("*.txt"))
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def path(self, kind: str, frame_id: str) -> Path:
+        """Path of one file: kind is 'image', 'scan', 'calib' or 'labels'."""
+        sub, ext = SUBDIRS[kind]
+        return self.dir / sub / f"{frame_id}{ext}"
+
+    def image(self, frame_id: str) -> np.ndarray:
+        return read_image(self.path("image", frame_id))
+
+    def scan(self, frame_id: str) -> np.ndarray:
+        return read_scan(self.path("scan", frame_id))
+
+    def calib(self, frame_id: str) -> Calibration:
+        return read_calibration(self.path("calib", frame_id))
+
+    def labels(self, frame_id: str) -> Labels | None:
+        path = self.path("labels", frame_id)
+        return read_labels(path, scored=False) if path.exists() else None
+
+    def frame(self, frame_id: str) -> Frame:
+        return Frame(frame_id, self.image(frame_id), self.scan(frame_id), self.calib(frame_id),
+                     self.labels(frame_id))
+
+    def __getitem__(self, index: int) -> Frame:
+        return self.frame(self.frame_ids[index])
+
+    def __iter__(self):
+        for fid in self.frame_ids:
+            yield self.frame(fid)

@@ -1,0 +1,205 @@
+"""KITTI object labels and detection results (``label_2/*.txt``, result ``data/*.txt``).
+
+One object per line, space separated: type, truncated, occluded, alpha, bbox (left, top, right,
+bottom; image-2 pixels), dimensions (height, width, length; m), location (x, y, z of the box's
+bottom centre in the rectified camera-0 frame; m), rotation_y (rad, about rect y), and in result
+files a 16th column, score. Blank lines and trailing white space are tolerated; anything else
+that deviates raises :class:`~robustbench3d.errors.DataFormatError` naming file, line and field.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from robustbench3d.errors import DataFormatError
+from robustbench3d.fileio import atomic_write_text
+
+KITTI_TYPES: tuple[str, ...] = (
+    "Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc", "DontCare",
+)
+FIELDS: tuple[str, ...] = (
+    "type", "truncated", "occluded", "alpha", "bbox_left", "bbox_top", "bbox_right", "bbox_bottom",
+    "height", "width", "length", "x", "y", "z", "rotation_y", "score",
+)
+
+
+@dataclass(frozen=True, eq=False)
+class Labels:
+    """A frame's objects, column-wise (N objects).
+
+    Attributes:
+        type: (N,) str, one of :data:`KITTI_TYPES`.
+        truncated: (N,) float64, fraction of the object outside the image (-1 when unknown).
+        occluded: (N,) int64, 0 visible, 1 partly, 2 largely occluded, 3 unknown (-1 in results).
+        alpha: (N,) float64, observation angle in rad, [-pi, pi].
+        bbox: (N, 4) float64, left, top, right, bottom in image-2 pixels.
+        dimensions: (N, 3) float64, height, width, length in m.
+        location: (N, 3) float64, bottom centre in the rectified camera frame, m.
+        rotation_y: (N,) float64, yaw about rect y in rad; 0 faces rect +x.
+        score: (N,) float64 detection confidence, or None for ground truth.
+    """
+
+    type: np.ndarray
+    truncated: np.ndarray
+    occluded: np.ndarray
+    alpha: np.ndarray
+    bbox: np.ndarray
+    dimensions: np.ndarray
+    location: np.ndarray
+    rotation_y: np.ndarray
+    score: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.type)
+        shapes = {
+            "truncated": (n,), "occluded": (n,), "alpha": (n,), "bbox": (n, 4),
+            "dimensions": (n, 3), "location": (n, 3), "rotation_y": (n,),
+        }
+        if self.score is not None:
+            shapes["score"] = (n,)
+        for name, shape in shapes.items():
+            if getattr(self, name).shape != shape:
+                raise ValueError(f"Labels.{name} has shape {getattr(self, name).shape}, expected {shape}")
+
+    def __len__(self) -> int:
+        return len(self.type)
+
+    @property
+    def has_score(self) -> bool:
+        return self.score is not None
+
+    @classmethod
+    def empty(cls, with_score: bool = False) -> Labels:
+        return cls(
+            type=np.empty(0, dtype=object), truncated=np.empty(0), occluded=np.empty(0, dtype=np.int64),
+            alpha=np.empty(0), bbox=np.empty((0, 4)), dimensions=np.empty((0, 3)),
+            location=np.empty((0, 3)), rotation_y=np.empty(0), score=np.empty(0) if with_score else None,
+        )
+
+    def select(self, index: np.ndarray | slice) -> Labels:
+        """Objects picked by a boolean mask, an index array or a slice."""
+        return Labels(
+            type=self.type[index], truncated=self.truncated[index], occluded=self.occluded[index],
+            alpha=self.alpha[index], bbox=self.bbox[index], dimensions=self.dimensions[index],
+            location=self.location[index], rotation_y=self.rotation_y[index],
+            score=None if self.score is None else self.score[index],
+        )
+
+    @classmethod
+    def concatenate(cls, parts: list[Labels]) -> Labels:
+        if not parts:
+            return cls.empty()
+        scored = {p.has_score for p in parts}
+        if len(scored) != 1:
+            raise ValueError("cannot concatenate scored and unscored Labels")
+
+        def cat(name: str) -> np.ndarray:
+            return np.concatenate([getattr(p, name) for p in parts])
+
+        return cls(
+            type=cat("type"), truncated=cat("truncated"), occluded=cat("occluded"), alpha=cat("alpha"),
+            bbox=cat("bbox"), dimensions=cat("dimensions"), location=cat("location"),
+            rotation_y=cat("rotation_y"), score=cat("score") if parts[0].has_score else None,
+        )
+
+    def to_text(self, precision: int = 2) -> str:
+        """Label-file text, one line per object, the KITTI devkit's ``%.2f`` style by default.
+
+        Scores (result files) are written with 8 significant digits so ranking survives.
+        """
+        lines = []
+        p = precision
+        for i in range(len(self)):
+            line = f"{self.type[i]} {self.truncated[i]:.{p}f} {int(self.occluded[i])} {self.alpha[i]:.{p}f}"
+            nums = (*self.bbox[i], *self.dimensions[i], *self.location[i], self.rotation_y[i])
+            line += " " + " ".join(f"{v:.{p}f}" for v in nums)
+            if self.score is not None:
+                line += f" {self.score[i]:.8g}"
+            lines.append(line)
+        return "".join(line + "\n" for line in lines)
+
+
+def _parse_float(token: str, path: Path, lineno: int, field: str) -> float:
+    try:
+        value = float(token)
+    except ValueError:
+        raise DataFormatError(path, f"expected a number, got {token!r}", lineno, field) from None
+    if not math.isfinite(value):
+        raise DataFormatError(path, f"expected a finite number, got {token!r}", lineno, field)
+    return value
+
+
+def parse_labels(text: str, path: str | Path = "<string>", scored: bool | None = None) -> Labels:
+    """Parse label text.
+
+    Args:
+        text: file contents.
+        path: file name used in error messages.
+        scored: True requires 16 columns (results), False requires 15 (ground truth), None
+            accepts either but the whole file must agree.
+    """
+    path = Path(path)
+    rows: list[list[str]] = []
+    linenos: list[int] = []
+    for lineno, raw in enumerate(text.split("\n"), start=1):
+        line = raw.strip()
+        if not line:
+            continue
+        rows.append(line.split())
+        linenos.append(lineno)
+    expected = None if scored is None else (16 if scored else 15)
+    for toks, lineno in zip(rows, linenos, strict=True):
+        if len(toks) not in (15, 16) or (expected is not None and len(toks) != expected):
+            want = "15 or 16" if expected is None else str(expected)
+            raise DataFormatError(path, f"expected {want} columns, got {len(toks)}", lineno)
+        if expected is None:
+            expected = len(toks)
+        elif len(toks) != expected:
+            raise DataFormatError(
+                path, f"expected {expected} columns like the lines above, got {len(toks)}", lineno
+            )
+    n = len(rows)
+    has_score = expected == 16
+    types = np.empty(n, dtype=object)
+    numeric = np.empty((n, 15 if has_score else 14), dtype=np.float64)
+    for r, (toks, lineno) in enumerate(zip(rows, linenos, strict=True)):
+        if toks[0] not in KITTI_TYPES:
+            raise DataFormatError(
+                path, f"unknown object type {toks[0]!r}; expected one of {', '.join(KITTI_TYPES)}", lineno, "type"
+            )
+        types[r] = toks[0]
+        for c, tok in enumerate(toks[1:]):
+            numeric[r, c] = _parse_float(tok, path, lineno, FIELDS[c + 1])
+        occ = numeric[r, 1]
+        if occ != int(occ) or not -1 <= occ <= 3:
+            raise DataFormatError(path, f"expected an integer in -1..3, got {toks[2]!r}", lineno, "occluded")
+    return Labels(
+        type=types,
+        truncated=numeric[:, 0].copy(),
+        occluded=numeric[:, 1].astype(np.int64),
+        alpha=numeric[:, 2].copy(),
+        bbox=numeric[:, 3:7].copy(),
+        dimensions=numeric[:, 7:10].copy(),
+        location=numeric[:, 10:13].copy(),
+        rotation_y=numeric[:, 13].copy(),
+        score=numeric[:, 14].copy() if has_score else None,
+    )
+
+
+def read_labels(path: str | Path, scored: bool | None = None) -> Labels:
+    """Read a KITTI label or result file (see :func:`parse_labels`)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise DataFormatError(path, f"not UTF-8 text ({exc.reason})") from None
+    return parse_labels(text, path, scored)
+
+
+def write_labels(path: str | Path, labels: Labels, precision: int = 2) -> None:
+    """Write a label/result file atomically (an empty file for zero objects)."""
+    atomic_write_text(path, labels.to_text(precision))

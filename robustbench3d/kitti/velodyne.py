@@ -1,0 +1,31 @@
+"""Velodyne scans (``velodyne/*.bin``): float32 rows of x, y, z (m, velodyne frame), reflectance [0, 1]."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from robustbench3d.errors import DataFormatError
+from robustbench3d.fileio import atomic_write_bytes
+
+
+def read_scan(path: str | Path) -> np.ndarray:
+    """Read a scan as an (N, 4) float32 array, in file (ring) order."""
+    path = Path(path)
+    size = path.stat().st_size
+    if size % 16:
+        raise DataFormatError(path, f"size {size} bytes is not a multiple of 16 (4 float32 per point)")
+    scan = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+    if not np.all(np.isfinite(scan)):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(scan), axis=1))[0])
+        raise DataFormatError(path, f"point {bad} has a non-finite value")
+    return scan
+
+
+def write_scan(path: str | Path, scan: np.ndarray) -> None:
+    """Write an (N, 4) scan as little-endian float32, atomically."""
+    scan = np.asarray(scan)
+    if scan.ndim != 2 or scan.shape[1] != 4:
+        raise ValueError(f"scan must be (N, 4), got {scan.shape}")
+    atomic_write_bytes(path, np.ascontiguousarray(scan, dtype="<f4").tobytes())

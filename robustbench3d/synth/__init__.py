@@ -1,0 +1,1 @@
+"""Embedded default dataset: procedural driving scenes written in the KITTI layout."""

@@ -1,0 +1,1 @@
+"""Victim models: the detectors under attack."""
