@@ -1,0 +1,108 @@
+"""``robustbench3d bench``: speed and memory benchmarks that print a table.
+
+Targets are checked here, in benchmarks, never as wall-clock asserts in unit tests. Each
+benchmark is a function ``run(quick: bool) -> list[dict]`` returning table rows; rows may carry a
+``target`` and a ``met`` column. Benchmarks are registered lazily by "module:function".
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+
+BENCHMARKS: dict[str, str] = {
+    "eval": "robustbench3d.eval.bench:run",
+    "synth": "robustbench3d.synth.bench:run",
+}
+
+
+@dataclass(frozen=True)
+class Measured:
+    """Result of :func:`run_timed_subprocess`: wall seconds and peak RSS (MB) of the child."""
+
+    seconds: float
+    peak_rss_mb: float
+    stdout: str
+
+
+def run_timed_subprocess(argv: list[str], env: dict[str, str] | None = None) -> Measured:
+    """Run a command to completion; measure its wall time (start-up included) and peak RSS.
+
+    Peak RSS is read from ``getrusage(RUSAGE_CHILDREN)``, which holds the maximum over all waited
+    children, so the command is run through a fresh ``python -c`` wrapper that reports its own child.
+    """
+    wrapper = (
+        "import json,resource,subprocess,sys,time;"
+        "t=time.perf_counter();p=subprocess.run(sys.argv[1:],capture_output=True,text=True);"
+        "dt=time.perf_counter()-t;"
+        "r=resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss/1024;"
+        "print(json.dumps({'s':dt,'rss':r,'rc':p.returncode,'out':p.stdout,'err':p.stderr}))"
+    )
+    proc = subprocess.run([sys.executable, "-c", wrapper, *argv], capture_output=True, text=True,
+                          env={**os.environ, **(env or {})}, check=True)
+    info = json.loads(proc.stdout)
+    if info["rc"] != 0:
+        raise RuntimeError(f"benchmarked command failed ({info['rc']}): {' '.join(argv)}\n{info['err']}")
+    return Measured(info["s"], info["rss"], info["out"])
+
+
+def peak_rss_mb() -> float:
+    """Peak RSS of this process so far, MB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def format_table(rows: list[dict]) -> str:
+    """Plain-text table of dict rows (columns in first-seen order)."""
+    cols: list[str] = []
+    for r in rows:
+        cols.extend(k for k in r if k not in cols)
+
+    def fmt(v: object) -> str:
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        if isinstance(v, bool):
+            return "yes" if v else "NO"
+        return "" if v is None else str(v)
+
+    cells = [[fmt(r.get(c)) for c in cols] for r in rows]
+    widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(cols)]
+    line = "  ".join(c.ljust(w) for c, w in zip(cols, widths, strict=True))
+    sep = "  ".join("-" * w for w in widths)
+    body = ["  ".join(v.ljust(w) for v, w in zip(row, widths, strict=True)) for row in cells]
+    return "\n".join([line, sep, *body])
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("names", nargs="*", metavar="NAME",
+                        help=f"benchmarks to run (default: all of {', '.join(BENCHMARKS)})")
+    parser.add_argument("--quick", action="store_true", help="smaller inputs, for a smoke run")
+    parser.add_argument("--json", metavar="PATH", help="also write the rows as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    from robustbench3d.errors import RobustBenchError
+
+    names = args.names or list(BENCHMARKS)
+    unknown = [n for n in names if n not in BENCHMARKS]
+    if unknown:
+        raise RobustBenchError(f"unknown benchmark {unknown[0]!r}; available: {', '.join(BENCHMARKS)}")
+    all_rows: list[dict] = []
+    for name in names:
+        module, func = BENCHMARKS[name].split(":")
+        t0 = time.perf_counter()
+        rows = getattr(importlib.import_module(module), func)(quick=args.quick)
+        print(f"== {name} ({time.perf_counter() - t0:.1f} s)")
+        print(format_table(rows))
+        all_rows.extend({"benchmark": name, **r} for r in rows)
+    if args.json:
+        from robustbench3d.fileio import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps(all_rows, indent=2) + "\n")
+    return 0
