@@ -1,0 +1,28 @@
+"""Shared fixtures. Real KITTI samples are read from ``../shared/kitti_samples`` (beside the
+repository) or from ``$ROBUSTBENCH3D_KITTI_SAMPLES``; tests needing them skip with a message when
+they are absent. They are never copied into this repository (CC BY-NC-SA data)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _samples_dir() -> Path:
+    env = os.environ.get("ROBUSTBENCH3D_KITTI_SAMPLES")
+    return Path(env) if env else REPO.parent / "shared" / "kitti_samples"
+
+
+@pytest.fixture(scope="session")
+def kitti_samples() -> Path:
+    """Root of the six real KITTI frames (KITTI layout), or skip."""
+    root = _samples_dir()
+    if not (root / "training" / "label_2").is_dir():
+        pytest.skip(f"real KITTI samples not found at {root} (set ROBUSTBENCH3D_KITTI_SAMPLES)")
+    return root
