@@ -17,10 +17,6 @@ from robustbench3d.errors import RobustBenchError
 
 #: name -> (module, one-line help). Nested groups use "group name".
 COMMANDS: dict[str, tuple[str, str]] = {
-    "eval": ("robustbench3d.eval.cli", "score KITTI result files against ground-truth labels"),
-    "data synth": ("robustbench3d.synth.cli", "generate the embedded procedural dataset in KITTI layout"),
-    "data stats": ("robustbench3d.synth.stats_cli", "compare LiDAR statistics of two KITTI-layout datasets"),
-    "show": ("robustbench3d.show", "draw a frame: image with 3D boxes and a bird's-eye view of the scan"),
     "bench": ("robustbench3d.bench", "run speed/memory benchmarks and print a table"),
 }
 
