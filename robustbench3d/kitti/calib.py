@@ -170,7 +170,11 @@ def _is_float(token: str) -> bool:
 
 def read_calibration(path: str | Path) -> Calibration:
     path = Path(path)
-    return parse_calibration(path.read_text(encoding="utf-8"), path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise DataFormatError(path, "file not found") from None
+    return parse_calibration(text, path)
 
 
 def write_calibration(path: str | Path, calib: Calibration) -> None:

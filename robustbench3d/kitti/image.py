@@ -16,6 +16,8 @@ def read_image(path: str | Path) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, "file not found")
     try:
         with Image.open(path) as im:
             im.load()

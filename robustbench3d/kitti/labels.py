@@ -109,7 +109,7 @@ class Labels:
     def to_text(self, precision: int = 2) -> str:
         """Label-file text, one line per object, the KITTI devkit's ``%.2f`` style by default.
 
-        Scores (result files) are written with 8 significant digits so ranking survives.
+        Scores (result files) are written exactly (shortest round-trip repr), so ranking and ties survive.
         """
         lines = []
         p = precision
@@ -118,7 +118,7 @@ class Labels:
             nums = (*self.bbox[i], *self.dimensions[i], *self.location[i], self.rotation_y[i])
             line += " " + " ".join(f"{v:.{p}f}" for v in nums)
             if self.score is not None:
-                line += f" {self.score[i]:.8g}"
+                line += f" {float(self.score[i])!r}"
             lines.append(line)
         return "".join(line + "\n" for line in lines)
 
@@ -153,15 +153,13 @@ def parse_labels(text: str, path: str | Path = "<string>", scored: bool | None =
         linenos.append(lineno)
     expected = None if scored is None else (16 if scored else 15)
     for toks, lineno in zip(rows, linenos, strict=True):
-        if len(toks) not in (15, 16) or (expected is not None and len(toks) != expected):
-            want = "15 or 16" if expected is None else str(expected)
-            raise DataFormatError(path, f"expected {want} columns, got {len(toks)}", lineno)
         if expected is None:
+            if len(toks) not in (15, 16):
+                raise DataFormatError(path, f"expected 15 or 16 columns, got {len(toks)}", lineno)
             expected = len(toks)
         elif len(toks) != expected:
-            raise DataFormatError(
-                path, f"expected {expected} columns like the lines above, got {len(toks)}", lineno
-            )
+            why = "" if scored is not None or lineno == linenos[0] else " like the lines above"
+            raise DataFormatError(path, f"expected {expected} columns{why}, got {len(toks)}", lineno)
     n = len(rows)
     has_score = expected == 16
     types = np.empty(n, dtype=object)
@@ -195,6 +193,8 @@ def read_labels(path: str | Path, scored: bool | None = None) -> Labels:
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise DataFormatError(path, "file not found") from None
     except UnicodeDecodeError as exc:
         raise DataFormatError(path, f"not UTF-8 text ({exc.reason})") from None
     return parse_labels(text, path, scored)

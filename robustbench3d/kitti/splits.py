@@ -16,7 +16,11 @@ def read_split(path: str | Path) -> list[str]:
     path = Path(path)
     ids: list[str] = []
     seen: set[str] = set()
-    for lineno, raw in enumerate(path.read_text(encoding="utf-8").split("\n"), start=1):
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise DataFormatError(path, "file not found") from None
+    for lineno, raw in enumerate(text.split("\n"), start=1):
         tok = raw.strip()
         if not tok:
             continue

@@ -13,7 +13,10 @@ from robustbench3d.fileio import atomic_write_bytes
 def read_scan(path: str | Path) -> np.ndarray:
     """Read a scan as an (N, 4) float32 array, in file (ring) order."""
     path = Path(path)
-    size = path.stat().st_size
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise DataFormatError(path, "file not found") from None
     if size % 16:
         raise DataFormatError(path, f"size {size} bytes is not a multiple of 16 (4 float32 per point)")
     scan = np.fromfile(path, dtype="<f4").reshape(-1, 4)
