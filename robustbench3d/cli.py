@@ -17,6 +17,8 @@ from robustbench3d.errors import RobustBenchError
 
 #: name -> (module, one-line help). Nested groups use "group name".
 COMMANDS: dict[str, tuple[str, str]] = {
+    "data stats": ("robustbench3d.dataset_stats", "LiDAR/label statistics of KITTI-layout datasets, side by side"),
+    "show": ("robustbench3d.show", "draw a frame: image with 3D boxes and a bird's-eye view of the scan"),
     "bench": ("robustbench3d.bench", "run speed/memory benchmarks and print a table"),
 }
 

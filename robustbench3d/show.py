@@ -1,0 +1,127 @@
+"""``robustbench3d show``: a frame as a picture, for users and for checking generated data.
+
+Top: the camera-2 image with each labelled object's 3D box projected (near-plane clipped) and
+DontCare regions outlined. Bottom: a bird's-eye view of the scan in the velodyne frame (x forward
+= up in the picture, y left = left), points coloured by height, with the boxes' footprints.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+CLASS_COLOURS: dict[str, tuple[int, int, int]] = {
+    "Car": (0, 255, 0), "Van": (255, 200, 0), "Truck": (255, 120, 0), "Pedestrian": (255, 0, 255),
+    "Person_sitting": (200, 0, 255), "Cyclist": (0, 200, 255), "Tram": (255, 255, 255), "Misc": (160, 160, 160),
+    "DontCare": (120, 120, 255),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("root", help="dataset root in KITTI layout (holds training/)")
+    parser.add_argument("frame", help="frame id, e.g. 000001")
+    parser.add_argument("--out", required=True, help="PNG file to write")
+    parser.add_argument("--pred", help="optional result directory; its detections are drawn in red")
+    parser.add_argument("--bev-range", type=float, default=70.0, help="forward range of the BEV panel, m")
+
+
+def render(frame, detections=None, bev_range: float = 70.0):
+    """Return an (H, W, 3) uint8 picture of ``frame`` (a :class:`~robustbench3d.kitti.Frame`)."""
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    from robustbench3d.geometry import BOX_EDGES, box_corners
+
+    calib, labels = frame.calib, frame.labels
+    width, height = frame.image_size
+    top = Image.fromarray(frame.image).convert("RGB")
+    draw = ImageDraw.Draw(top)
+
+    def boxes_of(lab, colour_of):
+        if lab is None or len(lab) == 0:
+            return
+        real = lab.type != "DontCare"
+        corners = box_corners(lab.dimensions[real], lab.location[real], lab.rotation_y[real])
+        for k, (cls, c) in enumerate(zip(lab.type[real], corners, strict=True)):
+            colour = colour_of(cls, k)
+            for i, j in BOX_EDGES:
+                seg = _clip_segment(c[i], c[j], near=0.1)
+                if seg is None:
+                    continue
+                uv, _ = calib.rect_to_image(np.stack(seg))
+                (u0, v0), (u1, v1) = uv
+                draw.line([(float(u0), float(v0)), (float(u1), float(v1))],
+                          fill=colour, width=2)
+        for box in lab.bbox[~real]:
+            draw.rectangle([float(v) for v in box], outline=CLASS_COLOURS["DontCare"], width=1)
+
+    boxes_of(labels, lambda cls, k: CLASS_COLOURS.get(cls, (255, 255, 255)))
+    boxes_of(detections, lambda cls, k: (255, 0, 0))
+
+    # Bird's-eye view: velodyne x in [-2, range] -> rows (far at the top), y in [-0.8 r, 0.8 r] -> columns.
+    half = 0.8 * bev_range
+    scale = width / (2 * half)  # px per m, square pixels
+    bev_h = round((bev_range + 2.0) * scale)
+    bev = np.zeros((bev_h, width, 3), dtype=np.uint8)
+    pts = frame.scan
+    x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+    col = ((half - y) * scale).astype(np.int64)
+    row = ((bev_range - x) * scale).astype(np.int64)
+    ok = (col >= 0) & (col < width) & (row >= 0) & (row < bev_h)
+    t = np.clip((z[ok] + 2.0) / 3.0, 0, 1)
+    colours = np.stack([80 + 175 * t, 80 + 175 * (1 - np.abs(2 * t - 1)), 255 - 175 * t], axis=1).astype(np.uint8)
+    bev[row[ok], col[ok]] = colours
+    bev_img = Image.fromarray(bev)
+    bdraw = ImageDraw.Draw(bev_img)
+
+    def footprints(lab, colour_of):
+        if lab is None or len(lab) == 0:
+            return
+        real = lab.type != "DontCare"
+        corners = box_corners(lab.dimensions[real], lab.location[real], lab.rotation_y[real])
+        for k, (cls, c) in enumerate(zip(lab.type[real], corners, strict=True)):
+            v = calib.rect_to_velo_points(c[:4])
+            poly = [(float((half - p[1]) * scale), float((bev_range - p[0]) * scale)) for p in v]
+            bdraw.polygon(poly, outline=colour_of(cls, k), width=2)
+
+    footprints(labels, lambda cls, k: CLASS_COLOURS.get(cls, (255, 255, 255)))
+    footprints(detections, lambda cls, k: (255, 0, 0))
+    # Sensor position and 10 m range rings.
+    cx, cy = half * scale, bev_range * scale
+    for r in range(10, int(bev_range) + 1, 10):
+        rr = r * scale
+        bdraw.arc([cx - rr, cy - rr, cx + rr, cy + rr], 180, 360, fill=(60, 60, 60))
+    bdraw.ellipse([cx - 4, cy - 4, cx + 4, cy + 4], fill=(255, 255, 255))
+
+    out = Image.new("RGB", (width, height + bev_h))
+    out.paste(top, (0, 0))
+    out.paste(bev_img, (0, height))
+    return np.asarray(out)
+
+
+def _clip_segment(a, b, near: float):
+    """Clip a rect-frame segment to z >= near; None when it lies entirely behind."""
+    za, zb = a[2], b[2]
+    if za < near and zb < near:
+        return None
+    if za >= near and zb >= near:
+        return a, b
+    t = (near - za) / (zb - za)
+    cut = a + t * (b - a)
+    return (cut, b) if za < near else (a, cut)
+
+
+def run(args: argparse.Namespace) -> int:
+    from robustbench3d.kitti import KittiDataset, read_labels
+    from robustbench3d.kitti.image import write_image
+
+    ds = KittiDataset(args.root, split=None)
+    frame = ds.frame(args.frame)
+    dets = None
+    if args.pred:
+        from pathlib import Path
+
+        path = Path(args.pred) / f"{args.frame}.txt"
+        dets = read_labels(path, scored=True) if path.exists() else None
+    write_image(args.out, render(frame, dets, args.bev_range))
+    print(args.out)
+    return 0
