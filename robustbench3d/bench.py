@@ -18,6 +18,7 @@ import time
 from dataclasses import dataclass
 
 BENCHMARKS: dict[str, str] = {
+    "cli": "robustbench3d.bench:cli_startup",
     "eval": "robustbench3d.eval.bench:run",
     "synth": "robustbench3d.synth.bench:run",
 }
@@ -77,6 +78,16 @@ def format_table(rows: list[dict]) -> str:
     sep = "  ".join("-" * w for w in widths)
     body = ["  ".join(v.ljust(w) for v, w in zip(row, widths, strict=True)) for row in cells]
     return "\n".join([line, sep, *body])
+
+
+def cli_startup(quick: bool) -> list[dict]:
+    """Wall time of ``robustbench3d --help`` in a fresh interpreter (median of 5; 3 when quick)."""
+    import statistics
+
+    runs = [run_timed_subprocess([sys.executable, "-m", "robustbench3d", "--help"]) for _ in range(3 if quick else 5)]
+    median = statistics.median(r.seconds for r in runs)
+    return [{"case": "robustbench3d --help", "seconds_median": median, "peak_rss_mb": max(r.peak_rss_mb for r in runs),
+             "target": "< 0.5 s", "met": median < 0.5}]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
