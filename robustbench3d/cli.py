@@ -20,6 +20,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "data stats": ("robustbench3d.dataset_stats", "LiDAR/label statistics of KITTI-layout datasets, side by side"),
     "show": ("robustbench3d.show", "draw a frame: image with 3D boxes and a bird's-eye view of the scan"),
     "bench": ("robustbench3d.bench", "run speed/memory benchmarks and print a table"),
+    "data synth": ("robustbench3d.synth.cli", "generate the embedded procedural dataset in KITTI layout"),
+    "eval": ("robustbench3d.eval.cli", "score KITTI result files against ground-truth labels"),
+    "victims list": ("robustbench3d.victims.list_command", "list registered victims and their capabilities"),
+    "train yolo": ("robustbench3d.victims.train_yolo", "train the YOLO 2D detector on a KITTI-layout dataset"),
+    "train fpointnet": ("robustbench3d.victims.train_fpointnet", "train Frustum-PointNet v1 on GT-box frustums"),
 }
 
 

@@ -1,1 +1,49 @@
-"""Victim models: the detectors under attack."""
+"""Victim models: the detectors under attack.
+
+``VICTIMS`` is the registry (:class:`robustbench3d.registry.Registry` of
+:class:`~robustbench3d.victims.base.VictimSpec`). In-tree victims are declared in
+:mod:`robustbench3d.victims.zoo` with :func:`register_victim`; installed packages add theirs
+through the entry-point group ``robustbench3d.victims`` (an entry point names a ``VictimSpec``).
+
+    >>> from robustbench3d.victims import VICTIMS, create_victim
+    >>> VICTIMS.names()                                   # doctest: +SKIP
+    >>> victim = create_victim("fpointnet-v1", weights="runs/cascade")  # doctest: +SKIP
+
+Importing this package does not import torch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from robustbench3d.registry import Capabilities, EntryInfo, Registry
+from robustbench3d.victims.spec import VictimSpec
+
+ENTRY_POINT_GROUP = "robustbench3d.victims"
+
+VICTIMS: Registry[VictimSpec] = Registry(
+    "victim", group=ENTRY_POINT_GROUP, base=VictimSpec, key=lambda spec: spec.key,
+    modules=("robustbench3d.victims.zoo",),
+)
+
+
+def register_victim(name: str, *, capabilities: Capabilities, weights_sha256: str | None = None,
+                    summary: str = "") -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Decorator: register a factory ``(**kwargs) -> Detector`` under ``name`` with its metadata."""
+    info = EntryInfo(capabilities=capabilities, weights_sha256=weights_sha256, summary=summary)
+
+    def decorator(factory: Callable[..., Any]) -> Callable[..., Any]:
+        VICTIMS.register(name, VictimSpec(factory=factory, info=info))
+        return factory
+
+    return decorator
+
+
+def create_victim(name: str, **kwargs: Any) -> Any:
+    """Build the registered victim ``name`` (kwargs go to its factory) and check that it honours
+    the :mod:`~robustbench3d.victims.base` contract its capabilities declare."""
+    return VICTIMS.get(name).create(**kwargs)
+
+
+__all__ = ["ENTRY_POINT_GROUP", "VICTIMS", "create_victim", "register_victim"]

@@ -1,0 +1,369 @@
+"""Typed, lazy, strict plugin registries (victims now; attacks and datasets later).
+
+A :class:`Registry` maps names to targets of one type ``T``. Targets arrive three ways:
+
+* in-tree decoration: ``@REG.register("name")`` on an object, or ``REG.register("name", obj)``;
+* a lazy ``"package.module:attr"`` string, imported on the first :meth:`Registry.get`;
+* installed plugins: every entry point of the registry's group (e.g. ``robustbench3d.victims``)
+  in any installed distribution, discovered on the first lookup and loaded on the first ``get``.
+
+Rules: re-registering a name with the *same* target is a no-op, with a different target it raises
+:class:`RegistryError`; an unknown name raises :class:`UnknownNameError` with close matches ("did
+you mean"); a distribution found twice on ``sys.path`` (the classic duplicate ``dist-info`` /
+``egg-info`` of an editable install) contributes its entry points once; setting the environment
+variable ``ROBUSTBENCH3D_NO_PLUGINS=1`` disables entry-point discovery altogether.
+
+Entries also carry metadata for listings and result provenance (:class:`EntryInfo`): the
+capabilities of the target (:class:`Capabilities`) and the sha256 of its weights. This module
+imports only the standard library.
+"""
+
+from __future__ import annotations
+
+import difflib
+import fnmatch
+import importlib
+import os
+import re
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from importlib import metadata as importlib_metadata
+from typing import Any, Generic, TypeVar, cast, overload
+
+from robustbench3d.errors import RobustBenchError
+
+T = TypeVar("T")
+F = TypeVar("F")
+
+#: Environment variable: any value other than "", "0", "false", "no" disables plugin discovery.
+NO_PLUGINS_ENV = "ROBUSTBENCH3D_NO_PLUGINS"
+
+MODALITIES: tuple[str, ...] = ("camera", "lidar")
+BACKENDS: tuple[str, ...] = ("torch", "onnx", "other")
+_NAME = re.compile(r"^[a-z0-9][a-z0-9._-]*$")
+_SHA256 = re.compile(r"^[0-9a-f]{64}$")
+
+
+class RegistryError(RobustBenchError, ValueError):
+    """Invalid registration (bad name, collision) or a target that fails to load or validate."""
+
+
+class UnknownNameError(RobustBenchError, LookupError):
+    """A name that is not registered; the message suggests close matches."""
+
+    def __init__(self, kind: str, name: str, known: list[str]):
+        self.name = name
+        self.suggestions = difflib.get_close_matches(name, known, n=3, cutoff=0.6)
+        hint = f"; did you mean {', '.join(repr(s) for s in self.suggestions)}?" if self.suggestions else ""
+        listing = f" (registered: {', '.join(known)})" if known and not self.suggestions else ""
+        super().__init__(f"unknown {kind} {name!r}{hint}{listing}")
+
+
+@dataclass(frozen=True)
+class Capabilities:
+    """What a registered model (or attack) uses and offers.
+
+    Attributes:
+        modalities: sensors used, a subset of ``("camera", "lidar")``.
+        backend: "torch", "onnx" or "other" (e.g. numpy).
+        gradients: True if it exposes differentiable quantities to attacks (white box).
+        deterministic: True if identical inputs give bit-identical outputs across calls.
+    """
+
+    modalities: tuple[str, ...]
+    backend: str
+    gradients: bool
+    deterministic: bool
+
+    def __post_init__(self) -> None:
+        mods = tuple(self.modalities)
+        if not mods or len(set(mods)) != len(mods) or any(m not in MODALITIES for m in mods):
+            raise ValueError(f"modalities must be distinct values of {MODALITIES}, got {mods}")
+        object.__setattr__(self, "modalities", tuple(m for m in MODALITIES if m in mods))
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"modalities": list(self.modalities), "backend": self.backend,
+                "gradients": self.gradients, "deterministic": self.deterministic}
+
+
+@dataclass(frozen=True)
+class EntryInfo:
+    """Metadata every registered entry declares.
+
+    Attributes:
+        capabilities: see :class:`Capabilities`.
+        weights_sha256: lowercase hex sha256 of the shipped weights file, None until weights ship.
+        summary: one line for listings.
+    """
+
+    capabilities: Capabilities
+    weights_sha256: str | None = None
+    summary: str = ""
+
+    def __post_init__(self) -> None:
+        if self.weights_sha256 is not None and not _SHA256.match(self.weights_sha256):
+            raise ValueError(f"weights_sha256 must be 64 lowercase hex digits, got {self.weights_sha256!r}")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"capabilities": self.capabilities.as_dict(), "weights_sha256": self.weights_sha256,
+                "summary": self.summary}
+
+
+@dataclass(frozen=True)
+class Spec(Generic[F]):
+    """A registrable factory with its metadata: ``spec.create(**kwargs)`` builds the object."""
+
+    factory: Callable[..., F]
+    info: EntryInfo
+
+    def create(self, **kwargs: Any) -> F:
+        return self.factory(**kwargs)
+
+    @property
+    def key(self) -> str:
+        """Identity used to tell a re-registration of the same factory from a collision."""
+        return _qualified_name(self.factory) or f"id:{id(self.factory)}"
+
+
+@dataclass
+class Entry(Generic[T]):
+    """One registry slot. ``target`` is the loaded object once :attr:`loaded` is True."""
+
+    name: str
+    target: Any  # T, a "module:attr" str, or an importlib.metadata.EntryPoint
+    origin: str  # "in-tree", "lazy module:attr", or "plugin <dist> <version>"
+    loaded: bool = False
+    conflict: str | None = None  # set when two plugins claim the name; raised on get()
+
+    @property
+    def pending(self) -> str | None:
+        """The reference still to be imported, or None when loaded."""
+        if self.loaded:
+            return None
+        return self.target if isinstance(self.target, str) else str(self.target.value)
+
+
+def _qualified_name(obj: Any) -> str | None:
+    mod, qual = getattr(obj, "__module__", None), getattr(obj, "__qualname__", None)
+    return f"{mod}:{qual}" if mod and qual else None
+
+
+def plugins_disabled() -> bool:
+    """True when ``$ROBUSTBENCH3D_NO_PLUGINS`` disables entry-point discovery."""
+    return os.environ.get(NO_PLUGINS_ENV, "").strip().lower() not in ("", "0", "false", "no")
+
+
+def _split_reference(ref: str) -> tuple[str, str]:
+    module_name, sep, attr = ref.partition(":")
+    if not sep or not module_name or not attr:
+        raise RegistryError(f"lazy target {ref!r} must look like 'package.module:attr'")
+    return module_name, attr
+
+
+def import_reference(ref: str) -> Any:
+    """Import ``"package.module:attr.sub"`` and return the attribute."""
+    module_name, attr = _split_reference(ref)
+    obj: Any = importlib.import_module(module_name)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _normalize_dist(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+class Registry(Generic[T]):
+    """Name -> target registry with lazy targets and entry-point plugins.
+
+    Args:
+        kind: what is registered, used in messages ("victim", "attack").
+        group: entry-point group scanned for plugins, or None for no plugins.
+        base: if given, every loaded target must be an instance (or subclass) of it.
+        key: identity of a loaded target for the same-target check (default: the object itself;
+            :class:`Spec` targets compare by factory).
+        modules: in-tree modules imported on the first lookup (their decorators register).
+    """
+
+    def __init__(self, kind: str, *, group: str | None = None, base: type | None = None,
+                 key: Callable[[Any], Any] | None = None, modules: tuple[str, ...] = ()):
+        self.kind = kind
+        self.group = group
+        self.base = base
+        self._key = key
+        self._modules = modules
+        self._entries: dict[str, Entry[T]] = {}
+        self._lock = threading.RLock()
+        self._discovered = False
+        self._frozen = False
+
+    # ---- registration ------------------------------------------------------------------
+    @overload
+    def register(self, name: str, target: None = None) -> Callable[[T], T]: ...
+    @overload
+    def register(self, name: str, target: T | str) -> T | str: ...
+
+    def register(self, name: str, target: Any = None) -> Any:
+        """Register ``target`` (an object or a lazy ``"module:attr"`` string) under ``name``.
+
+        Without ``target`` returns a decorator that registers the decorated object and returns it
+        unchanged. Raises :class:`RegistryError` on a bad name, on a frozen registry, or when the
+        name is taken by a different target.
+        """
+        if target is None:
+            def decorator(obj: T) -> T:
+                self.register(name, obj)
+                return obj
+            return decorator
+        origin = f"lazy {target}" if isinstance(target, str) else "in-tree"
+        if isinstance(target, str):
+            _split_reference(target)
+        else:
+            self._validate(name, target)
+        self._add(Entry(name=name, target=target, origin=origin, loaded=not isinstance(target, str)))
+        return target
+
+    def _add(self, entry: Entry[T]) -> None:
+        if not _NAME.match(entry.name):
+            raise RegistryError(f"{self.kind} name {entry.name!r} must match {_NAME.pattern}")
+        with self._lock:
+            if self._frozen:
+                raise RegistryError(f"{self.kind} registry is frozen; cannot register {entry.name!r}")
+            old = self._entries.get(entry.name)
+            if old is None:
+                self._entries[entry.name] = entry
+            elif not self._same(old, entry):
+                raise RegistryError(
+                    f"{self.kind} name {entry.name!r} is already registered ({old.origin}) with a different "
+                    f"target than the new one ({entry.origin}); choose another name")
+
+    def _same(self, a: Entry[T], b: Entry[T]) -> bool:
+        if a.pending is not None and b.pending is not None:
+            return a.pending == b.pending
+        ta, tb = self._load(a), self._load(b)
+        return ta is tb or self._identity(ta) == self._identity(tb)
+
+    def _identity(self, obj: Any) -> Any:
+        if self._key is not None:
+            return self._key(obj)
+        return id(obj)
+
+    def freeze(self) -> None:
+        """Make the registry read-only (after discovery)."""
+        with self._lock:
+            self._discover()
+            self._frozen = True
+
+    # ---- lookup -------------------------------------------------------------------------
+    def get(self, name: str) -> T:
+        """The target registered under ``name``, importing it on first use."""
+        self._discover()
+        with self._lock:
+            entry = self._entries.get(name)
+            if entry is None:
+                raise UnknownNameError(self.kind, name, sorted(self._entries))
+            if entry.conflict is not None:
+                raise RegistryError(entry.conflict)
+            return self._load(entry)
+
+    def __getitem__(self, name: str) -> T:
+        return self.get(name)
+
+    def entry(self, name: str) -> Entry[T]:
+        """The raw entry (not loaded)."""
+        self._discover()
+        with self._lock:
+            if name not in self._entries:
+                raise UnknownNameError(self.kind, name, sorted(self._entries))
+            return self._entries[name]
+
+    def names(self, pattern: str = "*") -> list[str]:
+        """Sorted registered names matching a glob pattern (nothing is imported)."""
+        self._discover()
+        with self._lock:
+            return sorted(n for n in self._entries if fnmatch.fnmatchcase(n, pattern))
+
+    def items(self, pattern: str = "*") -> Iterator[tuple[str, T]]:
+        """(name, loaded target) pairs; loads every matching entry."""
+        for name in self.names(pattern):
+            yield name, self.get(name)
+
+    def __contains__(self, name: object) -> bool:
+        self._discover()
+        return name in self._entries
+
+    def __len__(self) -> int:
+        self._discover()
+        return len(self._entries)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names())
+
+    # ---- internals ---------------------------------------------------------------------
+    def _load(self, entry: Entry[T]) -> T:
+        with self._lock:
+            if entry.loaded:
+                return cast(T, entry.target)
+            ref = entry.target
+            try:
+                obj = import_reference(ref) if isinstance(ref, str) else ref.load()
+            except RegistryError:
+                raise
+            except Exception as exc:
+                raise RegistryError(
+                    f"cannot load {self.kind} {entry.name!r} from {entry.pending} ({entry.origin}): "
+                    f"{exc.__class__.__name__}: {exc}") from exc
+            self._validate(entry.name, obj, entry.origin)
+            entry.target, entry.loaded = obj, True
+            return cast(T, obj)
+
+    def _validate(self, name: str, obj: Any, origin: str = "in-tree") -> None:
+        if self.base is None:
+            return
+        ok = isinstance(obj, self.base) or (isinstance(obj, type) and issubclass(obj, self.base))
+        if not ok:
+            raise RegistryError(f"{self.kind} {name!r} ({origin}) is a {type(obj).__name__}, "
+                                f"expected a {self.base.__name__}")
+
+    def _discover(self) -> None:
+        if self._discovered:
+            return
+        with self._lock:
+            if self._discovered:
+                return
+            self._discovered = True  # set first: imported modules may call register()
+            for module in self._modules:
+                importlib.import_module(module)
+            if self.group is not None and not plugins_disabled():
+                self._discover_entry_points()
+
+    def _discover_entry_points(self) -> None:
+        seen: set[tuple[str, str]] = set()
+        for ep in importlib_metadata.entry_points(group=self.group or ""):
+            dist = getattr(ep, "dist", None)
+            dist_name = _normalize_dist(dist.metadata["Name"]) if dist is not None else "?"
+            version = dist.version if dist is not None else "?"
+            # The same distribution found twice on sys.path (dist-info + egg-info): keep the first.
+            if (dist_name, ep.name) in seen:
+                continue
+            seen.add((dist_name, ep.name))
+            entry: Entry[T] = Entry(name=ep.name, target=ep, origin=f"plugin {dist_name} {version}")
+            if not _NAME.match(ep.name):
+                continue  # not addressable; ignore rather than break every lookup
+            old = self._entries.get(ep.name)
+            if old is None:
+                self._entries[ep.name] = entry
+            elif old.pending != entry.pending or old.loaded:
+                old.conflict = (
+                    f"{self.kind} name {ep.name!r} is claimed by both {old.origin} ({old.pending or 'loaded'}) "
+                    f"and {entry.origin} ({entry.pending}); uninstall one, or set {NO_PLUGINS_ENV}=1 to "
+                    "disable plugins")
+
+
+__all__ = [
+    "BACKENDS", "MODALITIES", "NO_PLUGINS_ENV", "Capabilities", "Entry", "EntryInfo", "Registry",
+    "RegistryError", "Spec", "UnknownNameError", "import_reference", "plugins_disabled",
+]

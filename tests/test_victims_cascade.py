@@ -1,0 +1,126 @@
+"""The F-PN cascade victim end to end on real KITTI frames (untrained, seeded networks): result
+rows, proposal sources, determinism, the white-box oracles' gradients, weights round trip."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from robustbench3d.geometry import alpha_from_rotation_y
+from robustbench3d.kitti.dataset import KittiDataset
+from robustbench3d.victims import create_victim
+from robustbench3d.victims.base import Proposals
+from robustbench3d.victims.cascade import CascadeSettings, FPointNetCascade
+from robustbench3d.victims.fpointnet.frustum import extract_frustum, project_scan
+from robustbench3d.victims.yolo.letterbox import image_to_tensor
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def frames(kitti_samples):
+    ds = KittiDataset(kitti_samples, split=None)
+    return [ds.frame(f) for f in ds.frame_ids]
+
+
+@pytest.fixture(scope="module")
+def victim():
+    v = create_victim("fpointnet-v1-lite", allow_untrained=True, seed=3)
+    v.yolo.cfg = replace(v.yolo.cfg, max_detections=8)  # keep the untrained detector's output small
+    return v
+
+
+def test_gt_proposals_give_one_row_per_usable_car(victim, frames):
+    rows = victim.detect(frames, proposals="gt")
+    assert len(rows) == len(frames)
+    for frame, r in zip(frames, rows, strict=True):
+        cars = frame.labels.select(frame.labels.type == "Car")
+        proj = project_scan(frame.scan, frame.calib, frame.image_size)
+        usable = [b for b in cars.bbox if b[3] - b[1] >= 25 and len(extract_frustum(proj, b, frame.calib)) >= 1]
+        assert r.has_score and len(r) == len(usable)
+        assert np.array_equal(r.bbox, np.array(usable).reshape(-1, 4))  # the 2D box is the proposal
+        if len(r):
+            assert set(r.type) == {"Car"} and (r.truncated == -1).all() and (r.occluded == -1).all()
+            assert np.isfinite(r.location).all() and (r.dimensions > 0).all()
+            assert (np.abs(r.rotation_y) <= np.pi).all()
+            assert np.allclose(r.alpha, alpha_from_rotation_y(r.rotation_y, r.location))
+            assert ((r.score > 0) & (r.score <= 1)).all()
+    assert sum(len(r) for r in rows) == 3  # frames 2, 3, 4; the cars at 51 m and 58 m are < 25 px high
+
+
+def test_detect_is_deterministic(victim, frames):
+    a = victim.detect(frames, proposals="gt")
+    b = victim.detect(list(reversed(frames)), proposals="gt")[::-1]  # order / batching does not matter
+    assert [x.to_text(precision=6) for x in a] == [x.to_text(precision=6) for x in b]
+
+
+def test_detector_proposals_carry_the_2d_score(victim, frames):
+    frame = frames[3]
+    dets = victim.yolo.detect([frame.image])[0]
+    rows = victim.detect([frame], proposals="detector")[0]
+    assert 0 < len(rows) <= len(dets.boxes)
+    for box, score in zip(rows.bbox, rows.score, strict=True):
+        k = int(np.argmin(np.abs(dets.boxes - box).sum(axis=1)))
+        assert np.allclose(dets.boxes[k], box) and score == pytest.approx(dets.scores[k])
+
+
+def test_given_proposals_and_filters(victim, frames):
+    frame = frames[3]
+    car = frame.labels.select(frame.labels.type == "Car")
+    tiny = np.array([600.0, 200.0, 640.0, 210.0])       # 10 px high: skipped
+    empty = np.array([0.0, 0.0, 30.0, 40.0])            # top-left corner: no LiDAR points
+    rows = victim.detect([frame], [Proposals(np.stack([car.bbox[0], tiny, empty]), np.array([0.9, 0.8, 0.7]))])[0]
+    assert len(rows) == 1 and rows.score[0] == 0.9
+    with pytest.raises(ValueError, match="proposal sets"):
+        victim.detect([frame, frame], [Proposals(car.bbox, np.ones(1))])
+
+
+def test_objectness_oracle_is_differentiable(victim, frames):
+    frame = frames[3]
+    car = frame.labels.select(frame.labels.type == "Car")
+    image = image_to_tensor(frame.image).requires_grad_(True)
+    cand = victim.objectness(image, [car.bbox], iou_threshold=0.3)
+    assert len(cand.objectness_logit) > 0
+    assert (cand.image_index == 0).all() and (cand.target_index == 0).all()
+    inside = ((cand.boxes[:, 0] + cand.boxes[:, 2]) / 2 >= car.bbox[0, 0]) & ((cand.boxes[:, 0] + cand.boxes[:, 2]) / 2
+                                                                              <= car.bbox[0, 2])
+    assert ((cand.iou >= 0.3) | inside).all()
+    loss = -torch.nn.functional.logsigmoid(-cand.objectness_logit).mean()  # = mean -log(1 - o)
+    loss.backward()
+    assert torch.isfinite(image.grad).all() and image.grad.abs().sum() > 0
+
+
+def test_frustum_oracle_is_differentiable(victim, frames):
+    frame = frames[3]
+    car = frame.labels.select(frame.labels.type == "Car")
+    rect = np.concatenate([frame.calib.velo_to_rect_points(frame.scan[:, :3]), frame.scan[:, 3:4]], axis=1)
+    pts = torch.tensor(rect, dtype=torch.float32, requires_grad=True)
+    out = victim.frustum_logits(pts, frame.calib, frame.image_size, car.bbox[0], seed=1)
+    assert out is not None and out.logits.shape == (victim.num_points, 2)
+    fr = extract_frustum(project_scan(frame.scan, frame.calib, frame.image_size), car.bbox[0], frame.calib)
+    assert np.isin(out.sample_index, fr.indices).all()
+    again = victim.frustum_logits(pts, frame.calib, frame.image_size, car.bbox[0], seed=1)
+    assert torch.equal(out.logits, again.logits)
+    out.object_prob.max().backward()
+    grad = pts.grad.abs().sum(dim=1)
+    assert torch.isfinite(pts.grad).all() and grad.sum() > 0
+    assert (grad[np.setdiff1d(np.arange(len(rect)), out.sample_index)] == 0).all()  # only sampled points
+    assert victim.frustum_logits(pts, frame.calib, frame.image_size, np.array([0.0, 0, 20, 20])) is None
+
+
+def test_weights_round_trip(victim, frames, tmp_path):
+    path = tmp_path / "cascade.pt"
+    victim.save(path)
+    from robustbench3d.fileio import sha256_file
+
+    loaded = FPointNetCascade.load(path, CascadeSettings(seed=3), sha256=sha256_file(path))
+    a = victim.detect(frames[2:4], proposals="gt")
+    b = loaded.detect(frames[2:4], proposals="gt")
+    assert [x.to_text(precision=6) for x in a] == [x.to_text(precision=6) for x in b]
+    from robustbench3d.errors import RobustBenchError
+
+    with pytest.raises(RobustBenchError, match="sha256"):
+        FPointNetCascade.load(path, sha256="0" * 64)

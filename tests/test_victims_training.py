@@ -1,0 +1,242 @@
+"""Training entry points on a tiny KITTI-layout dataset written here with the kitti writers:
+frustum data (perturbation, targets, augmentations), resume == uninterrupted run, few-step
+overfit sanity, the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from robustbench3d.cli import main
+from robustbench3d.geometry import alpha_from_rotation_y, box_corners, points_in_boxes, project_boxes_to_image
+from robustbench3d.kitti import (
+    KittiDataset,
+    Labels,
+    write_calibration,
+    write_image,
+    write_labels,
+    write_scan,
+    write_split,
+)
+from robustbench3d.kitti.calib import Calibration
+from robustbench3d.victims.cascade import FPointNetCascade
+from robustbench3d.victims.fpointnet.box_coding import angle_to_class
+from robustbench3d.victims.fpointnet.data import build_frustum_set, make_item
+from robustbench3d.victims.fpointnet.frustum import rotate_to_frustum
+from robustbench3d.victims.fpointnet.training import FPointNetTask, FPointNetTrainConfig
+from robustbench3d.victims.fpointnet.training import train as train_fpn
+from robustbench3d.victims.training import LoopOptions
+from robustbench3d.victims.yolo.anchors import wh_iou_np
+from robustbench3d.victims.yolo.config import MINI
+from robustbench3d.victims.yolo.data import build_image_set
+from robustbench3d.victims.yolo.letterbox import letterbox_geometry
+from robustbench3d.victims.yolo.training import YoloTask, YoloTrainConfig, average_precision
+from robustbench3d.victims.yolo.training import train as train_yolo
+
+torch.set_num_threads(1)
+
+CALIB = Calibration(
+    P0=np.eye(3, 4), P1=np.eye(3, 4),
+    P2=np.array([[721.5377, 0.0, 609.5593, 44.85728], [0.0, 721.5377, 172.854, 0.2163791],
+                 [0.0, 0.0, 1.0, 0.002745884]]),
+    P3=np.eye(3, 4), R0_rect=np.eye(3),
+    Tr_velo_to_cam=np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, -0.08], [1.0, 0.0, 0.0, -0.27]]),
+    Tr_imu_to_velo=np.eye(3, 4),
+)
+W, H = 1242, 375
+
+
+def write_tiny_dataset(root: Path, n_train: int = 4, n_val: int = 2, seed: int = 0) -> Path:
+    """Frames with a flat ground, 1-2 box-shaped cars (points on all faces) and an image where
+    each car's 2D box is a dark rectangle."""
+    rng = np.random.default_rng(seed)
+    ids = [f"{i:06d}" for i in range(n_train + n_val)]
+    for fid in ids:
+        gx, gz = np.meshgrid(np.arange(-12.0, 12.0, 0.4), np.arange(4.0, 35.0, 0.4))
+        ground = np.stack([gx.ravel(), np.full(gx.size, 1.65), gz.ravel()], axis=1)
+        n_cars = int(rng.integers(1, 3))
+        dims = np.column_stack([rng.uniform(1.4, 1.6, n_cars), rng.uniform(1.5, 1.8, n_cars),
+                                rng.uniform(3.6, 4.4, n_cars)])
+        loc = np.column_stack([np.array([-3.5, 3.5])[:n_cars] + rng.uniform(-1, 1, n_cars), np.full(n_cars, 1.65),
+                               rng.uniform(9, 22, n_cars)])
+        ry = rng.uniform(-np.pi, np.pi, n_cars)
+        corners = box_corners(dims, loc, ry)
+        cars = []
+        for k in range(n_cars):  # points on the box surface: random points pushed to a random face
+            u = rng.uniform(-0.5, 0.5, (600, 3))
+            axis = rng.integers(0, 3, 600)
+            u[np.arange(600), axis] = np.sign(u[np.arange(600), axis]) * 0.48  # just inside a face
+            local = u * dims[k][[2, 0, 1]] + [0, -dims[k, 0] / 2, 0]  # (l, h, w) extents, y up from the bottom
+            c, s = np.cos(ry[k]), np.sin(ry[k])
+            rect = np.stack([c * local[:, 0] + s * local[:, 2], local[:, 1], -s * local[:, 0] + c * local[:, 2]], 1)
+            cars.append(rect + loc[k])
+        rect_pts = np.concatenate([ground[~points_in_boxes(ground, dims, loc, ry, margin=0.1).any(axis=1)], *cars])
+        velo = CALIB.rect_to_velo_points(rect_pts)
+        scan = np.concatenate([velo, rng.uniform(0, 1, (len(velo), 1))], axis=1).astype(np.float32)
+        bbox, valid = project_boxes_to_image(corners, CALIB, (W, H))
+        image = rng.integers(150, 200, (H, W, 3), dtype=np.uint8)
+        for b in bbox[valid]:
+            image[int(b[1]):int(b[3]), int(b[0]):int(b[2])] = (40, 40, 60)
+        labels = Labels(type=np.array(["Car"] * n_cars, dtype=object), truncated=np.zeros(n_cars),
+                        occluded=np.zeros(n_cars, dtype=np.int64), alpha=alpha_from_rotation_y(ry, loc), bbox=bbox,
+                        dimensions=dims, location=loc, rotation_y=ry)
+        d = root / "training"
+        write_scan(d / "velodyne" / f"{fid}.bin", scan)
+        write_image(d / "image_2" / f"{fid}.png", image)
+        write_labels(d / "label_2" / f"{fid}.txt", labels)
+        write_calibration(d / "calib" / f"{fid}.txt", CALIB)
+    write_split(root / "ImageSets" / "train.txt", ids[:n_train])
+    write_split(root / "ImageSets" / "val.txt", ids[n_train:])
+    return root
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory) -> Path:
+    return write_tiny_dataset(tmp_path_factory.mktemp("tiny_kitti"))
+
+
+def test_frustum_set_and_items(tiny_data):
+    ds = KittiDataset(tiny_data, split="train")
+    val = build_frustum_set(ds, np.random.default_rng(0), augment_x=1, perturb=False)
+    n_cars = sum(len(ds.labels(f)) for f in ds.frame_ids)
+    assert len(val) == n_cars  # every synthetic car is tall enough and has points
+    for i in range(len(val)):
+        labels = ds.labels(str(val.frame_ids[i]))
+        j = int(np.argmin(np.abs(labels.bbox - val.box2d[i]).sum(axis=1)))
+        pts, seg = val.frustum(i)
+        inside = points_in_boxes(pts, labels.dimensions[j:j + 1], labels.location[j:j + 1], labels.rotation_y[j:j + 1])
+        assert np.array_equal(seg.astype(bool), inside[:, 0]) and seg.sum() > 50
+        assert np.allclose(val.center[i], labels.location[j] - [0, labels.dimensions[j, 0] / 2, 0])
+    train = build_frustum_set(ds, np.random.default_rng(0), augment_x=5, perturb=True)
+    assert len(train) == 5 * n_cars
+    assert not np.allclose(train.box2d[0], train.box2d[1])  # perturbed copies differ
+    # a plain item: rotated points, centre and heading targets in the frustum frame
+    item = make_item(val, 0, 256, np.random.default_rng(1))
+    rot = val.rot_angle[0]
+    assert item.points.shape == (256, 4) and item.rot_angle == rot
+    assert np.allclose(item.center, rotate_to_frustum(val.center[0], rot))
+    c, r = angle_to_class(val.ry[0] - rot)
+    assert (item.heading_class, item.heading_residual) == (int(c), pytest.approx(float(r)))
+    # flip negates x and maps heading h -> pi - h; the faithful shift pushes z by ~0.8·d
+    for seed in range(20):
+        flipped = make_item(val, 0, 256, np.random.default_rng(seed), flip=True)
+        if flipped.center[0] != item.center[0]:
+            assert flipped.center[0] == pytest.approx(-item.center[0])
+            c2, r2 = angle_to_class(np.pi - (val.ry[0] - rot))
+            assert (flipped.heading_class, flipped.heading_residual) == (int(c2), pytest.approx(float(r2)))
+            break
+    else:
+        pytest.fail("flip never happened in 20 draws")
+    shifted = make_item(val, 0, 256, np.random.default_rng(3), shift="faithful")
+    d = np.hypot(item.center[0], item.center[1])
+    assert shifted.center[2] - item.center[2] == pytest.approx(0.8 * d)
+    intended = make_item(val, 0, 256, np.random.default_rng(3), shift="intended")
+    assert abs(intended.center[2] - item.center[2]) <= 0.2 * d
+
+
+def _state_dicts_equal(a: Path, b: Path) -> bool:
+    sa = torch.load(a, weights_only=True)["state_dict"]
+    sb = torch.load(b, weights_only=True)["state_dict"]
+    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_fpointnet_resume_reproduces_the_uninterrupted_run(tiny_data, tmp_path):
+    cfg = FPointNetTrainConfig(model="lite", augment_x=2)
+    opts = LoopOptions(epochs=2, batch_size=4, seed=5, progress=False)
+    full = train_fpn(tiny_data, tmp_path / "a", cfg, opts)
+    assert full["finished"] and full["step"] >= 4
+    interrupted = LoopOptions(**{**opts.__dict__, "max_steps": full["step"] // 2 + 1})
+    stopped = train_fpn(tiny_data, tmp_path / "b", cfg, interrupted)
+    assert not stopped["finished"] and not (tmp_path / "b" / "model.pt").exists()
+    resumed = train_fpn(tiny_data, tmp_path / "b", cfg, opts, resume=True)
+    assert resumed["finished"] and resumed["step"] == full["step"]
+    assert _state_dicts_equal(tmp_path / "a" / "model.pt", tmp_path / "b" / "model.pt")
+    assert (tmp_path / "a" / "log.jsonl").read_text() == (tmp_path / "b" / "log.jsonl").read_text()
+    log = [json.loads(x) for x in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in log] == [1, 2] and all(np.isfinite(r["val_loss"]) for r in log)
+    with pytest.raises(Exception, match="different configuration"):
+        train_fpn(tiny_data, tmp_path / "b", FPointNetTrainConfig(model="lite", augment_x=3), opts, resume=True)
+
+
+def test_yolo_resume_reproduces_the_uninterrupted_run(tiny_data, tmp_path):
+    cfg = YoloTrainConfig(warmup_steps=1)
+    opts = LoopOptions(epochs=2, batch_size=2, seed=1, progress=False)
+    full = train_yolo(tiny_data, tmp_path / "a", cfg, opts)
+    assert full["finished"] and full["step"] == 4
+    train_yolo(tiny_data, tmp_path / "b", cfg, LoopOptions(**{**opts.__dict__, "max_steps": 3}))
+    resumed = train_yolo(tiny_data, tmp_path / "b", cfg, opts, resume=True)
+    assert resumed["finished"]
+    assert _state_dicts_equal(tmp_path / "a" / "model.pt", tmp_path / "b" / "model.pt")
+    # k-means anchors were fitted to the training boxes and saved with the model
+    saved = np.array(torch.load(tmp_path / "a" / "model.pt", weights_only=True)["config"]["anchors"])
+    ds = KittiDataset(tiny_data, split="train")
+    wh = []
+    for fid in ds.frame_ids:
+        geo = letterbox_geometry((W, H), MINI.input_size)
+        b = geo.to_input(ds.labels(fid).bbox)
+        wh.append(b[:, 2:] - b[:, :2])
+    wh = np.concatenate(wh)
+    assert saved.shape == (6, 2) and np.all(np.diff(saved.prod(axis=1)) >= 0)
+    assert wh_iou_np(wh, saved).max(axis=1).mean() > wh_iou_np(wh, np.array(MINI.anchors)).max(axis=1).mean()
+    # the two trainers' outputs assemble into a working cascade
+    fpn_out = tmp_path / "fpn"
+    train_fpn(tiny_data, fpn_out, FPointNetTrainConfig(model="lite", augment_x=1),
+              LoopOptions(epochs=1, batch_size=4, progress=False))
+    victim = FPointNetCascade.from_parts(tmp_path / "a" / "model.pt", fpn_out / "model.pt")
+    frame = KittiDataset(tiny_data, split="val")[0]
+    rows = victim.detect([frame], proposals="gt")[0]
+    assert len(rows) == len(frame.labels)
+
+
+def test_fpointnet_overfits_a_few_frustums(tiny_data):
+    ds = KittiDataset(tiny_data, split="train")
+    fs = build_frustum_set(ds, np.random.default_rng(0), augment_x=1)
+    task = FPointNetTask(fs, fs, FPointNetTrainConfig(model="lite", flip=False, shift="off"), seed=0)
+    idx = np.arange(min(4, len(fs)))
+    losses = []
+    for _ in range(40):
+        task.model.train()
+        loss, _ = task.loss(idx, np.random.default_rng(0), torch.Generator().manual_seed(0))
+        task.optimizer.zero_grad()
+        loss.backward()
+        task.optimizer.step()
+        losses.append(loss.item())
+    assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:5])
+
+
+def test_yolo_loss_decreases_on_one_image(tiny_data, tmp_path):
+    ds = KittiDataset(tiny_data, split="train")
+    images = build_image_set(ds, MINI.input_size, MINI.fill, tmp_path / "images")
+    assert images.images.shape == (4, 192, 640, 3) and len(images.targets(0)[0]) == len(ds.labels(ds.frame_ids[0]))
+    task = YoloTask(images, images, MINI, YoloTrainConfig(warmup_steps=1), seed=0, epochs=1, steps_per_epoch=1)
+    losses = []
+    for _ in range(8):
+        task.model.train()
+        loss, _ = task.loss(np.array([0, 1]), np.random.default_rng(0), torch.Generator())
+        task.optimizer.zero_grad()
+        loss.backward()
+        task.optimizer.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.5 * losses[0]
+
+
+def test_average_precision_by_hand():
+    gts = [np.array([[0.0, 0, 10, 10], [20, 20, 30, 30]])]
+    # ranked: hit, miss, hit -> precision 1, 1/2, 2/3 at recall 1/2, 1/2, 1 -> AP = 0.5·1 + 0.5·2/3
+    boxes = [np.array([[0.0, 0, 10, 10], [50, 50, 60, 60], [20, 20, 30, 31]])]
+    scores = [np.array([0.9, 0.8, 0.7])]
+    assert average_precision(scores, boxes, gts, 0.5) == pytest.approx(0.5 + 0.5 * 2 / 3)
+    assert average_precision(scores, boxes, gts, 0.95) == pytest.approx(0.5)
+
+
+def test_train_cli(tiny_data, tmp_path, capsys):
+    out = tmp_path / "cli"
+    argv = ["train", "fpointnet", "--data", str(tiny_data), "--out", str(out), "--epochs", "1", "--model", "lite",
+            "--batch-size", "4", "--augment-x", "1", "--no-progress", "--threads", "1"]
+    assert main(argv) == 0
+    assert (out / "model.pt").exists() and (out / "last.pt").exists() and (out / "frustums_train.npz").exists()
+    assert "finished" in capsys.readouterr().err

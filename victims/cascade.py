@@ -1,0 +1,242 @@
+"""The F-PN v1 cascade victim: YOLO 2D detector -> frustums -> Frustum-PointNet v1 -> KITTI rows.
+
+Implements :class:`~robustbench3d.victims.base.Detector`,
+:class:`~robustbench3d.victims.base.ImageObjectnessOracle` and
+:class:`~robustbench3d.victims.base.FrustumSegmentationOracle`.
+
+Determinism: the resampling of each frustum to N points (with replacement, as the original) and
+the random object-point gather draw from ``numpy.random.default_rng([seed, frame, proposal])``,
+so a frustum's result does not depend on the batch or on other frames; the networks run in eval
+mode (BatchNorm running statistics, no dropout). Proposal filters follow §1.3: 2D height >= 25 px,
+and at least ``min_points_detector`` (5) frustum points for detector boxes or one for GT boxes.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from robustbench3d.errors import RobustBenchError
+from robustbench3d.fileio import atomic_open, sha256_file
+from robustbench3d.kitti.calib import Calibration
+from robustbench3d.kitti.dataset import Frame
+from robustbench3d.kitti.labels import Labels
+from robustbench3d.victims.base import (
+    FrustumLogits,
+    ObjectnessCandidates,
+    Proposals,
+    ProposalsArg,
+    empty_detections,
+)
+from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
+from robustbench3d.victims.fpointnet.frustum import (
+    Frustum,
+    extract_frustum,
+    project_rect_points,
+    project_scan,
+    resample_indices,
+    rotate_to_frustum,
+)
+from robustbench3d.victims.fpointnet.model import (
+    FPointNetConfig,
+    FrustumPointNetV1,
+    GatherMode,
+    build_model,
+    rotate_to_frustum_torch,
+)
+from robustbench3d.victims.fpointnet.to_kitti import decode, to_labels
+from robustbench3d.victims.yolo.config import YoloConfig
+from robustbench3d.victims.yolo.detector import YoloDetector, candidates_for_targets
+from robustbench3d.victims.yolo.model import Darknet
+
+
+@dataclass(frozen=True)
+class CascadeSettings:
+    """Inference settings of :class:`FPointNetCascade`.
+
+    seed: base seed of the per-frustum resampling / gather generators.
+    gather: "random" (original, seeded) or "topk" object-point choice.
+    min_box_height: proposals lower than this (px) are skipped.
+    min_points_detector / min_points_gt: minimum frustum points for detector / GT proposals.
+    gt_types: label types used as GT proposals.
+    batch_size: frustums per forward pass (4: larger batches of the full config run ~2x slower per
+        frustum on CPU, the 1091-channel per-point features no longer fit in cache).
+    """
+
+    seed: int = 0
+    gather: GatherMode = "random"
+    min_box_height: float = 25.0
+    min_points_detector: int = 5
+    min_points_gt: int = 1
+    gt_types: tuple[str, ...] = ("Car",)
+    batch_size: int = 4
+
+
+def frame_key(frame_id: str) -> int:
+    """Integer seed component of a frame id (its value if numeric, else a CRC32)."""
+    return int(frame_id) if frame_id.isdigit() else zlib.crc32(frame_id.encode("utf-8"))
+
+
+class FPointNetCascade:
+    """YOLO -> Frustum-PointNet v1 for KITTI cars (see the module docstring)."""
+
+    supported_proposals: tuple[str, ...] = ("detector", "gt")
+
+    def __init__(self, yolo: YoloDetector, fpn: FrustumPointNetV1, settings: CascadeSettings | None = None):
+        self.yolo = yolo
+        self.fpn = fpn.eval()
+        self.settings = settings or CascadeSettings()
+        self.car_class = self.yolo.cfg.class_names.index("Car")
+
+    # ---- construction ------------------------------------------------------------------
+    @property
+    def num_points(self) -> int:
+        return self.fpn.cfg.num_points
+
+    @classmethod
+    def untrained(cls, fpn_config: FPointNetConfig | str = "full", yolo_config: YoloConfig | str = "mini",
+                  seed: int = 0, settings: CascadeSettings | None = None) -> FPointNetCascade:
+        """Randomly initialised networks (seeded) — for tests and plumbing, not for results."""
+        return cls(YoloDetector.untrained(yolo_config, seed), build_model(fpn_config, seed + 1), settings)
+
+    def state(self) -> dict[str, Any]:
+        return {"format": "robustbench3d.fpointnet_cascade/1",
+                "yolo": {"config": self.yolo.cfg.to_dict(), "state_dict": self.yolo.net.state_dict()},
+                "fpointnet": {"config": self.fpn.cfg.to_dict(), "state_dict": self.fpn.state_dict()}}
+
+    def save(self, path: str | Path) -> None:
+        """Write both networks to one weights file (atomically)."""
+        with atomic_open(path, "wb") as f:
+            torch.save(self.state(), f)
+
+    @classmethod
+    def load(cls, path: str | Path, settings: CascadeSettings | None = None,
+             sha256: str | None = None) -> FPointNetCascade:
+        """From :meth:`save`'s file; with ``sha256`` the file's hash is checked first."""
+        path = Path(path)
+        if sha256 is not None and sha256_file(path) != sha256:
+            raise RobustBenchError(f"{path}: sha256 does not match the registered weights ({sha256})")
+        data = torch.load(path, map_location="cpu", weights_only=True)
+        return cls.from_parts(data["yolo"], data["fpointnet"], settings)
+
+    @classmethod
+    def from_parts(cls, yolo: dict[str, Any] | str | Path, fpointnet: dict[str, Any] | str | Path,
+                   settings: CascadeSettings | None = None) -> FPointNetCascade:
+        """From the two trainers' ``model.pt`` files (or their loaded dicts)."""
+        y = yolo if isinstance(yolo, dict) else torch.load(Path(yolo), map_location="cpu", weights_only=True)
+        p = fpointnet if isinstance(fpointnet, dict) else torch.load(Path(fpointnet), map_location="cpu",
+                                                                     weights_only=True)
+        net = Darknet(YoloConfig.from_dict(y["config"]))
+        net.load_state_dict(y["state_dict"])
+        fpn = FrustumPointNetV1(FPointNetConfig.from_dict(p["config"]))
+        fpn.load_state_dict(p["state_dict"])
+        return cls(YoloDetector(net), fpn, settings)
+
+    # ---- Detector ----------------------------------------------------------------------
+    def proposals(self, frames: Sequence[Frame], source: ProposalsArg) -> list[Proposals]:
+        """2D proposals per frame: YOLO Car detections, GT boxes of ``gt_types``, or as given."""
+        if not isinstance(source, str):
+            if len(source) != len(frames):
+                raise ValueError(f"{len(source)} proposal sets for {len(frames)} frames")
+            return list(source)
+        if source == "detector":
+            dets = self.yolo.detect([f.image for f in frames])
+            return [Proposals(d.boxes[d.classes == self.car_class], d.scores[d.classes == self.car_class])
+                    for d in dets]
+        if source == "gt":
+            out = []
+            for f in frames:
+                if f.labels is None:
+                    raise ValueError(f"frame {f.frame_id} has no labels; proposals='gt' needs them")
+                sel = np.isin(f.labels.type.astype(str), self.settings.gt_types)
+                out.append(Proposals(f.labels.bbox[sel], np.ones(int(sel.sum()))))
+            return out
+        raise ValueError(f"proposals must be 'detector', 'gt' or a list of Proposals, got {source!r}")
+
+    def detect(self, frames: Sequence[Frame], proposals: ProposalsArg = "detector") -> list[Labels]:
+        """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes)."""
+        props = self.proposals(frames, proposals)
+        use_3d_score = isinstance(proposals, str) and proposals == "gt"
+        min_points = self.settings.min_points_gt if use_3d_score else self.settings.min_points_detector
+        jobs: list[tuple[int, Frustum, float, np.random.Generator]] = []
+        points: list[np.ndarray] = []
+        for fi, (frame, prop) in enumerate(zip(frames, props, strict=True)):
+            if len(prop.boxes) == 0:
+                continue
+            projected = project_scan(frame.scan, frame.calib, frame.image_size)
+            for k, (box, score) in enumerate(zip(prop.boxes, prop.scores, strict=True)):
+                if box[3] - box[1] < self.settings.min_box_height:
+                    continue
+                fr = extract_frustum(projected, box, frame.calib)
+                if len(fr) < max(min_points, 1):
+                    continue
+                rng = np.random.default_rng([self.settings.seed, frame_key(frame.frame_id), k])
+                idx = resample_indices(len(fr), self.num_points, rng)
+                points.append(rotate_to_frustum(fr.points[idx], fr.rot_angle).astype(np.float32))
+                jobs.append((fi, fr, float(score), rng))
+        per_frame: list[list[Labels]] = [[] for _ in frames]
+        bs = self.settings.batch_size
+        for start in range(0, len(jobs), bs):
+            chunk = jobs[start:start + bs]
+            pts = torch.from_numpy(np.stack(points[start:start + bs]))
+            one_hot = torch.zeros(len(chunk), len(ONE_HOT_CLASSES))
+            one_hot[:, 0] = 1.0
+            with torch.no_grad():
+                out = self.fpn(pts, one_hot, gather=self.settings.gather, rng=[j[3] for j in chunk])
+            boxes = decode(out)
+            rows = to_labels(boxes, np.array([j[1].rot_angle for j in chunk]), np.stack([j[1].box2d for j in chunk]),
+                             boxes.score_3d if use_3d_score else np.array([j[2] for j in chunk]))
+            for r, job in enumerate(chunk):
+                per_frame[job[0]].append(rows.select(np.array([r])))
+        return [Labels.concatenate(p) if p else empty_detections() for p in per_frame]
+
+    # ---- ImageObjectnessOracle --------------------------------------------------------
+    def objectness(self, images: torch.Tensor, targets: Sequence[np.ndarray], *,
+                   iou_threshold: float = 0.3) -> ObjectnessCandidates:
+        """Objectness / Car logits of the priors around each target box (see base protocol)."""
+        if len(targets) != images.shape[0]:
+            raise ValueError(f"{len(targets)} target sets for {images.shape[0]} images")
+        pred, geo = self.yolo.predictions(images)
+        parts: dict[str, list[torch.Tensor]] = {k: [] for k in ("obj", "cls", "boxes", "iou", "image", "target")}
+        for b, tgt in enumerate(targets):
+            c = candidates_for_targets(pred, geo, torch.as_tensor(np.asarray(tgt, dtype=np.float64)),
+                                       iou_threshold, b)
+            parts["obj"].append(pred.obj_logit[b, c["prior"]])
+            parts["cls"].append(pred.cls_logit[b, c["prior"], self.car_class])
+            parts["boxes"].append(c["boxes"].float())
+            parts["iou"].append(c["iou"].float())
+            parts["image"].append(torch.full_like(c["prior"], b))
+            parts["target"].append(c["target"])
+        return ObjectnessCandidates(
+            objectness_logit=torch.cat(parts["obj"]), class_logit=torch.cat(parts["cls"]),
+            boxes=torch.cat(parts["boxes"]).reshape(-1, 4), iou=torch.cat(parts["iou"]),
+            image_index=torch.cat(parts["image"]), target_index=torch.cat(parts["target"]),
+        )
+
+    # ---- FrustumSegmentationOracle ----------------------------------------------------
+    def frustum_logits(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
+                       box2d: np.ndarray, *, seed: int = 0, class_id: int = 0) -> FrustumLogits | None:
+        """Seg logits of the frustum of ``box2d`` over (P, 4) rect points (differentiable)."""
+        projected = project_rect_points(points_rect.detach().cpu().double().numpy(), calib, image_size)
+        fr = extract_frustum(projected, np.asarray(box2d, dtype=np.float64), calib)
+        if len(fr) == 0:
+            return None
+        idx = fr.indices[resample_indices(len(fr), self.num_points, np.random.default_rng(seed))]
+        pts = rotate_to_frustum_torch(points_rect[torch.from_numpy(idx)], fr.rot_angle)
+        one_hot = torch.zeros(1, len(ONE_HOT_CLASSES), dtype=pts.dtype)
+        one_hot[0, class_id] = 1.0
+        logits = self.segmentation_logits(pts[None], one_hot)[0]
+        return FrustumLogits(logits=logits, sample_index=idx, rot_angle=fr.rot_angle, points=pts)
+
+    def segmentation_logits(self, points: torch.Tensor, one_hot: torch.Tensor) -> torch.Tensor:
+        """(B, N, 2) logits of (B, N, 4) frustum-frame points (eval-mode network)."""
+        seg = self.fpn.seg
+        if points.dtype != next(seg.parameters()).dtype:
+            points = points.to(next(seg.parameters()).dtype)
+        return seg(points, one_hot)

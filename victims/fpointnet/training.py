@@ -1,0 +1,147 @@
+"""Training of Frustum-PointNet v1 on GT-box frustums of a KITTI-layout dataset (reference §1.8).
+
+Defaults follow the PyTorch port: Adam (lr 1e-3, β 0.9/0.999), lr × 0.7 every 20 epochs with a
+1e-5 floor, batch 32, car-only frustums, 5 perturbed copies per train box, flip and the faithful
+shift augmentation; BatchNorm momentum follows the TF schedule (0.5·0.5^⌊samples/800k⌋, ≥ 0.01).
+Frustum sets are cached in the output directory (``frustums_<split>.npz``).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from robustbench3d.fileio import atomic_write_text
+from robustbench3d.kitti.dataset import KittiDataset
+from robustbench3d.victims import training as loop
+from robustbench3d.victims.fpointnet.box_coding import class_to_size
+from robustbench3d.victims.fpointnet.data import FrustumItem, FrustumSet, ShiftMode, build_frustum_set, make_item
+from robustbench3d.victims.fpointnet.losses import FPointNetTargets, fpointnet_loss
+from robustbench3d.victims.fpointnet.model import CONFIGS, bn_momentum_at, build_model, set_bn_momentum
+
+
+@dataclass(frozen=True)
+class FPointNetTrainConfig:
+    model: str = "full"
+    types: tuple[str, ...] = ("Car",)
+    augment_x: int = 5
+    lr: float = 1e-3
+    lr_decay: float = 0.7
+    lr_decay_every: int = 20
+    lr_min: float = 1e-5
+    bn_decay_step: int = 800_000
+    flip: bool = True
+    shift: ShiftMode = "faithful"
+    double_size_residual: bool = True
+    train_split: str = "train"
+    val_split: str = "val"
+
+
+def collate(items: Sequence[FrustumItem]) -> tuple[torch.Tensor, torch.Tensor, FPointNetTargets]:
+    """Stack items into (points (B, N, 4), one_hot (B, 3), targets)."""
+    targets = FPointNetTargets(
+        seg=torch.from_numpy(np.stack([it.seg for it in items])),
+        center=torch.tensor(np.stack([it.center for it in items]), dtype=torch.float32),
+        heading_class=torch.tensor([it.heading_class for it in items], dtype=torch.int64),
+        heading_residual=torch.tensor([it.heading_residual for it in items], dtype=torch.float32),
+        size_class=torch.tensor([it.size_class for it in items], dtype=torch.int64),
+        size_residual=torch.tensor(np.stack([it.size_residual for it in items]), dtype=torch.float32),
+    )
+    return (torch.from_numpy(np.stack([it.points for it in items])),
+            torch.from_numpy(np.stack([it.one_hot for it in items])), targets)
+
+
+def cached_frustum_set(data_dir: Path, split: str, out_dir: Path, cfg: FPointNetTrainConfig, seed: int,
+                       train: bool) -> FrustumSet:
+    """Build (or reuse from ``out_dir``) the frustum set of one split."""
+    dataset = KittiDataset(data_dir, split=split)
+    key = {"data": str(data_dir.resolve()), "split": split, "frames": dataset.frame_ids, "types": list(cfg.types),
+           "augment_x": cfg.augment_x if train else 1, "perturb": train, "seed": seed}
+    npz, meta = out_dir / f"frustums_{split}.npz", out_dir / f"frustums_{split}.json"
+    if npz.exists() and meta.exists() and json.loads(meta.read_text()) == key:
+        return FrustumSet.load(npz)
+    fs = build_frustum_set(dataset, np.random.default_rng([seed, 1]), cfg.types,
+                           augment_x=key["augment_x"], perturb=train)
+    fs.save(npz)
+    atomic_write_text(meta, json.dumps(key))
+    return fs
+
+
+class FPointNetTask:
+    """:class:`~robustbench3d.victims.training.TrainingTask` for F-PN v1."""
+
+    def __init__(self, train_set: FrustumSet, val_set: FrustumSet, cfg: FPointNetTrainConfig, seed: int,
+                 val_limit: int | None = None):
+        self.cfg = cfg
+        self.seed = seed
+        self.train_set, self.val_set = train_set, val_set
+        self.val_limit = val_limit
+        self.model = build_model(cfg.model, seed)
+        self.num_points = CONFIGS[cfg.model].num_points
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, betas=(0.9, 0.999), eps=1e-8)
+
+    def num_items(self) -> int:
+        return len(self.train_set)
+
+    def config_dict(self) -> dict[str, Any]:
+        return {**asdict(self.cfg), "seed": self.seed, "train_frustums": len(self.train_set)}
+
+    def schedule(self, epoch: int, step: int, samples_seen: int) -> None:
+        loop.set_lr(self.optimizer, loop.step_lr(self.cfg.lr, epoch, self.cfg.lr_decay, self.cfg.lr_decay_every,
+                                                 self.cfg.lr_min))
+        set_bn_momentum(self.model, bn_momentum_at(samples_seen, decay_step=self.cfg.bn_decay_step))
+
+    def loss(self, indices: np.ndarray, rng: np.random.Generator,
+             generator: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
+        items = [make_item(self.train_set, int(i), self.num_points, rng, self.cfg.flip, self.cfg.shift)
+                 for i in indices]
+        points, one_hot, targets = collate(items)
+        out = self.model(points, one_hot, gather="random", rng=rng, generator=generator)
+        total, terms = fpointnet_loss(out, targets, double_size_residual=self.cfg.double_size_residual)
+        return total, {k: v.item() for k, v in terms.items()}
+
+    def evaluate(self, batch_size: int = 64) -> dict[str, float]:
+        """Loss and simple accuracies on the val frustums (exact GT boxes, no augmentation)."""
+        n = len(self.val_set) if self.val_limit is None else min(self.val_limit, len(self.val_set))
+        sums: dict[str, float] = {}
+        for start in range(0, n, batch_size):
+            idx = range(start, min(n, start + batch_size))
+            items = [make_item(self.val_set, i, self.num_points, np.random.default_rng([self.seed, i])) for i in idx]
+            points, one_hot, t = collate(items)
+            out = self.model(points, one_hot, gather="random", rng=np.random.default_rng([self.seed, start, 2]))
+            total, _ = fpointnet_loss(out, t, double_size_residual=self.cfg.double_size_residual)
+            k = torch.arange(len(items))
+            size_pred = class_to_size(out.size_scores.argmax(1).numpy(),
+                                      out.size_residuals[k, out.size_scores.argmax(1)].numpy())
+            size_gt = class_to_size(t.size_class.numpy(), t.size_residual.numpy())
+            stats = {
+                "loss": total.item() * len(items),
+                "seg_accuracy": float((out.seg_logits.argmax(-1) == t.seg).float().mean()) * len(items),
+                "center_error_m": float((out.center - t.center).norm(dim=1).sum()),
+                "heading_class_accuracy": float((out.heading_scores.argmax(1) == t.heading_class).float().sum()),
+                "size_error_m": float(np.linalg.norm(size_pred - size_gt, axis=1).sum()),
+            }
+            for key, v in stats.items():
+                sums[key] = sums.get(key, 0.0) + v
+        return {k: v / max(n, 1) for k, v in sums.items()}
+
+    def export(self) -> dict[str, Any]:
+        return {"config": self.model.cfg.to_dict(), "state_dict": self.model.state_dict(),
+                "train_config": asdict(self.cfg)}
+
+
+def train(data_dir: str | Path, out_dir: str | Path, cfg: FPointNetTrainConfig, options: loop.LoopOptions,
+          resume: bool = False, val_limit: int | None = None) -> dict[str, Any]:
+    """Build / load the frustum sets and run the training loop (see :mod:`..training`)."""
+    data, out = Path(data_dir), Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    train_set = cached_frustum_set(data, cfg.train_split, out, cfg, options.seed, train=True)
+    val_set = cached_frustum_set(data, cfg.val_split, out, cfg, options.seed, train=False)
+    task = FPointNetTask(train_set, val_set, cfg, options.seed, val_limit)
+    return loop.run(task, out, options, resume)

@@ -1,0 +1,52 @@
+"""``robustbench3d victims list``: registered victims with their capabilities (table or JSON)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
+    parser.add_argument("pattern", nargs="?", default="*", help="glob over names (default: all)")
+
+
+def rows(pattern: str = "*") -> list[dict[str, Any]]:
+    """One dict per registered victim (loads each entry; plugins that fail are reported)."""
+    from robustbench3d.registry import RegistryError
+    from robustbench3d.victims import VICTIMS
+
+    out = []
+    for name in VICTIMS.names(pattern):
+        entry = VICTIMS.entry(name)
+        try:
+            info = VICTIMS.get(name).info
+            out.append({"name": name, "origin": entry.origin, **info.as_dict(), "error": None})
+        except RegistryError as exc:
+            out.append({"name": name, "origin": entry.origin, "capabilities": None, "weights_sha256": None,
+                        "summary": "", "error": str(exc)})
+    return out
+
+
+def format_table(items: list[dict[str, Any]]) -> str:
+    header = ("name", "modalities", "backend", "gradients", "deterministic", "weights sha256", "origin", "summary")
+    lines = []
+    for r in items:
+        cap = r["capabilities"]
+        if cap is None:
+            lines.append((r["name"], "-", "-", "-", "-", "-", r["origin"], f"ERROR: {r['error']}"))
+            continue
+        sha = r["weights_sha256"]
+        lines.append((r["name"], "+".join(cap["modalities"]), cap["backend"], "yes" if cap["gradients"] else "no",
+                      "yes" if cap["deterministic"] else "no", sha[:12] + "…" if sha else "none",
+                      r["origin"], r["summary"]))
+    widths = [max(len(str(c)) for c in col) for col in zip(header, *lines, strict=False)]
+    fmt = "  ".join(f"{{:<{w}}}" for w in widths)
+    return "\n".join(fmt.format(*row).rstrip() for row in [header, *lines])
+
+
+def run(args: argparse.Namespace) -> int:
+    items = rows(args.pattern)
+    print(json.dumps(items, indent=2) if args.json else format_table(items))
+    return 1 if any(r["error"] for r in items) else 0

@@ -1,0 +1,102 @@
+"""YOLO training images from a KITTI-layout dataset: letterboxed once and cached.
+
+Each frame's image is letterboxed to the network input (same function as inference), stored as
+uint8 in a ``.npy`` memmap; Car boxes become targets and Van / DontCare boxes ignore regions
+(reference §2.3), all in input pixels (xyxy).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from robustbench3d.fileio import atomic_open, atomic_write_text
+from robustbench3d.kitti.dataset import KittiDataset
+from robustbench3d.victims.yolo.letterbox import image_to_tensor, letterbox
+
+TARGET_TYPES: tuple[str, ...] = ("Car",)
+IGNORE_TYPES: tuple[str, ...] = ("Van", "DontCare")
+
+
+@dataclass
+class YoloImageSet:
+    """images (F, H_in, W_in, 3) uint8 (memmap); boxes (T, 4) input px; box_offsets (F + 1,);
+    ignore (U, 4); ignore_offsets (F + 1,); frame_ids (F,) str."""
+
+    images: np.ndarray
+    boxes: np.ndarray
+    box_offsets: np.ndarray
+    ignore: np.ndarray
+    ignore_offsets: np.ndarray
+    frame_ids: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def targets(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """(boxes (G, 4), ignore boxes (I, 4)) of image ``i``, input pixels."""
+        return (self.boxes[self.box_offsets[i]:self.box_offsets[i + 1]],
+                self.ignore[self.ignore_offsets[i]:self.ignore_offsets[i + 1]])
+
+
+def build_image_set(dataset: KittiDataset, input_size: tuple[int, int], fill: float, cache: Path) -> YoloImageSet:
+    """Letterbox every frame of ``dataset`` into ``cache`` (``<cache>.npy`` + ``<cache>.npz``),
+    reusing a cache built from the same data and settings."""
+    key = {"data": str(dataset.root.resolve()), "split": dataset.split, "frames": dataset.frame_ids,
+           "input_size": list(input_size), "fill": fill}
+    npy, npz, meta = cache.with_suffix(".npy"), cache.with_suffix(".npz"), cache.with_suffix(".json")
+    if npy.exists() and npz.exists() and meta.exists() and json.loads(meta.read_text()) == key:
+        with np.load(npz, allow_pickle=False) as z:
+            rest = {k: z[k] for k in ("boxes", "box_offsets", "ignore", "ignore_offsets", "frame_ids")}
+        return YoloImageSet(images=np.load(npy, mmap_mode="r"), **rest)
+    wi, hi = input_size
+    tmp = npy.with_name(f".{npy.name}.{os.getpid()}.tmp")
+    images = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(len(dataset), hi, wi, 3))
+    boxes: list[np.ndarray] = []
+    ignore: list[np.ndarray] = []
+    for i, fid in enumerate(dataset.frame_ids):
+        x, geo = letterbox(image_to_tensor(dataset.image(fid)), input_size, fill)
+        images[i] = (x[0].permute(1, 2, 0).clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+        labels = dataset.labels(fid)
+        types = labels.type.astype(str) if labels is not None else np.zeros(0, dtype=str)
+        bbox = labels.bbox if labels is not None else np.zeros((0, 4))
+        boxes.append(np.asarray(geo.to_input(bbox[np.isin(types, TARGET_TYPES)])).reshape(-1, 4))
+        ignore.append(np.asarray(geo.to_input(bbox[np.isin(types, IGNORE_TYPES)])).reshape(-1, 4))
+    images.flush()
+    del images
+    os.replace(tmp, npy)
+
+    def offsets(parts: list[np.ndarray]) -> np.ndarray:
+        return np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
+
+    rest = {"boxes": np.concatenate(boxes) if boxes else np.zeros((0, 4)), "box_offsets": offsets(boxes),
+            "ignore": np.concatenate(ignore) if ignore else np.zeros((0, 4)), "ignore_offsets": offsets(ignore),
+            "frame_ids": np.asarray(dataset.frame_ids, dtype=str)}
+    with atomic_open(npz, "wb") as f:
+        np.savez(f, **rest)
+    atomic_write_text(meta, json.dumps(key))
+    return YoloImageSet(images=np.load(npy, mmap_mode="r"), **rest)
+
+
+def make_batch(ds: YoloImageSet, indices: np.ndarray, rng: np.random.Generator | None,
+               flip: bool) -> tuple[torch.Tensor, list[torch.Tensor], list[torch.Tensor]]:
+    """(images (B, 3, H, W) float in [0, 1], target boxes, ignore boxes); with ``flip`` each image
+    is mirrored left-right with probability 0.5 (drawn from ``rng``)."""
+    imgs, tboxes, iboxes = [], [], []
+    w = ds.images.shape[2]
+    for i in indices:
+        img = np.array(ds.images[int(i)])
+        gt, ign = (b.astype(np.float64).copy() for b in ds.targets(int(i)))
+        if flip and rng is not None and rng.random() < 0.5:
+            img = img[:, ::-1]
+            for b in (gt, ign):
+                b[:, [0, 2]] = w - b[:, [2, 0]]
+        imgs.append(torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1).float() / 255.0)
+        tboxes.append(torch.from_numpy(gt))
+        iboxes.append(torch.from_numpy(ign))
+    return torch.stack(imgs), tboxes, iboxes

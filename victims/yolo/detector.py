@@ -1,0 +1,105 @@
+"""The 2D stage as used by the harness: letterbox -> network -> decode -> NMS -> original pixels.
+
+Detections are (left, top, right, bottom) boxes in the original image pixels, clipped to the
+image, with confidence = σ(objectness)·σ(class) (YOLOv3's ranking score) and per-class greedy NMS.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from robustbench3d.victims.yolo.boxes import batched_nms, box_iou, cxcywh_to_xyxy
+from robustbench3d.victims.yolo.config import YoloConfig
+from robustbench3d.victims.yolo.letterbox import Letterbox, image_to_tensor, letterbox
+from robustbench3d.victims.yolo.model import Darknet, YoloPredictions, build_model, flatten
+
+
+@dataclass(frozen=True)
+class Detections2D:
+    """One image's detections: boxes (K, 4) original pixels, scores (K,), classes (K,) int64."""
+
+    boxes: np.ndarray
+    scores: np.ndarray
+    classes: np.ndarray
+
+
+#: At most this many highest-scoring priors per image enter NMS.
+PRE_NMS_TOP_K = 1000
+
+
+class YoloDetector:
+    """A :class:`Darknet` with its configuration, in eval mode."""
+
+    def __init__(self, net: Darknet):
+        self.net = net.eval()
+        self.cfg: YoloConfig = net.cfg
+
+    @classmethod
+    def untrained(cls, cfg: YoloConfig | str = "mini", seed: int = 0) -> YoloDetector:
+        return cls(build_model(cfg, seed))
+
+    @classmethod
+    def load(cls, path: str | Path) -> YoloDetector:
+        """From a ``model.pt`` written by the YOLO trainer (``{"config", "state_dict"}``)."""
+        data = torch.load(Path(path), map_location="cpu", weights_only=True)
+        net = Darknet(YoloConfig.from_dict(data["config"]))
+        net.load_state_dict(data["state_dict"])
+        return cls(net)
+
+    def predictions(self, images: torch.Tensor) -> tuple[YoloPredictions, Letterbox]:
+        """Differentiable forward of (B, 3, H, W) images in [0, 1] (original resolution)."""
+        x, geo = letterbox(images, self.cfg.input_size, self.cfg.fill)
+        return flatten(self.net(x), self.net), geo
+
+    def detect(self, images: Sequence[np.ndarray]) -> list[Detections2D]:
+        """Detections for (H, W, 3) uint8 images (each letterboxed on its own)."""
+        out = []
+        with torch.no_grad():
+            for image in images:
+                pred, geo = self.predictions(image_to_tensor(image))
+                out.append(self.postprocess(pred, geo)[0])
+        return out
+
+    def postprocess(self, pred: YoloPredictions, geo: Letterbox) -> list[Detections2D]:
+        """Threshold, NMS and map back to original pixels, per image of the batch."""
+        cfg = self.cfg
+        w, h = geo.image_size
+        results = []
+        for b in range(pred.obj_logit.shape[0]):
+            conf = torch.sigmoid(pred.obj_logit[b])[:, None] * torch.sigmoid(pred.cls_logit[b])
+            score, cls = conf.max(dim=1)
+            keep = torch.nonzero(score >= cfg.conf_threshold).reshape(-1)
+            if len(keep) > PRE_NMS_TOP_K:  # bound NMS cost (IoU matrix) for untrained / noisy nets
+                keep = keep[torch.topk(score[keep], PRE_NMS_TOP_K).indices]
+            boxes = cxcywh_to_xyxy(pred.boxes[b][keep]).double()
+            score, cls = score[keep].double(), cls[keep]
+            kept = batched_nms(boxes, score, cls, cfg.nms_threshold)[: cfg.max_detections]
+            img_boxes = geo.to_image(boxes[kept])
+            assert isinstance(img_boxes, torch.Tensor)
+            img_boxes[:, 0::2] = img_boxes[:, 0::2].clamp(0, w - 1)
+            img_boxes[:, 1::2] = img_boxes[:, 1::2].clamp(0, h - 1)
+            results.append(Detections2D(img_boxes.numpy(), score[kept].numpy(), cls[kept].numpy().astype(np.int64)))
+        return results
+
+
+def candidates_for_targets(pred: YoloPredictions, geo: Letterbox, target_boxes: torch.Tensor,
+                           iou_threshold: float, image_index: int) -> dict[str, torch.Tensor]:
+    """Priors of image ``image_index`` around each target (T, 4) xyxy original-pixel box.
+
+    A prior is a candidate of a target if IoU(decoded box, target) >= ``iou_threshold`` or its
+    centre lies inside the target. Returns flat prior indices, target indices, IoUs and boxes.
+    """
+    boxes = geo.to_image(cxcywh_to_xyxy(pred.boxes[image_index].detach()))
+    assert isinstance(boxes, torch.Tensor)
+    tgt = target_boxes.to(boxes.dtype).reshape(-1, 4)
+    iou = box_iou(boxes, tgt)  # (P, T)
+    cx, cy = (boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2
+    inside = ((cx[:, None] >= tgt[None, :, 0]) & (cx[:, None] <= tgt[None, :, 2])
+              & (cy[:, None] >= tgt[None, :, 1]) & (cy[:, None] <= tgt[None, :, 3]))
+    prior, target = torch.nonzero((iou >= iou_threshold) | inside, as_tuple=True)
+    return {"prior": prior, "target": target, "iou": iou[prior, target], "boxes": boxes[prior]}

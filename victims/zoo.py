@@ -1,0 +1,56 @@
+"""In-tree victims, registered with :func:`robustbench3d.victims.register_victim`.
+
+Factories import torch only when called, so listing victims stays cheap. No trained weights ship
+yet (``weights_sha256=None``): pass ``weights=`` (a file written by
+:meth:`~robustbench3d.victims.cascade.FPointNetCascade.save`) or the two trainers' outputs
+(``yolo_weights=``, ``fpointnet_weights=``), or ``allow_untrained=True`` for plumbing tests.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from robustbench3d.errors import RobustBenchError
+from robustbench3d.registry import Capabilities
+from robustbench3d.victims import VICTIMS, register_victim
+
+CASCADE_CAPABILITIES = Capabilities(modalities=("camera", "lidar"), backend="torch", gradients=True,
+                                    deterministic=True)
+
+
+def _cascade(name: str, fpn_config: str, weights: str | Path | None, yolo_weights: str | Path | None,
+             fpointnet_weights: str | Path | None, allow_untrained: bool, seed: int, gather: str,
+             yolo_config: str = "mini") -> Any:
+    from robustbench3d.victims.cascade import CascadeSettings, FPointNetCascade
+
+    settings = CascadeSettings(seed=seed, gather=gather)  # type: ignore[arg-type]
+    if weights is not None:
+        return FPointNetCascade.load(weights, settings, sha256=VICTIMS.get(name).info.weights_sha256)
+    if yolo_weights is not None and fpointnet_weights is not None:
+        return FPointNetCascade.from_parts(yolo_weights, fpointnet_weights, settings)
+    if allow_untrained:
+        return FPointNetCascade.untrained(fpn_config, yolo_config, seed=seed, settings=settings)
+    raise RobustBenchError(
+        f"victim {name!r} has no shipped weights yet: pass weights=FILE (FPointNetCascade.save), "
+        "yolo_weights= and fpointnet_weights= (outputs of `robustbench3d train yolo|fpointnet`), "
+        "or allow_untrained=True")
+
+
+@register_victim("fpointnet-v1", capabilities=CASCADE_CAPABILITIES,
+                 summary="mini-YOLO 640x192 -> Frustum-PointNet v1 (1024 pts), KITTI Car")
+def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
+                 fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,
+                 seed: int = 0, gather: str = "random") -> Any:
+    """The F-PN v1 cascade with the full v1 network (§1.6)."""
+    return _cascade("fpointnet-v1", "full", weights, yolo_weights, fpointnet_weights, allow_untrained, seed, gather)
+
+
+@register_victim("fpointnet-v1-lite", capabilities=CASCADE_CAPABILITIES,
+                 summary="mini-YOLO 640x192 -> Frustum-PointNet v1 lite (512 pts, CPU config)")
+def fpointnet_v1_lite(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
+                      fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,
+                      seed: int = 0, gather: str = "random") -> Any:
+    """The cascade with the "lite" F-PN config (N = 512, global feature 256, seg head 128-64)."""
+    return _cascade("fpointnet-v1-lite", "lite", weights, yolo_weights, fpointnet_weights, allow_untrained,
+                    seed, gather)
