@@ -1,0 +1,272 @@
+"""Each devkit rule on a small hand-built case whose AP is worked out by hand in the comments.
+
+Facts used throughout (devkit semantics): precision is sampled at one score threshold per
+pass-1 true positive (at most 41), padded with zeros, then made non-increasing from the right;
+R40 averages samples 1..40, R11 samples 0, 4, ..., 40. So N perfect detections of N counted GT
+give R40 = 100 (N - 1) / 40 and R11 = 100 ceil(N / 4) / 11 for N <= 41, and 100 from N = 41 on.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import pytest
+
+from robustbench3d.eval import evaluate
+from robustbench3d.eval.precision import average_precision, interpolate, score_thresholds
+from robustbench3d.kitti import Labels
+
+N = 41  # frames per case: enough GT for AP to reach 100
+
+
+def obj(type_: str = "Car", box: Sequence[float] = (100, 100, 200, 200), trunc: float = 0.0, occ: int = 0,
+        alpha: float = 0.0, x: float = 0.0, y: float = 1.7, z: float = 20.0, ry: float = 0.0,
+        dims: Sequence[float] = (1.5, 1.6, 3.9), score: float | None = None) -> dict:
+    return dict(type=type_, box=box, trunc=trunc, occ=occ, alpha=alpha, loc=(x, y, z), ry=ry, dims=dims,
+                score=score)
+
+
+def frame(*objs: dict, scored: bool = False) -> Labels:
+    if not objs:
+        return Labels.empty(with_score=scored)
+    return Labels(
+        type=np.array([o["type"] for o in objs], dtype=object),
+        truncated=np.array([o["trunc"] for o in objs], dtype=np.float64),
+        occluded=np.array([o["occ"] for o in objs], dtype=np.int64),
+        alpha=np.array([o["alpha"] for o in objs], dtype=np.float64),
+        bbox=np.array([o["box"] for o in objs], dtype=np.float64),
+        dimensions=np.array([o["dims"] for o in objs], dtype=np.float64),
+        location=np.array([o["loc"] for o in objs], dtype=np.float64),
+        rotation_y=np.array([o["ry"] for o in objs], dtype=np.float64),
+        score=np.array([o["score"] for o in objs], dtype=np.float64) if scored else None,
+    )
+
+
+def det(**kw) -> dict:
+    kw.setdefault("score", 0.9)
+    return obj(**kw)
+
+
+def run(gt: list[tuple[dict, ...]], dt: list[tuple[dict, ...]], **kw) -> dict:
+    return evaluate([frame(*g) for g in gt], [frame(*d, scored=True) for d in dt], **kw)
+
+
+def ap(result: dict, metric: str, recall: str = "R40", cls: str = "Car") -> list[float]:
+    return [result[cls][metric][recall][d] for d in ("easy", "moderate", "hard")]
+
+
+# ---- sampling, R11 / R40 ------------------------------------------------------------------------
+@pytest.mark.parametrize(("n", "r40", "r11"), [(1, 0.0, 100 / 11), (3, 5.0, 100 / 11), (5, 10.0, 200 / 11),
+                                               (40, 97.5, 1000 / 11), (41, 100.0, 100.0), (90, 100.0, 100.0)])
+def test_perfect_detections_follow_the_sampling_formula(n: int, r40: float, r11: float) -> None:
+    r = run([(obj(),)] * n, [(det(),)] * n)
+    for metric in ("2d", "aos", "bev", "3d"):
+        assert ap(r, metric) == pytest.approx([r40] * 3, abs=1e-9)
+        assert ap(r, metric, "R11") == pytest.approx([r11] * 3, abs=1e-9)
+
+
+def test_r40_and_r11_from_samples() -> None:
+    samples = interpolate(np.array([1.0] * 21 + [0.5] * 20))
+    assert average_precision(samples) == pytest.approx({"R40": 75.0, "R11": (6 + 5 * 0.5) / 11 * 100})
+    # interpolation: max over the tail, zeros beyond the last threshold
+    np.testing.assert_array_equal(interpolate(np.array([0.5, 1.0, 0.2]))[:4], [1.0, 1.0, 0.2, 0.0])
+
+
+# ---- thresholds (getThresholds) --------------------------------------------------------------------
+def test_thresholds_hand_cases() -> None:
+    # Every TP gets a threshold while recall steps (1/n_gt) exceed the 1/40 sampling step.
+    assert score_thresholds(np.array([0.1, 0.5, 0.3, 0.9, 0.7]), 5).tolist() == [0.9, 0.7, 0.5, 0.3, 0.1]
+    # 80 TPs of 80 GT: recall 1/80 per TP; taken when the left recall is the better approximation of
+    # 0, 1/40, 2/40, ...: indices 0, 1, 3, 5, ..., 79.
+    scores = 1 - np.arange(80) / 100
+    assert score_thresholds(scores, 80).tolist() == scores[[0, *range(1, 80, 2)]].tolist()
+    # 41 x 0.9 then 41 x 0.8 with 82 GT: take k lands on index ceil(2.05 k - 1.5): k <= 20 -> 0.9.
+    t = score_thresholds(np.array([0.9] * 41 + [0.8] * 41), 82)
+    assert t.tolist() == [0.9] * 21 + [0.8] * 20
+    assert score_thresholds(np.array([]), 10).size == 0
+    assert score_thresholds(np.array([0.5]), 0).size == 0
+
+
+# ---- difficulty: height, occlusion, truncation boundaries ----------------------------------------------
+def test_gt_height_boundary_is_inclusive_ignore() -> None:
+    # GT counts only if bottom - top > MIN_HEIGHT: exactly 40 px is ignored at easy, 25 at moderate/hard.
+    gt = [(obj(box=(0, 100, 50, 140)),), (obj(box=(0, 100, 50, 140.5)),),
+          (obj(box=(0, 100, 50, 125)),), (obj(box=(0, 100, 50, 125.25)),)]
+    counted = run(gt, [()] * 4)["meta"]["gt_counted"]["Car"]
+    assert counted == {"easy": 1, "moderate": 3, "hard": 3}
+
+
+def test_detection_height_boundary_and_int_truncation() -> None:
+    # GT 41 px high counts at every level. A detection 40 px high counts at easy; 39.99 px is cut to
+    # 39 (int32) and ignored at easy: it is still matched (so no FN), but is no TP -> easy AP 0.
+    gt = [(obj(box=(100, 100, 200, 141)),)] * N
+    for height, easy in ((40.0, 100.0), (40.9, 100.0), (39.99, 0.0)):
+        r = run(gt, [(det(box=(100, 100, 200, 100 + height)),)] * N, metrics=("2d",))
+        assert ap(r, "2d") == pytest.approx([easy, 100.0, 100.0]), height
+
+
+@pytest.mark.parametrize(("trunc", "occ", "expected"), [
+    (0.15, 0, (1, 1, 1)), (0.1500001, 0, (0, 1, 1)), (0.0, 1, (0, 1, 1)),
+    (0.3, 1, (0, 1, 1)), (0.3000001, 0, (0, 0, 1)), (0.0, 2, (0, 0, 1)),
+    (0.5, 2, (0, 0, 1)), (0.5000001, 0, (0, 0, 0)), (0.0, 3, (0, 0, 0)),
+])
+def test_occlusion_and_truncation_limits(trunc: float, occ: int, expected: tuple[int, int, int]) -> None:
+    counted = run([(obj(trunc=trunc, occ=occ),)], [()])["meta"]["gt_counted"]["Car"]
+    assert tuple(counted.values()) == expected
+
+
+# ---- neighbour classes -------------------------------------------------------------------------------
+@pytest.mark.parametrize(("cls", "neighbour", "other"), [("Car", "Van", "Truck"),
+                                                         ("Pedestrian", "Person_sitting", "Cyclist")])
+def test_neighbour_class_is_ignored_not_a_false_positive(cls: str, neighbour: str, other: str) -> None:
+    # Per frame: a perfectly detected GT of the class (score 0.9) and a second object 300 px away
+    # carrying a detection of the class scored 0.95. On a neighbour it is ignored -> AP 100; on any
+    # other type it is an FP above every threshold (all 0.9) -> precision 41 / 82 -> AP 50.
+    dims = (1.5, 1.6, 3.9)
+    for second, expected in ((neighbour, 100.0), (other, 50.0)):
+        gt = [(obj(cls, dims=dims), obj(second, box=(400, 100, 500, 200), x=8.0, dims=dims))] * N
+        dt = [(det(type_=cls, dims=dims), det(type_=cls, box=(400, 100, 500, 200), x=8.0, score=0.95, dims=dims))] * N
+        r = run(gt, dt, classes=(cls,))
+        for metric in ("2d", "bev", "3d"):
+            assert ap(r, metric, cls=cls) == pytest.approx([expected] * 3), (second, metric)
+
+
+def test_undetected_neighbours_are_no_false_negatives() -> None:
+    r = run([(obj(), obj("Van", box=(400, 100, 500, 200), x=8.0))] * N, [(det(),)] * N)
+    assert ap(r, "2d") == [100.0] * 3
+
+
+# ---- DontCare ----------------------------------------------------------------------------------------
+DC_KITTI = obj("DontCare", box=(380, 80, 560, 230), trunc=-1, occ=-1, alpha=-10, x=-1000, y=-1000, z=-1000,
+               ry=-10, dims=(-1, -1, -1))
+
+
+def test_dontcare_suppresses_false_positives_in_2d_only_with_kitti_lines() -> None:
+    # FP (score 0.95) lies inside a DontCare image region: intersection / detection area = 1 > 0.7.
+    # KITTI's DontCare lines have no 3D box (-1000), so in BEV/3D the FP stays: precision 1/2 -> 50.
+    gt = [(obj(), DC_KITTI)] * N
+    dt = [(det(), det(box=(400, 100, 500, 200), x=8.0, score=0.95))] * N
+    r = run(gt, dt)
+    assert ap(r, "2d") == [100.0] * 3
+    assert ap(r, "bev") == [50.0] * 3 and ap(r, "3d") == [50.0] * 3
+
+
+def test_dontcare_uses_intersection_over_detection_area() -> None:
+    # The region covers 60 % of the FP's image box (IoU 0.6 as well): 0.6 < 0.7 -> FP counts -> 50.
+    partial = dict(DC_KITTI, box=(400, 100, 460, 200))
+    r = run([(obj(), partial)] * N, [(det(), det(box=(400, 100, 500, 200), x=8.0, score=0.95))] * N, metrics=("2d",))
+    assert ap(r, "2d") == [50.0] * 3
+    # A region 5x larger than the FP has IoU 0.2 but contains it: intersection / det area = 1 -> 100.
+    huge = dict(DC_KITTI, box=(300, 0, 800, 300))
+    r = run([(obj(), huge)] * N, [(det(), det(box=(400, 100, 500, 200), x=8.0, score=0.95))] * N, metrics=("2d",))
+    assert ap(r, "2d") == [100.0] * 3
+
+
+def test_dontcare_uses_the_metrics_own_overlap_in_bev_and_3d() -> None:
+    # A DontCare line with a real 3D box around the FP's footprint: suppressed in BEV and 3D too,
+    # while its image box (away from the FP) leaves the 2D FP counting.
+    dc = obj("DontCare", box=(900, 100, 1000, 200), trunc=-1, occ=-1, alpha=-10, x=8.0, y=1.8, z=20.0,
+             dims=(2.0, 3.0, 6.0))
+    r = run([(obj(), dc)] * N, [(det(), det(box=(400, 100, 500, 200), x=8.0, score=0.95))] * N)
+    assert ap(r, "2d") == [50.0] * 3
+    assert ap(r, "bev") == [100.0] * 3 and ap(r, "3d") == [100.0] * 3
+
+
+def test_detections_assigned_to_gt_are_not_taken_by_dontcare() -> None:
+    # The TP lies inside a DontCare region too; it is assigned first, so it stays a TP.
+    r = run([(obj(), dict(DC_KITTI, box=(50, 50, 250, 250)))] * N, [(det(),)] * N, metrics=("2d",))
+    assert ap(r, "2d") == [100.0] * 3
+
+
+# ---- greedy matching in GT order ---------------------------------------------------------------------
+# Image boxes share rows 100..200; along x: GT A [0, 100], GT B [20, 120], D1 [12, 112], D2 [35, 135].
+# IoU(D1, A) = 88/112 = 0.786, IoU(D1, B) = 92/108 = 0.852, IoU(D2, B) = 85/115 = 0.739,
+# IoU(D2, A) = 65/135 = 0.481 (no candidate).
+A, B = obj(box=(0, 100, 100, 200)), obj(box=(20, 100, 120, 200))
+
+
+def _d1_d2(s1: float, s2: float) -> tuple[dict, dict]:
+    return det(box=(12, 100, 112, 200), score=s1), det(box=(35, 100, 135, 200), score=s2)
+
+
+def test_greedy_matching_follows_gt_file_order() -> None:
+    # Scores D1 0.8, D2 0.9. Order A, B: A takes D1, B takes D2 in both passes -> AP 100.
+    r = run([(A, B)] * N, [_d1_d2(0.8, 0.9)] * N, metrics=("2d",))
+    assert ap(r, "2d") == [100.0] * 3
+    # Order B, A. Pass 1 (highest score): B takes D2, A takes D1 -> 82 TP scores (41 x 0.9, 41 x 0.8),
+    # thresholds 21 x 0.9 then 20 x 0.8 (see test_thresholds_hand_cases). Pass 2 (largest overlap):
+    # at 0.9, D1 is removed, B takes D2: precision 1; at 0.8, B takes D1 (0.852 > 0.739), A is left
+    # without a candidate, D2 is an FP: precision 1/2. R40 = (20 + 20 / 2) / 40, R11 = (6 + 5 / 2) / 11.
+    r = run([(B, A)] * N, [_d1_d2(0.8, 0.9)] * N, metrics=("2d",))
+    assert ap(r, "2d") == pytest.approx([75.0] * 3)
+    assert ap(r, "2d", "R11") == pytest.approx([(6 + 2.5) / 11 * 100] * 3)
+
+
+def test_pass_one_takes_the_highest_score_even_an_ignored_detection() -> None:
+    # GT 30 px high (moderate). A Car detection on it scores 0.5; a Pedestrian detection 24 px high
+    # (ignored at moderate: too small, whatever its class) scores 0.9 with IoU 0.8. Pass 1 gives the
+    # GT the higher-scored ignored detection, so no TP score is collected: moderate AP 0.
+    gt = [(obj(box=(100, 100, 200, 130)),)] * N
+    car = det(box=(100, 100, 200, 130), score=0.5)
+    small_ped = det(type_="Pedestrian", box=(100, 100, 200, 124), score=0.9)
+    assert ap(run(gt, [(car,)] * N, metrics=("2d",)), "2d")[1] == 100.0
+    assert ap(run(gt, [(small_ped, car)] * N, metrics=("2d",)), "2d")[1] == 0.0
+
+
+# ---- AOS ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(("delta", "expected"), [(0.0, 100.0), (math.pi / 2, 50.0), (math.pi, 0.0),
+                                                 (math.pi / 3, 75.0)])
+def test_aos_similarity_is_one_plus_cos_over_two(delta: float, expected: float) -> None:
+    r = run([(obj(alpha=0.3),)] * N, [(det(alpha=0.3 + delta),)] * N, metrics=("2d", "aos"))
+    assert ap(r, "2d") == [100.0] * 3
+    assert ap(r, "aos") == pytest.approx([expected] * 3, abs=1e-9)
+
+
+def test_aos_is_skipped_when_a_detection_has_no_orientation() -> None:
+    r = run([(obj(),)] * N, [(det(), det(type_="Pedestrian", box=(500, 100, 540, 200), alpha=-10.0))] * N)
+    assert "aos" not in r["Car"]
+    assert {"class": "Car", "metric": "aos"}.items() <= r["meta"]["skipped"][0].items()
+
+
+# ---- which metrics and classes are evaluated ------------------------------------------------------
+def test_metrics_without_boxes_are_skipped_like_the_devkit() -> None:
+    no3d = det(x=-1000.0, y=-1000.0, z=-1000.0, dims=(-1, -1, -1))
+    r = run([(obj(),)] * N, [(no3d,)] * N)
+    assert ap(r, "2d") == [100.0] * 3 and "bev" not in r["Car"] and "3d" not in r["Car"]
+    assert {s["metric"] for s in r["meta"]["skipped"]} == {"bev", "3d"}
+    no2d = det(box=(-1, 100, -1, 200))
+    r = run([(obj(),)] * N, [(no2d,)] * N)
+    assert "2d" not in r["Car"] and "aos" not in r["Car"] and ap(r, "bev") == [100.0] * 3
+
+
+def test_no_detections_give_zero_ap_and_default_classes() -> None:
+    r = run([(obj(),)] * N, [()] * N, classes=None)
+    assert r["meta"]["classes"] == ["Car"]
+    for metric in ("2d", "aos", "bev", "3d"):
+        assert ap(r, metric) == [0.0] * 3 and ap(r, metric, "R11") == [0.0] * 3
+    r = run([(obj(), obj("Pedestrian", box=(400, 100, 440, 200), x=5.0))] * N,
+            [(det(type_="Pedestrian", box=(400, 100, 440, 200), x=5.0),)] * N, classes=None)
+    assert r["meta"]["classes"] == ["Pedestrian"]
+
+
+def test_bad_arguments_are_rejected() -> None:
+    with pytest.raises(ValueError, match="unknown class"):
+        run([()], [()], classes=("Bus",))
+    with pytest.raises(ValueError, match="unknown metric"):
+        run([()], [()], metrics=("map",))
+    with pytest.raises(ValueError, match="frames"):
+        evaluate([frame()], [])
+    with pytest.raises(ValueError, match="scores"):
+        evaluate([frame(obj())], [frame(obj())])
+    with pytest.raises(ValueError, match="frame 1: non-finite"):
+        evaluate([frame(), frame()], [frame(det(), scored=True), frame(det(score=math.nan), scored=True)])
+
+
+def test_missed_objects_cap_recall() -> None:
+    # 41 frames found perfectly, 41 frames (some with empty detection lists) missed: 82 GT, 41 TP.
+    # Recall stops at 1/2: 21 thresholds (recall 0 .. 20/40) with precision 1, zeros beyond.
+    r = run([(obj(),)] * 82, [(det(),)] * 41 + [()] * 41)
+    assert ap(r, "bev") == pytest.approx([50.0] * 3)
+    assert ap(r, "bev", "R11") == pytest.approx([600 / 11] * 3)
