@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("robustbench3d.bench", "run speed/memory benchmarks and print a table"),
     "data synth": ("robustbench3d.synth.cli", "generate the embedded procedural dataset in KITTI layout"),
     "eval": ("robustbench3d.eval.cli", "score KITTI result files against ground-truth labels"),
+    "run": ("robustbench3d.run_cli", "benchmark victims x attacks x proposal sources on a dataset split"),
     "victims list": ("robustbench3d.victims.list_command", "list registered victims and their capabilities"),
     "train yolo": ("robustbench3d.victims.train_yolo", "train the YOLO 2D detector on a KITTI-layout dataset"),
     "train fpointnet": ("robustbench3d.victims.train_fpointnet", "train Frustum-PointNet v1 on GT-box frustums"),

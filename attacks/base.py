@@ -1,0 +1,59 @@
+"""The attack contract: an object placed on the roof of each target car of a frame.
+
+An :class:`Attack` turns a clean :class:`~robustbench3d.kitti.dataset.Frame` into an attacked one
+(LiDAR hits added and occluded points removed, object pixels composited into camera image 2);
+calibration, frame id and ground-truth labels stay as they were. The benchmark runner calls, per
+victim x attack cell::
+
+    attack.prepare(victim)                       # once; only white-box attacks use the victim
+    attacked = attack.apply(frame, targets, rng) # per frame, in frame order
+
+``targets`` are the frame's target cars (:func:`target_cars`, rect frame) and ``rng`` a
+``numpy.random.Generator`` seeded from (run seed, frame id) only, so every attack and every victim
+sees the same placement randomness for a frame (common random numbers across cells). Attacks must
+draw all randomness from ``rng`` and must not modify the input frame's arrays.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any
+
+import numpy as np
+
+from robustbench3d.kitti.dataset import Frame
+from robustbench3d.kitti.labels import Labels
+
+#: Object types whose instances carry an attack object.
+TARGET_TYPES: tuple[str, ...] = ("Car",)
+
+
+def target_cars(labels: Labels | None) -> Labels:
+    """The frame's attack targets: every ground-truth object of a :data:`TARGET_TYPES` type
+    (rect frame; bottom-centre location in m, rotation_y in rad). Empty without labels."""
+    if labels is None:
+        return Labels.empty()
+    return labels.select(np.isin(labels.type.astype(str), TARGET_TYPES))
+
+
+class Attack(ABC):
+    """Base class of every attack object (see the module doc for the calling protocol)."""
+
+    def prepare(self, victim: Any) -> None:  # noqa: B027 - optional hook, deliberately empty
+        """Called once per benchmark cell before :meth:`apply`; white-box attacks (declaring
+        ``needs_gradients``) keep the victim to query its oracles. Default: nothing."""
+
+    @abstractmethod
+    def apply(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> Frame:
+        """The attacked frame (a new :class:`Frame`; the input's arrays are left untouched).
+
+        Args:
+            frame: the clean frame (scan in the velodyne frame, image 2, calibration, labels).
+            targets: the target cars, rect frame (:func:`target_cars`).
+            rng: the only source of randomness (placement, sensor noise, lighting).
+        """
+
+    @abstractmethod
+    def describe(self) -> dict[str, Any]:
+        """JSON-serialisable parameters identifying the object (e.g. a mesh file's sha256, its
+        placement offsets in m). Part of each cell's configuration fingerprint and provenance."""

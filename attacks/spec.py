@@ -1,0 +1,88 @@
+"""What the attack registry holds: :class:`AttackSpec` (a factory plus metadata) and the victim
+requirements an attack declares (:class:`AttackRequirements`).
+
+Standard library only, so importing ``robustbench3d.attacks`` loads no numpy/torch.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from robustbench3d.errors import RobustBenchError
+from robustbench3d.registry import Capabilities
+
+
+@dataclass(frozen=True)
+class AttackRequirements:
+    """What a victim must offer for an attack to be applied against it in a benchmark cell.
+
+    Attributes:
+        needs_gradients: the attack queries the victim's white-box oracles while it is applied
+            (it receives the victim through :meth:`~robustbench3d.attacks.base.Attack.prepare`);
+            the victim must declare ``gradients``. Objects crafted beforehand (a universal mesh
+            loaded from a file) need no gradients at evaluation time, even if their crafting did.
+        needs_camera: the attack acts through the camera only (e.g. a texture), so a victim that
+            does not use the camera cannot be affected; the cell is skipped instead.
+        needs_lidar: the same for the LiDAR (e.g. a shape perturbation seen only by the scan).
+    """
+
+    needs_gradients: bool = False
+    needs_camera: bool = False
+    needs_lidar: bool = False
+
+    def unmet(self, capabilities: Capabilities) -> str | None:
+        """Why a victim with ``capabilities`` cannot be attacked, or None if it can."""
+        missing = []
+        if self.needs_camera and "camera" not in capabilities.modalities:
+            missing.append("the camera")
+        if self.needs_lidar and "lidar" not in capabilities.modalities:
+            missing.append("the LiDAR")
+        if self.needs_gradients and not capabilities.gradients:
+            missing.append("gradients (white-box oracles)")
+        if not missing:
+            return None
+        offers = "+".join(capabilities.modalities) + (", gradients" if capabilities.gradients else ", no gradients")
+        return f"needs {' and '.join(missing)}; the victim offers {offers}"
+
+    def as_dict(self) -> dict[str, bool]:
+        return {"needs_gradients": self.needs_gradients, "needs_camera": self.needs_camera,
+                "needs_lidar": self.needs_lidar}
+
+
+@dataclass(frozen=True)
+class AttackSpec:
+    """A factory ``(**params) -> Attack`` plus metadata; :meth:`create` checks the parameters.
+
+    Attributes:
+        factory: builds an :class:`~robustbench3d.attacks.base.Attack` (a class or a function).
+        requirements: what the victim must offer (:class:`AttackRequirements`).
+        summary: one line for listings.
+    """
+
+    factory: Callable[..., Any]
+    requirements: AttackRequirements = field(default_factory=AttackRequirements)
+    summary: str = ""
+
+    @property
+    def key(self) -> str:
+        """Identity used to tell a re-registration of the same factory from a collision."""
+        mod, qual = getattr(self.factory, "__module__", None), getattr(self.factory, "__qualname__", None)
+        return f"{mod}:{qual}" if mod and qual else f"id:{id(self.factory)}"
+
+    def create(self, name: str = "attack", **params: Any) -> Any:
+        """Build the attack; unknown or missing parameters raise :class:`RobustBenchError`."""
+        from robustbench3d.attacks.base import Attack
+
+        try:
+            inspect.signature(self.factory).bind(**params)
+        except TypeError as exc:
+            raise RobustBenchError(f"attack {name!r}: invalid parameters {params}: {exc}") from None
+        except ValueError:  # no signature available (builtins): let the call decide
+            pass
+        attack = self.factory(**params)
+        if not isinstance(attack, Attack):
+            raise RobustBenchError(f"attack {name!r}: factory returned a {type(attack).__name__}, not an Attack")
+        return attack

@@ -1,0 +1,197 @@
+"""Resolving a benchmark's dataset argument and reading its ground truth once.
+
+``--data DIR`` names a KITTI-layout directory (``DIR/training/...``, ``DIR/ImageSets/<split>.txt``);
+without it the embedded procedural dataset in the cache (``<cache>/datasets/synth``) is used and
+generated first if it is missing or incomplete. Its parameters are fixed (:data:`EMBEDDED`): they
+are the ``robustbench3d data synth`` defaults, so both commands share one cached copy.
+:func:`generate_dataset` writes every frame 0..N-1 (it cannot write one split alone), so the
+whole dataset is generated.
+
+The ground truth of the split (labels only: scans and images are streamed by the runner) is read
+and hashed in one pass (:class:`GroundTruth`); its identity goes into every result.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from robustbench3d.errors import DataFormatError, RobustBenchError
+from robustbench3d.kitti.dataset import KittiDataset
+from robustbench3d.kitti.labels import Labels, parse_labels
+from robustbench3d.kitti.splits import read_split
+from robustbench3d.provenance import SplitDigest
+from robustbench3d.synth.cli import DEFAULT_FRAMES, DEFAULT_SEED, DEFAULT_VAL_FRACTION
+
+EMBEDDED_NAME = "synth"
+
+
+@dataclass(frozen=True)
+class EmbeddedParams:
+    """Generator parameters of the embedded dataset (frames 0..frames-1, val share of frames)."""
+
+    frames: int
+    seed: int
+    val_fraction: float
+
+    def as_dict(self) -> dict[str, Any]:
+        from robustbench3d.synth.writer import GENERATOR_VERSION
+
+        return {"generator": "robustbench3d.synth", "generator_version": GENERATOR_VERSION,
+                "frames": self.frames, "seed": self.seed, "val_fraction": self.val_fraction}
+
+
+#: The embedded default dataset's fixed parameters (recorded in every result that uses it).
+EMBEDDED = EmbeddedParams(frames=DEFAULT_FRAMES, seed=DEFAULT_SEED, val_fraction=DEFAULT_VAL_FRACTION)
+
+
+@dataclass(frozen=True)
+class ResolvedDataset:
+    """A dataset ready to read: KITTI layout under ``root``, frames listed by ``split``.
+
+    Attributes:
+        root: absolute dataset root.
+        split: split name (``ImageSets/<split>.txt``).
+        embedded: generator parameters when this is the embedded dataset, else None.
+        manifest: the generator manifest (``synth_manifest.json``) if the directory has one.
+    """
+
+    root: Path
+    split: str
+    embedded: dict[str, Any] | None
+    manifest: dict[str, Any] | None
+
+    @property
+    def split_file(self) -> Path:
+        return self.root / "ImageSets" / f"{self.split}.txt"
+
+    def kitti(self) -> KittiDataset:
+        return KittiDataset(self.root, split=self.split)
+
+
+def _embedded_complete(root: Path, params: EmbeddedParams) -> bool:
+    from robustbench3d.synth.writer import MANIFEST, frame_complete
+
+    if not (root / MANIFEST).is_file() or not all((root / "ImageSets" / f"{s}.txt").is_file()
+                                                  for s in ("train", "val", "trainval")):
+        return False
+    return all(frame_complete(root, i) for i in range(params.frames))
+
+
+def ensure_embedded(root: Path, params: EmbeddedParams, workers: int = 1, progress: bool = True) -> None:
+    """Generate (or complete) the embedded dataset in ``root`` unless it is already complete."""
+    if _embedded_complete(root, params):
+        return
+    from robustbench3d.synth.writer import generate_dataset
+
+    generate_dataset(root, params.frames, params.seed, params.val_fraction, workers=workers, progress=progress)
+
+
+def _read_manifest(root: Path) -> dict[str, Any] | None:
+    from robustbench3d.synth.writer import MANIFEST
+
+    path = root / MANIFEST
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataFormatError(path, f"not valid JSON ({exc})") from None
+
+
+def resolve_dataset(data: str | Path | None, split: str = "val", *, embedded: EmbeddedParams | None = None,
+                    workers: int = 1, progress: bool = True) -> ResolvedDataset:
+    """The dataset of a ``--data`` argument (None: the embedded dataset, generated if missing).
+
+    ``embedded`` overrides :data:`EMBEDDED` (read at call time). Raises :class:`DataFormatError`
+    naming the missing directory or split file.
+    """
+    if data is None:
+        from robustbench3d.paths import dataset_dir
+
+        params_used = embedded or EMBEDDED
+        root = dataset_dir(EMBEDDED_NAME).resolve()
+        ensure_embedded(root, params_used, workers=workers, progress=progress)
+        params: dict[str, Any] | None = params_used.as_dict()
+    else:
+        root, params = Path(data).expanduser().resolve(), None
+        if not root.is_dir():
+            raise DataFormatError(root, "dataset directory not found")
+        if not (root / "training").is_dir():
+            raise DataFormatError(root / "training", "not a directory; expected the KITTI layout DIR/training/...")
+    resolved = ResolvedDataset(root=root, split=split, embedded=params, manifest=_read_manifest(root))
+    if not resolved.split_file.is_file():
+        sets = root / "ImageSets"
+        have = sorted(p.stem for p in sets.glob("*.txt")) if sets.is_dir() else []
+        raise DataFormatError(resolved.split_file,
+                              f"split file not found (available splits: {', '.join(have) or 'none'})")
+    return resolved
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """The evaluated frames of a split and their labels.
+
+    Attributes:
+        frame_ids: evaluated frames (the first ``max_frames`` of the split, in split order).
+        labels: ground truth of each evaluated frame (rect frame, KITTI label rows).
+        split_frames: number of frames the split lists.
+        sha256: :class:`~robustbench3d.provenance.SplitDigest` over the whole split.
+    """
+
+    frame_ids: list[str]
+    labels: list[Labels]
+    split_frames: int
+    sha256: str
+
+
+def load_ground_truth(dataset: ResolvedDataset, max_frames: int | None = None) -> GroundTruth:
+    """Read, parse and hash every label file of the split; keep the first ``max_frames`` frames'.
+
+    Every frame of the split needs a label file; a missing or malformed one raises
+    :class:`DataFormatError` naming it.
+    """
+    ids = read_split(dataset.split_file)
+    if not ids:
+        raise DataFormatError(dataset.split_file, "split file lists no frames")
+    if max_frames is not None and max_frames < 1:
+        raise RobustBenchError(f"--max-frames must be at least 1, got {max_frames}")
+    keep = len(ids) if max_frames is None else min(max_frames, len(ids))
+    kitti = dataset.kitti()
+    digest = SplitDigest(ids)
+    labels: list[Labels] = []
+    for i, fid in enumerate(ids):
+        path = kitti.path("labels", fid)
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise DataFormatError(path, f"ground-truth label file not found (frame listed in {dataset.split_file})"
+                                  ) from None
+        digest.update(fid, data)
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise DataFormatError(path, f"not UTF-8 text ({exc.reason})") from None
+        parsed = parse_labels(text, path, scored=False)
+        if i < keep:
+            labels.append(parsed)
+    return GroundTruth(frame_ids=ids[:keep], labels=labels, split_frames=len(ids), sha256=digest.hexdigest())
+
+
+def dataset_identity(dataset: ResolvedDataset, gt: GroundTruth) -> dict[str, Any]:
+    """The ``dataset`` record of a result: where, which split, how many frames, which labels.
+
+    ``sha256`` covers the split list and every label file of the split (scans and images are not
+    hashed: for the embedded dataset ``embedded`` pins the generator that made them).
+    """
+    return {"root": str(dataset.root), "split": dataset.split, "frames": len(gt.frame_ids),
+            "split_frames": gt.split_frames, "first_frame": gt.frame_ids[0], "last_frame": gt.frame_ids[-1],
+            "sha256": gt.sha256, "embedded": dataset.embedded, "manifest": dataset.manifest}
+
+
+__all__ = [
+    "EMBEDDED", "EMBEDDED_NAME", "EmbeddedParams", "GroundTruth", "ResolvedDataset", "dataset_identity",
+    "ensure_embedded", "load_ground_truth", "resolve_dataset",
+]

@@ -1,0 +1,160 @@
+"""Running one victim x attack x proposals cell: stream frames, attack, detect, write, evaluate.
+
+Frames are read one batch at a time (labels come from the :class:`GroundTruth` read up front).
+Each frame is attacked with a generator seeded from (run seed, frame id) only, then handed to the
+victim with its ground-truth labels for ``proposals="gt"`` and *without* them for ``"detector"``
+(a victim cannot peek at the answers). Detections are written as KITTI result files into
+``data.partial/`` (one file per frame, empty for no detection), parsed back and evaluated: the
+metrics are those of the files on disk. ``data.partial/`` becomes ``data/`` once the cell is done.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import sys
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robustbench3d.attacks.base import Attack, target_cars
+from robustbench3d.datasets import GroundTruth
+from robustbench3d.errors import DataFormatError, RobustBenchError
+from robustbench3d.fileio import atomic_write_text
+from robustbench3d.kitti.dataset import Frame, KittiDataset
+from robustbench3d.kitti.labels import Labels, parse_labels
+from robustbench3d.runner.config import RESULT_PRECISION
+
+#: Third entropy word of the attack generators (separates them from other uses of the seed).
+ATTACK_STREAM = 0x41545443  # "ATTC"
+PARTIAL = "data.partial"
+DATA = "data"
+
+
+class CellFailure(RobustBenchError):
+    """The victim or the attack of a cell failed; the run records an error cell and goes on."""
+
+
+def attack_rng(seed: int, frame_id: str) -> np.random.Generator:
+    """The generator of frame ``frame_id``'s attack: the same for every attack and victim."""
+    return np.random.default_rng([int(seed), int(frame_id), ATTACK_STREAM])
+
+
+@dataclass(frozen=True)
+class CellInputs:
+    """What every cell of a run shares: the dataset, its ground truth and run settings."""
+
+    kitti: KittiDataset
+    gt: GroundTruth
+    seed: int
+    batch_size: int
+    classes: tuple[str, ...]
+    progress: bool
+
+
+def _batches(inputs: CellInputs) -> Iterator[list[tuple[str, Labels]]]:
+    pairs = list(zip(inputs.gt.frame_ids, inputs.gt.labels, strict=True))
+    for start in range(0, len(pairs), inputs.batch_size):
+        yield pairs[start:start + inputs.batch_size]
+
+
+def _attacked(attack: Attack, name: str, frame: Frame, gt: Labels, seed: int) -> Frame:
+    try:
+        out = attack.apply(frame, target_cars(gt), attack_rng(seed, frame.frame_id))
+    except Exception as exc:
+        raise CellFailure(f"attack {name!r} failed on frame {frame.frame_id}: {type(exc).__name__}: {exc}") from exc
+    if not isinstance(out, Frame) or out.frame_id != frame.frame_id:
+        raise CellFailure(f"attack {name!r} returned {type(out).__name__} for frame {frame.frame_id}; "
+                          "expected a Frame with the same frame_id")
+    return out
+
+
+def _detect(victim: Any, name: str, frames: Sequence[Frame], proposals: str) -> list[Labels]:
+    ids = f"{frames[0].frame_id}..{frames[-1].frame_id}"
+    try:
+        out = victim.detect(list(frames), proposals)
+    except Exception as exc:
+        raise CellFailure(f"victim {name!r} failed on frames {ids}: {type(exc).__name__}: {exc}") from exc
+    if not isinstance(out, list | tuple) or len(out) != len(frames):
+        got = len(out) if isinstance(out, list | tuple) else type(out).__name__
+        raise CellFailure(f"victim {name!r} returned {got} results for {len(frames)} frames ({ids})")
+    for frame, det in zip(frames, out, strict=True):
+        if not isinstance(det, Labels) or not det.has_score:
+            raise CellFailure(f"victim {name!r}: result of frame {frame.frame_id} is not a scored Labels")
+    return list(out)
+
+
+def _as_result_file(det: Labels, path: Path, victim_name: str) -> tuple[str, Labels]:
+    """Result-file text of a frame's detections and the detections parsed back from it."""
+    try:
+        text = det.to_text(RESULT_PRECISION)
+        return text, parse_labels(text, path, scored=True)
+    except (DataFormatError, ValueError, TypeError) as exc:
+        raise CellFailure(f"victim {victim_name!r} returned an invalid result for frame {path.stem}: {exc}") from exc
+
+
+def run_cell(victim: Any, victim_name: str, attack: Attack, attack_name: str, proposals: str,
+             inputs: CellInputs, cell_dir: Path) -> dict[str, Any]:
+    """Run the cell, write ``cell_dir/data/NNNNNN.txt`` for every frame and return the metrics
+    (the evaluator's JSON). Raises :class:`CellFailure` if the victim or the attack fails."""
+    from tqdm import tqdm
+
+    from robustbench3d.eval.kitti_eval import evaluate
+    from robustbench3d.eval.rules import METRICS
+
+    partial = cell_dir / PARTIAL
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    try:
+        attack.prepare(victim)
+    except Exception as exc:
+        raise CellFailure(f"attack {attack_name!r} could not be prepared: {type(exc).__name__}: {exc}") from exc
+    kitti, seed = inputs.kitti, inputs.seed
+    detections: list[Labels] = []
+    bar = tqdm(total=len(inputs.gt.frame_ids), unit="frame", file=sys.stderr, disable=not inputs.progress,
+               desc=f"{victim_name}/{attack_name}/{proposals}", dynamic_ncols=True, leave=False)
+    try:
+        for batch in _batches(inputs):
+            frames = []
+            for fid, gt in batch:
+                clean = Frame(fid, kitti.image(fid), kitti.scan(fid), kitti.calib(fid), gt)
+                attacked = _attacked(attack, attack_name, clean, gt, seed)
+                frames.append(dataclasses.replace(attacked, labels=gt if proposals == "gt" else None))
+            for frame, det in zip(frames, _detect(victim, victim_name, frames, proposals), strict=True):
+                path = partial / f"{frame.frame_id}.txt"
+                text, parsed = _as_result_file(det, path, victim_name)
+                atomic_write_text(path, text)
+                detections.append(parsed)
+            bar.update(len(batch))
+    finally:
+        bar.close()
+    metrics = evaluate(inputs.gt.labels, detections, classes=inputs.classes, metrics=METRICS)
+    promote(cell_dir)
+    return metrics
+
+
+def promote(cell_dir: Path) -> None:
+    """Replace ``data/`` by the finished ``data.partial/``."""
+    final, old = cell_dir / DATA, cell_dir / "data.old"
+    shutil.rmtree(old, ignore_errors=True)
+    if final.exists():
+        final.rename(old)
+    (cell_dir / PARTIAL).rename(final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def remove_results(cell_dir: Path) -> None:
+    """Delete a cell's result files (finished or partial), e.g. before recording a skip or an error."""
+    for sub in (DATA, PARTIAL, "data.old"):
+        shutil.rmtree(cell_dir / sub, ignore_errors=True)
+
+
+def results_complete(cell_dir: Path, frame_ids: Sequence[str]) -> bool:
+    """True if ``data/`` holds exactly one result file per frame."""
+    data = cell_dir / DATA
+    if not data.is_dir():
+        return False
+    return sorted(p.name for p in data.iterdir()) == sorted(f"{fid}.txt" for fid in frame_ids)

@@ -1,0 +1,124 @@
+"""The configuration of a benchmark run and the identity of its cells."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from robustbench3d.errors import RobustBenchError
+
+PROPOSAL_SOURCES: tuple[str, ...] = ("detector", "gt")
+#: Decimals of the geometry columns of written result files (the KITTI devkit's ``%.2f``); scores
+#: are written exactly. Cells are evaluated on the parsed files, so in-memory and file scores agree.
+RESULT_PRECISION = 2
+
+
+def _unique(values: tuple[str, ...], what: str) -> None:
+    if not values:
+        raise RobustBenchError(f"--{what}: give at least one name")
+    dup = sorted({v for v in values if values.count(v) > 1})
+    if dup:
+        raise RobustBenchError(f"--{what}: {', '.join(dup)} listed twice")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything a ``robustbench3d run`` was asked to do.
+
+    Attributes:
+        victims: registered victim names, in table order.
+        attacks: registered attack names.
+        proposals: proposal sources, a subset of :data:`PROPOSAL_SOURCES`.
+        out: output directory.
+        data: KITTI-layout dataset root, or None for the embedded dataset (generated if missing).
+        split: split name (``ImageSets/<split>.txt``).
+        max_frames: evaluate only the first N frames of the split (None: all).
+        seed: run seed; attack randomness is drawn from (seed, frame id); passed as ``seed=`` to
+            victim factories that declare a ``seed`` parameter (unless given in ``victim_args``).
+        batch_size: frames per ``detect`` call.
+        victim_args: per victim name, keyword arguments of its factory (e.g. ``weights``).
+        attack_args: per attack name, keyword arguments of its factory.
+        classes: evaluated classes.
+        workers: processes generating the embedded dataset if it is missing.
+        progress: progress bars on stderr.
+    """
+
+    victims: tuple[str, ...]
+    attacks: tuple[str, ...]
+    proposals: tuple[str, ...]
+    out: Path
+    data: Path | None = None
+    split: str = "val"
+    max_frames: int | None = None
+    seed: int = 0
+    batch_size: int = 4
+    victim_args: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    attack_args: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    classes: tuple[str, ...] = ("Car",)
+    workers: int = 1
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        for what in ("victims", "attacks", "proposals"):
+            object.__setattr__(self, what, tuple(getattr(self, what)))
+            _unique(getattr(self, what), what)
+        bad = [p for p in self.proposals if p not in PROPOSAL_SOURCES]
+        if bad:
+            raise RobustBenchError(f"--proposals: unknown source {bad[0]!r}; choose from {', '.join(PROPOSAL_SOURCES)}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise RobustBenchError(f"--max-frames must be at least 1, got {self.max_frames}")
+        if self.batch_size < 1:
+            raise RobustBenchError(f"--batch-size must be at least 1, got {self.batch_size}")
+        if self.seed < 0:
+            raise RobustBenchError(f"--seed must be non-negative, got {self.seed}")
+        if self.workers < 1:
+            raise RobustBenchError(f"--workers must be at least 1, got {self.workers}")
+        for what, args, names in (("victim", self.victim_args, self.victims),
+                                  ("attack", self.attack_args, self.attacks)):
+            extra = sorted(set(args) - set(names))
+            if extra:
+                raise RobustBenchError(f"--{what}-arg given for {', '.join(extra)}, which is not in --{what}s")
+        object.__setattr__(self, "out", Path(self.out))
+        if self.data is not None:
+            object.__setattr__(self, "data", Path(self.data))
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON form (for provenance)."""
+        return {"victims": list(self.victims), "attacks": list(self.attacks), "proposals": list(self.proposals),
+                "out": str(self.out), "data": None if self.data is None else str(self.data), "split": self.split,
+                "max_frames": self.max_frames, "seed": self.seed, "batch_size": self.batch_size,
+                "victim_args": {k: dict(v) for k, v in self.victim_args.items()},
+                "attack_args": {k: dict(v) for k, v in self.attack_args.items()},
+                "classes": list(self.classes)}
+
+
+@dataclass(frozen=True)
+class CellKey:
+    """One cell of the grid."""
+
+    victim: str
+    attack: str
+    proposals: str
+
+    @property
+    def dirname(self) -> str:
+        """Directory name under ``<out>/cells`` (registry names cannot contain ``+``)."""
+        return f"{self.victim}+{self.attack}+{self.proposals}"
+
+    def __str__(self) -> str:
+        return f"{self.victim} / {self.attack} / {self.proposals}"
+
+
+def grid(config: RunConfig) -> list[CellKey]:
+    """Cells in table order: victims, then attacks, then proposal sources."""
+    return [CellKey(v, a, p) for v in config.victims for a in config.attacks for p in config.proposals]
+
+
+def fingerprint(cell_config: Mapping[str, Any]) -> str:
+    """sha256 of the canonical JSON of a cell's configuration (sorted keys, no whitespace)."""
+    text = json.dumps(cell_config, sort_keys=True, separators=(",", ":"), allow_nan=False, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()

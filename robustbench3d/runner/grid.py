@@ -1,0 +1,250 @@
+"""The victims x attacks x proposal sources grid: resume, skip, run, record, summarise.
+
+Output layout::
+
+    OUT/cells/<victim>+<attack>+<proposals>/cell.json     one summary cell (schema-valid)
+    OUT/cells/<victim>+<attack>+<proposals>/data/*.txt    KITTI result files, one per frame
+    OUT/summary.json                                      list of every cell, grid order
+    OUT/results.csv                                       long format, one row per AP value
+
+A cell is finished when its ``cell.json`` exists (written atomically, last). A rerun reuses a
+finished ``ok`` or ``skipped`` cell whose configuration fingerprint is unchanged (and whose result
+files are all there); anything else is (re)computed. ``error`` cells are always retried.
+A victim that cannot be created (e.g. missing weights) or fails makes error cells; the run goes on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+import traceback
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from robustbench3d.attacks import ATTACKS
+from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
+from robustbench3d.errors import DataFormatError, RobustBenchError
+from robustbench3d.provenance import determinism_flags, host_provenance, library_versions, utc_now
+from robustbench3d.registry import Capabilities
+from robustbench3d.results import SCHEMA_VERSION, read_json, validate_summary, write_long_csv, write_validated
+from robustbench3d.runner.cell import (
+    ATTACK_STREAM,
+    CellFailure,
+    CellInputs,
+    remove_results,
+    results_complete,
+    run_cell,
+)
+from robustbench3d.runner.config import CellKey, RunConfig, fingerprint, grid
+from robustbench3d.runner.records import (
+    attack_record,
+    cell_config,
+    evaluation_record,
+    victim_kwargs,
+    victim_record,
+)
+from robustbench3d.victims import VICTIMS, create_victim
+
+CELL_FILE = "cell.json"
+SUMMARY_FILE = "summary.json"
+CSV_FILE = "results.csv"
+
+
+@dataclass
+class CellOutcome:
+    """A cell of the finished run: its summary record and whether it was reused from disk."""
+
+    key: CellKey
+    cell: dict[str, Any]
+    reused: bool
+
+
+@dataclass
+class RunReport:
+    """What :func:`run_benchmark` did."""
+
+    out: Path
+    dataset: dict[str, Any]
+    outcomes: list[CellOutcome] = field(default_factory=list)
+
+    @property
+    def cells(self) -> list[dict[str, Any]]:
+        return [o.cell for o in self.outcomes]
+
+    @property
+    def failed(self) -> list[CellOutcome]:
+        return [o for o in self.outcomes if o.cell["status"] == "error"]
+
+
+@contextlib.contextmanager
+def _exclusive(out: Path) -> Iterator[None]:
+    """Hold an advisory lock on ``out/.lock`` (released when the process dies, so no stale locks)."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no protection against concurrent runs
+        yield
+        return
+    with open(out / ".lock", "w") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise RobustBenchError(f"{out}: another robustbench3d run is writing there") from None
+        yield
+
+
+class _VictimSlot:
+    """A victim created on first need (never if all its cells are reused or skipped)."""
+
+    def __init__(self, name: str, kwargs: dict[str, Any]):
+        self.name, self.kwargs = name, kwargs
+        self._victim: Any = None
+        self._error: CellFailure | None = None
+
+    def get(self) -> Any:
+        if self._victim is None and self._error is None:
+            try:
+                self._victim = create_victim(self.name, **self.kwargs)
+            except Exception as exc:
+                hint = (f" (factory arguments are given with --victim-arg {self.name}:KEY=VALUE)"
+                        if isinstance(exc, RobustBenchError | TypeError) else "")
+                self._error = CellFailure(f"victim {self.name!r} could not be created: {type(exc).__name__}: "
+                                          f"{exc}{hint}")
+                self._error.__cause__ = exc
+        if self._error is not None:
+            raise self._error
+        return self._victim
+
+
+def _check_names(config: RunConfig) -> None:
+    """Unknown victim or attack names fail the whole run up front (with did-you-mean)."""
+    for name in config.victims:
+        VICTIMS.entry(name)
+    for name in config.attacks:
+        ATTACKS.entry(name)
+
+
+def _reusable(cell_dir: Path, print_fn: Callable[[str], None], want: str, frame_ids: list[str]) -> dict | None:
+    path = cell_dir / CELL_FILE
+    if not path.is_file():
+        return None
+    try:
+        cell = read_json(path)
+        validate_summary(cell, path, cell_only=True)
+    except DataFormatError as exc:
+        print_fn(f"  recomputing: {exc}")
+        return None
+    if cell["provenance"]["fingerprint"] != want or cell["status"] == "error":
+        return None
+    if cell["status"] == "ok" and not results_complete(cell_dir, frame_ids):
+        print_fn(f"  recomputing: result files in {cell_dir / 'data'} are incomplete")
+        return None
+    return cell
+
+
+def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = None) -> RunReport:
+    """Run (or resume) every cell of ``config``; write cell files, ``summary.json`` and the CSV.
+
+    Args:
+        config: what to run.
+        print_fn: receives one progress line per cell (default: stderr).
+    Raises:
+        RobustBenchError: unknown names, bad arguments, an unusable dataset (before any cell runs).
+    """
+    log = print_fn or (lambda line: print(line, file=sys.stderr, flush=True))
+    _check_names(config)
+    attack_specs = {name: ATTACKS.get(name) for name in config.attacks}
+    attack_records = {}
+    for name, spec in attack_specs.items():
+        params = dict(config.attack_args.get(name, {}))
+        attack_records[name] = attack_record(name, params, spec.create(name, **params))
+    out = config.out
+    out.mkdir(parents=True, exist_ok=True)
+    with _exclusive(out):
+        for stale in (SUMMARY_FILE, CSV_FILE):  # derived files: rewritten at the end, never left stale
+            (out / stale).unlink(missing_ok=True)
+        dataset = resolve_dataset(config.data, config.split, workers=config.workers, progress=config.progress)
+        gt = load_ground_truth(dataset, config.max_frames)
+        identity = dataset_identity(dataset, gt)
+        log(f"dataset {identity['root']} split {identity['split']}: {identity['frames']} of "
+            f"{identity['split_frames']} frames (labels sha256 {identity['sha256'][:12]})")
+        inputs = CellInputs(kitti=dataset.kitti(), gt=gt, seed=config.seed, batch_size=config.batch_size,
+                            classes=config.classes, progress=config.progress)
+        host = host_provenance()
+        evaluation = evaluation_record(config.classes)
+        report = RunReport(out=out, dataset=identity)
+        slots: dict[str, _VictimSlot] = {}
+        records: dict[str, dict[str, Any]] = {}
+        for name in config.victims:
+            kwargs = victim_kwargs(name, config.victim_args.get(name, {}), config.seed)
+            slots[name], records[name] = _VictimSlot(name, kwargs), victim_record(name, kwargs)
+        cells = grid(config)
+        for i, key in enumerate(cells, start=1):
+            cfg = cell_config(key, records[key.victim], attack_records[key.attack], identity, config.seed,
+                              config.batch_size, evaluation)
+            outcome = _run_one(key, cfg, config, inputs, identity, host, slots[key.victim], out / "cells" / key.dirname,
+                               log)
+            log(f"[{i}/{len(cells)}] {key}: {_describe(outcome)}")
+            report.outcomes.append(outcome)
+        summary = write_validated(out / SUMMARY_FILE, report.cells)
+        write_long_csv(out / CSV_FILE, summary)
+    return report
+
+
+def _describe(outcome: CellOutcome) -> str:
+    cell = outcome.cell
+    if cell["status"] == "ok":
+        return "reused" if outcome.reused else f"ok ({cell['provenance']['seconds']:.1f} s)"
+    return f"{cell['status']}{' (reused)' if outcome.reused else ''}: {cell['reason']}"
+
+
+def _run_one(key: CellKey, cfg: dict[str, Any], config: RunConfig, inputs: CellInputs, identity: dict[str, Any],
+             host: dict[str, Any], slot: _VictimSlot, cell_dir: Path, log: Callable[[str], None]) -> CellOutcome:
+    want = fingerprint(cfg)
+    old = _reusable(cell_dir, log, want, inputs.gt.frame_ids)
+    if old is not None:
+        return CellOutcome(key, old, reused=True)
+    (cell_dir / CELL_FILE).unlink(missing_ok=True)  # from here on, no stale "finished" marker
+    started, t0 = utc_now(), time.perf_counter()
+    status, reason, metrics, tb = "ok", None, None, None
+    caps = cfg["victim"]["capabilities"]
+    unmet = ATTACKS.get(key.attack).requirements.unmet(Capabilities(**caps)) if caps is not None else None
+    try:
+        if unmet is not None:
+            status, reason = "skipped", f"attack {key.attack!r} {unmet}"
+        else:
+            victim = slot.get()
+            supported = tuple(victim.supported_proposals)
+            if key.proposals not in supported:
+                status, reason = "skipped", (f"victim {key.victim!r} supports proposals {', '.join(supported)} only "
+                                             f"(not {key.proposals!r})")
+            else:
+                attack = ATTACKS.get(key.attack).create(key.attack, **dict(config.attack_args.get(key.attack, {})))
+                metrics = run_cell(victim, key.victim, attack, key.attack, key.proposals, inputs, cell_dir)
+    except CellFailure as exc:
+        status, reason, metrics = "error", str(exc), None
+        cause = exc.__cause__ or exc
+        tb = "".join(traceback.format_exception(type(cause), cause, cause.__traceback__))
+        if not isinstance(cause, RobustBenchError):  # an unexpected exception: show where it came from
+            log(tb.rstrip())
+    if status != "ok":
+        remove_results(cell_dir)
+    provenance = {
+        "fingerprint": want, "config": cfg, "run": config.as_dict(), **host, "versions": library_versions(),
+        "seed": config.seed,
+        "determinism": {**determinism_flags(), "victim_deterministic": None if caps is None else caps["deterministic"],
+                        "attack_rng": f"numpy.random.default_rng([seed, int(frame_id), {ATTACK_STREAM:#x}])"},
+        "started": started, "finished": utc_now(), "seconds": round(time.perf_counter() - t0, 3),
+    }
+    if tb is not None:
+        provenance["traceback"] = tb
+    cell = {"schema_version": SCHEMA_VERSION, "victim": key.victim, "attack": key.attack, "proposals": key.proposals,
+            "status": status, "reason": reason, "dataset": identity, "metrics": metrics, "provenance": provenance}
+    cell_dir.mkdir(parents=True, exist_ok=True)
+    cell = write_validated(cell_dir / CELL_FILE, cell, cell_only=True)
+    return CellOutcome(key, cell, reused=False)
+
+
+__all__ = ["CELL_FILE", "CSV_FILE", "SUMMARY_FILE", "CellOutcome", "RunReport", "run_benchmark"]
