@@ -29,41 +29,32 @@ def render(frame, detections=None, bev_range: float = 70.0):
     import numpy as np
     from PIL import Image, ImageDraw
 
-    from robustbench3d.geometry import BOX_EDGES, box_corners
+    from robustbench3d.geometry import BOX_EDGES
 
-    calib, labels = frame.calib, frame.labels
+    calib = frame.calib
     width, height = frame.image_size
+    # (colour, corners (8, 3) rect) of every drawn box: labels in class colours, detections red.
+    drawn = [(CLASS_COLOURS.get(cls, (255, 255, 255)), c) for cls, c in _solid_boxes(frame.labels)]
+    drawn += [((255, 0, 0), c) for _, c in _solid_boxes(detections)]
+
     top = Image.fromarray(frame.image).convert("RGB")
     draw = ImageDraw.Draw(top)
-
-    def boxes_of(lab, colour_of):
-        if lab is None or len(lab) == 0:
-            return
-        real = lab.type != "DontCare"
-        corners = box_corners(lab.dimensions[real], lab.location[real], lab.rotation_y[real])
-        for k, (cls, c) in enumerate(zip(lab.type[real], corners, strict=True)):
-            colour = colour_of(cls, k)
-            for i, j in BOX_EDGES:
-                seg = _clip_segment(c[i], c[j], near=0.1)
-                if seg is None:
-                    continue
-                uv, _ = calib.rect_to_image(np.stack(seg))
-                (u0, v0), (u1, v1) = uv
-                draw.line([(float(u0), float(v0)), (float(u1), float(v1))],
-                          fill=colour, width=2)
-        for box in lab.bbox[~real]:
+    for colour, c in drawn:
+        for i, j in BOX_EDGES:
+            seg = _clip_segment(c[i], c[j], near=0.1)
+            if seg is not None:
+                (u0, v0), (u1, v1) = calib.rect_to_image(np.stack(seg))[0]
+                draw.line([(float(u0), float(v0)), (float(u1), float(v1))], fill=colour, width=2)
+    if frame.labels is not None:
+        for box in frame.labels.bbox[frame.labels.type == "DontCare"]:
             draw.rectangle([float(v) for v in box], outline=CLASS_COLOURS["DontCare"], width=1)
-
-    boxes_of(labels, lambda cls, k: CLASS_COLOURS.get(cls, (255, 255, 255)))
-    boxes_of(detections, lambda cls, k: (255, 0, 0))
 
     # Bird's-eye view: velodyne x in [-2, range] -> rows (far at the top), y in [-0.8 r, 0.8 r] -> columns.
     half = 0.8 * bev_range
     scale = width / (2 * half)  # px per m, square pixels
     bev_h = round((bev_range + 2.0) * scale)
     bev = np.zeros((bev_h, width, 3), dtype=np.uint8)
-    pts = frame.scan
-    x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+    x, y, z = frame.scan[:, 0], frame.scan[:, 1], frame.scan[:, 2]
     col = ((half - y) * scale).astype(np.int64)
     row = ((bev_range - x) * scale).astype(np.int64)
     ok = (col >= 0) & (col < width) & (row >= 0) & (row < bev_h)
@@ -72,19 +63,10 @@ def render(frame, detections=None, bev_range: float = 70.0):
     bev[row[ok], col[ok]] = colours
     bev_img = Image.fromarray(bev)
     bdraw = ImageDraw.Draw(bev_img)
-
-    def footprints(lab, colour_of):
-        if lab is None or len(lab) == 0:
-            return
-        real = lab.type != "DontCare"
-        corners = box_corners(lab.dimensions[real], lab.location[real], lab.rotation_y[real])
-        for k, (cls, c) in enumerate(zip(lab.type[real], corners, strict=True)):
-            v = calib.rect_to_velo_points(c[:4])
-            poly = [(float((half - p[1]) * scale), float((bev_range - p[0]) * scale)) for p in v]
-            bdraw.polygon(poly, outline=colour_of(cls, k), width=2)
-
-    footprints(labels, lambda cls, k: CLASS_COLOURS.get(cls, (255, 255, 255)))
-    footprints(detections, lambda cls, k: (255, 0, 0))
+    for colour, c in drawn:
+        v = calib.rect_to_velo_points(c[:4])
+        bdraw.polygon([(float((half - p[1]) * scale), float((bev_range - p[0]) * scale)) for p in v],
+                      outline=colour, width=2)
     # Sensor position and 10 m range rings.
     cx, cy = half * scale, bev_range * scale
     for r in range(10, int(bev_range) + 1, 10):
@@ -96,6 +78,17 @@ def render(frame, detections=None, bev_range: float = 70.0):
     out.paste(top, (0, 0))
     out.paste(bev_img, (0, height))
     return np.asarray(out)
+
+
+def _solid_boxes(labels):
+    """(type, (8, 3) rect corners) of every non-DontCare object; nothing for None."""
+    from robustbench3d.geometry import box_corners
+
+    if labels is None:
+        return []
+    real = labels.type != "DontCare"
+    corners = box_corners(labels.dimensions[real], labels.location[real], labels.rotation_y[real])
+    return list(zip(labels.type[real], corners, strict=True))
 
 
 def _clip_segment(a, b, near: float):
