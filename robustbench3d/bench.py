@@ -21,6 +21,7 @@ BENCHMARKS: dict[str, str] = {
     "cli": "robustbench3d.bench:cli_startup",
     "eval": "robustbench3d.eval.bench:run",
     "synth": "robustbench3d.synth.bench:run",
+    "onnx": "robustbench3d.victims.onnx.bench:run",
 }
 
 

@@ -24,6 +24,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("robustbench3d.eval.cli", "score KITTI result files against ground-truth labels"),
     "run": ("robustbench3d.run_cli", "benchmark victims x attacks x proposal sources on a dataset split"),
     "victims list": ("robustbench3d.victims.list_command", "list registered victims and their capabilities"),
+    "victims add-onnx": ("robustbench3d.victims.onnx.add_command", "register an ONNX victim directory under a name"),
+    "export-onnx": ("robustbench3d.victims.onnx.export_command", "export an F-PN cascade victim as per-stage ONNX"),
+    "parity": ("robustbench3d.victims.onnx.parity_command", "torch vs onnxruntime parity: tensors, boxes, AP"),
     "train yolo": ("robustbench3d.victims.train_yolo", "train the YOLO 2D detector on a KITTI-layout dataset"),
     "train fpointnet": ("robustbench3d.victims.train_fpointnet", "train Frustum-PointNet v1 on GT-box frustums"),
 }

@@ -37,7 +37,8 @@ def parse_factory_args(items: list[str] | None, option: str) -> dict[str, dict[s
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--victims", required=True, metavar="NAME[,NAME...]", help="registered victims")
+    parser.add_argument("--victims", required=True, metavar="NAME[,NAME...]",
+                        help="registered victims, or ONNX victim directories (registered under their directory name)")
     parser.add_argument("--attacks", default="none", metavar="NAME[,NAME...]",
                         help="registered attacks (default: none, the clean control)")
     parser.add_argument("--proposals", default="detector", metavar="SRC[,SRC...]",
@@ -67,12 +68,15 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from robustbench3d.runner import RunConfig, format_table, run_benchmark
+    from robustbench3d.victims.onnx.registration import resolve_victim_references
 
+    victims, victim_args = resolve_victim_references(_names(args.victims),
+                                                     parse_factory_args(args.victim_arg, "--victim-arg"))
     config = RunConfig(
-        victims=tuple(_names(args.victims)), attacks=tuple(_names(args.attacks)),
+        victims=tuple(victims), attacks=tuple(_names(args.attacks)),
         proposals=tuple(_names(args.proposals)), out=args.out, data=args.data, split=args.split,
         max_frames=args.max_frames, seed=args.seed, batch_size=args.batch_size,
-        victim_args=parse_factory_args(args.victim_arg, "--victim-arg"),
+        victim_args=victim_args,
         attack_args=parse_factory_args(args.attack_arg, "--attack-arg"),
         workers=args.workers, progress=not args.no_progress,
     )

@@ -3,7 +3,9 @@
 ``VICTIMS`` is the registry (:class:`robustbench3d.registry.Registry` of
 :class:`~robustbench3d.victims.base.VictimSpec`). In-tree victims are declared in
 :mod:`robustbench3d.victims.zoo` with :func:`register_victim`; installed packages add theirs
-through the entry-point group ``robustbench3d.victims`` (an entry point names a ``VictimSpec``).
+through the entry-point group ``robustbench3d.victims`` (an entry point names a ``VictimSpec``);
+ONNX victim directories added with ``victims add-onnx`` come from
+:mod:`robustbench3d.victims.onnx.registration`.
 
     >>> from robustbench3d.victims import VICTIMS, create_victim
     >>> VICTIMS.names()                                   # doctest: +SKIP
@@ -24,7 +26,7 @@ ENTRY_POINT_GROUP = "robustbench3d.victims"
 
 VICTIMS: Registry[VictimSpec] = Registry(
     "victim", group=ENTRY_POINT_GROUP, base=VictimSpec, key=lambda spec: spec.key,
-    modules=("robustbench3d.victims.zoo",),
+    modules=("robustbench3d.victims.zoo", "robustbench3d.victims.onnx.registration"),
 )
 
 

@@ -4,18 +4,19 @@ Implements :class:`~robustbench3d.victims.base.Detector`,
 :class:`~robustbench3d.victims.base.ImageObjectnessOracle` and
 :class:`~robustbench3d.victims.base.FrustumSegmentationOracle`.
 
-Determinism: the resampling of each frustum to N points (with replacement, as the original) and
-the random object-point gather draw from ``numpy.random.default_rng([seed, frame, proposal])``,
-so a frustum's result does not depend on the batch or on other frames; the networks run in eval
-mode (BatchNorm running statistics, no dropout). Proposal filters follow §1.3: 2D height >= 25 px,
-and at least ``min_points_detector`` (5) frustum points for detector boxes or one for GT boxes.
+``detect`` is the numpy pipeline of :mod:`robustbench3d.victims.fpointnet.pipeline` (letterbox,
+2D decoding and NMS, frustum extraction, resampling, masking, gather, box decoding — shared with
+the ONNX victim) around the torch networks. Determinism: the resampling of each frustum to N
+points (with replacement, as the original) and the random object-point gather draw from
+``numpy.random.default_rng([seed, frame, proposal])``, so a frustum's result does not depend on
+the batch or on other frames; the networks run in eval mode (BatchNorm running statistics, no
+dropout). Proposal filters follow §1.3: 2D height >= 25 px, and at least ``min_points_detector``
+(5) frustum points for detector boxes or one for GT boxes.
 """
 
 from __future__ import annotations
 
-import zlib
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,60 +28,20 @@ from robustbench3d.fileio import atomic_open, sha256_file
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
-from robustbench3d.victims.base import (
-    FrustumLogits,
-    ObjectnessCandidates,
-    Proposals,
-    ProposalsArg,
-    empty_detections,
-)
+from robustbench3d.victims.base import FrustumLogits, ObjectnessCandidates, Proposals, ProposalsArg
 from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
-from robustbench3d.victims.fpointnet.frustum import (
-    Frustum,
-    extract_frustum,
-    project_rect_points,
-    project_scan,
-    resample_indices,
-    rotate_to_frustum,
-)
+from robustbench3d.victims.fpointnet.frustum import extract_frustum, project_rect_points, resample_indices
 from robustbench3d.victims.fpointnet.model import (
     FPointNetConfig,
     FrustumPointNetV1,
-    GatherMode,
+    TorchFrustumStages,
     build_model,
     rotate_to_frustum_torch,
 )
-from robustbench3d.victims.fpointnet.to_kitti import decode, to_labels
+from robustbench3d.victims.fpointnet.pipeline import CascadeSettings, detect_frames, frame_key, make_proposals
 from robustbench3d.victims.yolo.config import YoloConfig
 from robustbench3d.victims.yolo.detector import YoloDetector, candidates_for_targets
 from robustbench3d.victims.yolo.model import Darknet
-
-
-@dataclass(frozen=True)
-class CascadeSettings:
-    """Inference settings of :class:`FPointNetCascade`.
-
-    seed: base seed of the per-frustum resampling / gather generators.
-    gather: "random" (original, seeded) or "topk" object-point choice.
-    min_box_height: proposals lower than this (px) are skipped.
-    min_points_detector / min_points_gt: minimum frustum points for detector / GT proposals.
-    gt_types: label types used as GT proposals.
-    batch_size: frustums per forward pass (4: larger batches of the full config run ~2x slower per
-        frustum on CPU, the 1091-channel per-point features no longer fit in cache).
-    """
-
-    seed: int = 0
-    gather: GatherMode = "random"
-    min_box_height: float = 25.0
-    min_points_detector: int = 5
-    min_points_gt: int = 1
-    gt_types: tuple[str, ...] = ("Car",)
-    batch_size: int = 4
-
-
-def frame_key(frame_id: str) -> int:
-    """Integer seed component of a frame id (its value if numeric, else a CRC32)."""
-    return int(frame_id) if frame_id.isdigit() else zlib.crc32(frame_id.encode("utf-8"))
 
 
 class FPointNetCascade:
@@ -141,60 +102,13 @@ class FPointNetCascade:
     # ---- Detector ----------------------------------------------------------------------
     def proposals(self, frames: Sequence[Frame], source: ProposalsArg) -> list[Proposals]:
         """2D proposals per frame: YOLO Car detections, GT boxes of ``gt_types``, or as given."""
-        if not isinstance(source, str):
-            if len(source) != len(frames):
-                raise ValueError(f"{len(source)} proposal sets for {len(frames)} frames")
-            return list(source)
-        if source == "detector":
-            dets = self.yolo.detect([f.image for f in frames])
-            return [Proposals(d.boxes[d.classes == self.car_class], d.scores[d.classes == self.car_class])
-                    for d in dets]
-        if source == "gt":
-            out = []
-            for f in frames:
-                if f.labels is None:
-                    raise ValueError(f"frame {f.frame_id} has no labels; proposals='gt' needs them")
-                sel = np.isin(f.labels.type.astype(str), self.settings.gt_types)
-                out.append(Proposals(f.labels.bbox[sel], np.ones(int(sel.sum()))))
-            return out
-        raise ValueError(f"proposals must be 'detector', 'gt' or a list of Proposals, got {source!r}")
+        return make_proposals(frames, source, self.yolo.detect, self.car_class, self.settings.gt_types)
 
     def detect(self, frames: Sequence[Frame], proposals: ProposalsArg = "detector") -> list[Labels]:
         """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes)."""
-        props = self.proposals(frames, proposals)
-        use_3d_score = isinstance(proposals, str) and proposals == "gt"
-        min_points = self.settings.min_points_gt if use_3d_score else self.settings.min_points_detector
-        jobs: list[tuple[int, Frustum, float, np.random.Generator]] = []
-        points: list[np.ndarray] = []
-        for fi, (frame, prop) in enumerate(zip(frames, props, strict=True)):
-            if len(prop.boxes) == 0:
-                continue
-            projected = project_scan(frame.scan, frame.calib, frame.image_size)
-            for k, (box, score) in enumerate(zip(prop.boxes, prop.scores, strict=True)):
-                if box[3] - box[1] < self.settings.min_box_height:
-                    continue
-                fr = extract_frustum(projected, box, frame.calib)
-                if len(fr) < max(min_points, 1):
-                    continue
-                rng = np.random.default_rng([self.settings.seed, frame_key(frame.frame_id), k])
-                idx = resample_indices(len(fr), self.num_points, rng)
-                points.append(rotate_to_frustum(fr.points[idx], fr.rot_angle).astype(np.float32))
-                jobs.append((fi, fr, float(score), rng))
-        per_frame: list[list[Labels]] = [[] for _ in frames]
-        bs = self.settings.batch_size
-        for start in range(0, len(jobs), bs):
-            chunk = jobs[start:start + bs]
-            pts = torch.from_numpy(np.stack(points[start:start + bs]))
-            one_hot = torch.zeros(len(chunk), len(ONE_HOT_CLASSES))
-            one_hot[:, 0] = 1.0
-            with torch.no_grad():
-                out = self.fpn(pts, one_hot, gather=self.settings.gather, rng=[j[3] for j in chunk])
-            boxes = decode(out)
-            rows = to_labels(boxes, np.array([j[1].rot_angle for j in chunk]), np.stack([j[1].box2d for j in chunk]),
-                             boxes.score_3d if use_3d_score else np.array([j[2] for j in chunk]))
-            for r, job in enumerate(chunk):
-                per_frame[job[0]].append(rows.select(np.array([r])))
-        return [Labels.concatenate(p) if p else empty_detections() for p in per_frame]
+        return detect_frames(frames, proposals, detect_2d=self.yolo.detect, car_class=self.car_class,
+                             stages=TorchFrustumStages(self.fpn), settings=self.settings,
+                             num_points=self.num_points, num_object_points=self.fpn.cfg.num_object_points)
 
     # ---- ImageObjectnessOracle --------------------------------------------------------
     def objectness(self, images: torch.Tensor, targets: Sequence[np.ndarray], *,
@@ -240,3 +154,6 @@ class FPointNetCascade:
         if points.dtype != next(seg.parameters()).dtype:
             points = points.to(next(seg.parameters()).dtype)
         return seg(points, one_hot)
+
+
+__all__ = ["CascadeSettings", "FPointNetCascade", "frame_key"]

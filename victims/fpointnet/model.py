@@ -6,18 +6,22 @@ Linear + BatchNorm + ReLU; the last layer of each head is linear. Convolutions k
 next to BatchNorm, as in the original TF code, which makes the parameter counts match (§1.6).
 
 Randomness is explicit: dropout draws from a ``torch.Generator`` passed to :meth:`forward`; the
-choice of the 512 object points is computed in numpy (:func:`object_point_indices`, shared with a
-later ONNX path) from the detached mask, either ``"random"`` with a ``numpy.random.Generator``
-(the original behaviour, reproducible when seeded) or ``"topk"`` (deterministic: masked points
-ordered by foreground margin, repeated cyclically). An empty mask gives a zero centroid and
-gathers point 0, as the TF code does.
+choice of the 512 object points is computed in numpy (:func:`object_point_indices`) from the
+detached mask, either ``"random"`` with a ``numpy.random.Generator`` (the original behaviour,
+reproducible when seeded) or ``"topk"`` (deterministic: masked points ordered by foreground
+margin, repeated cyclically). An empty mask gives a zero centroid and gathers point 0, as the TF
+code does.
+
+:meth:`FrustumPointNetV1.forward` is the differentiable composition used for training. Inference
+(the victim's ``detect``, torch and ONNX alike) runs the three networks through
+:class:`TorchFrustumStages` and the numpy glue of :mod:`robustbench3d.victims.fpointnet.glue`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,11 +33,7 @@ from robustbench3d.victims.fpointnet.box_coding import (
     NUM_OBJECT_POINT,
     NUM_SIZE_CLUSTER,
 )
-
-GatherMode = Literal["random", "topk"]
-#: Box-net output size: centre (3) + heading scores and residuals (2·12) + size scores (8) and
-#: residuals (3·8).
-NUM_BOX_OUTPUTS = 3 + 2 * NUM_HEADING_BIN + 4 * NUM_SIZE_CLUSTER
+from robustbench3d.victims.fpointnet.glue import NUM_BOX_OUTPUTS, GatherMode, object_point_indices
 
 
 @dataclass(frozen=True)
@@ -147,41 +147,6 @@ class BoxEstimationNet(nn.Module):
         return self.out(self.fc(torch.cat([feat, one_hot.to(feat.dtype)], dim=1)))
 
 
-def object_point_indices(mask: np.ndarray, margin: np.ndarray, num: int, mode: GatherMode,
-                         rng: np.random.Generator | Sequence[np.random.Generator] | None = None) -> np.ndarray:
-    """(B, num) int64 indices of the object points to gather from each row of ``mask`` (B, N).
-
-    ``"random"``: more than ``num`` masked points -> ``num`` of them without replacement; else all
-    of them plus random repeats; shuffled (the original ``tf_gather_object_pc``). ``rng`` is one
-    generator or one per row. ``"topk"``: masked points by decreasing ``margin`` (logit₁ − logit₀),
-    repeated cyclically. Rows without a masked point gather index 0 everywhere.
-    """
-    mask = np.asarray(mask, dtype=bool)
-    b = mask.shape[0]
-    out = np.zeros((b, num), dtype=np.int64)
-    if mode not in ("random", "topk"):
-        raise ValueError(f"gather mode must be 'random' or 'topk', got {mode!r}")
-    if mode == "random" and rng is None:
-        raise ValueError("gather mode 'random' needs a numpy Generator")
-    for i in range(b):
-        pos = np.flatnonzero(mask[i])
-        if len(pos) == 0:
-            continue
-        if mode == "topk":
-            order = pos[np.argsort(-np.asarray(margin[i])[pos], kind="stable")]
-            out[i] = order[np.arange(num) % len(order)]
-            continue
-        g = rng[i] if isinstance(rng, Sequence) else rng
-        assert g is not None
-        if len(pos) > num:
-            choice = g.choice(len(pos), num, replace=False)
-        else:
-            choice = np.concatenate([np.arange(len(pos)), g.choice(len(pos), num - len(pos), replace=True)])
-        g.shuffle(choice)
-        out[i] = pos[choice]
-    return out
-
-
 @dataclass
 class FPointNetOutput:
     """Forward results (B frustums; frustum frame, m).
@@ -255,6 +220,38 @@ class FrustumPointNetV1(nn.Module):
             size_scores=out[:, 3 + 2 * nh:3 + 2 * nh + ns], size_residuals_normalized=s_norm,
             size_residuals=s_norm * self.mean_sizes[None].to(s_norm.dtype),
         )
+
+
+class TorchFrustumStages:
+    """:class:`~robustbench3d.victims.fpointnet.glue.FrustumStages` of an eval-mode network:
+    numpy float32 in, numpy float32 out, no autograd.
+
+    The T-Net and the box net run one frustum per call: their fully connected layers give results
+    that depend (in the last bits) on a row's position in a batched matrix product, which would
+    make a frustum's box depend on the other frustums of its batch. The segmentation net (1x1
+    convolutions, per-frustum) is batch-invariant and runs batched.
+    """
+
+    def __init__(self, model: FrustumPointNetV1):
+        self.model = model.eval()
+
+    @staticmethod
+    def _run(module: nn.Module, points: np.ndarray, one_hot: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            return module(torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32)),
+                          torch.from_numpy(np.ascontiguousarray(one_hot, dtype=np.float32))).numpy()
+
+    def _per_frustum(self, module: nn.Module, points: np.ndarray, one_hot: np.ndarray) -> np.ndarray:
+        return np.concatenate([self._run(module, points[i:i + 1], one_hot[i:i + 1]) for i in range(len(points))])
+
+    def segmentation(self, points: np.ndarray, one_hot: np.ndarray) -> np.ndarray:
+        return self._run(self.model.seg, points, one_hot)
+
+    def center_delta(self, object_points: np.ndarray, one_hot: np.ndarray) -> np.ndarray:
+        return self._per_frustum(self.model.tnet, object_points, one_hot)
+
+    def box_output(self, object_points: np.ndarray, one_hot: np.ndarray) -> np.ndarray:
+        return self._per_frustum(self.model.box, object_points, one_hot)
 
 
 def set_bn_momentum(model: nn.Module, momentum: float) -> None:

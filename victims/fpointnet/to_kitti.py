@@ -5,20 +5,27 @@ Per frustum: argmax heading bin with its residual, argmax size template with its
 rotated back from the frustum frame to rect by −rot_angle and moved from the geometric centre to
 the KITTI bottom centre (``y += h/2``, y points down). The 2D box is the proposal that produced
 the frustum; alpha is computed from ry and the location; truncation and occlusion are −1.
+
+numpy only (no torch import): one decoding for the torch and the ONNX victim. :func:`decode`
+also accepts the torch :class:`~robustbench3d.victims.fpointnet.model.FPointNetOutput` of a
+training forward pass (converted to numpy first).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from robustbench3d.geometry import alpha_from_rotation_y, wrap_angle
 from robustbench3d.kitti.labels import Labels
 from robustbench3d.victims.fpointnet.box_coding import class_to_angle, class_to_size
 from robustbench3d.victims.fpointnet.frustum import rotate_from_frustum
-from robustbench3d.victims.fpointnet.model import FPointNetOutput
+from robustbench3d.victims.fpointnet.glue import FrustumOutputs
+
+if TYPE_CHECKING:
+    from robustbench3d.victims.fpointnet.model import FPointNetOutput
 
 
 @dataclass(frozen=True)
@@ -35,30 +42,46 @@ class DecodedBoxes:
     score_3d: np.ndarray
 
 
-def decode(out: FPointNetOutput) -> DecodedBoxes:
-    """Argmax decoding of a forward pass.
+def as_numpy_outputs(out: FrustumOutputs | FPointNetOutput) -> FrustumOutputs:
+    """:class:`FrustumOutputs` of either output type (tensors detached, moved to the CPU)."""
+    if isinstance(out, FrustumOutputs):
+        return out
+
+    def arr(value: Any) -> np.ndarray:
+        return value.detach().cpu().numpy() if hasattr(value, "detach") else np.asarray(value)
+
+    return FrustumOutputs(**{f.name: arr(getattr(out, f.name)) for f in fields(FrustumOutputs)})
+
+
+def _softmax(x: np.ndarray, axis: int) -> np.ndarray:
+    x = np.asarray(x)
+    e = np.exp(x - x.max(axis=axis, keepdims=True))
+    return e / e.sum(axis=axis, keepdims=True)
+
+
+def decode(out: FrustumOutputs | FPointNetOutput) -> DecodedBoxes:
+    """Argmax decoding of the networks' outputs.
 
     ``score_3d`` = (mean object probability over the masked points) x (max heading-bin
     probability) x (max size probability): the exponential of the original code's log score. A
-    frustum with an empty mask uses its maximum object probability instead of the mean.
+    frustum with an empty mask uses its maximum object probability instead of the mean. The score
+    is computed in the logits' dtype (float32 at inference), so ulp-level differences of the
+    logits (batch composition, backend) mostly vanish in it.
     """
-    with torch.no_grad():
-        k = torch.arange(out.center.shape[0])
-        hcls = out.heading_scores.argmax(dim=1)
-        scls = out.size_scores.argmax(dim=1)
-        hres = out.heading_residuals[k, hcls]
-        sres = out.size_residuals[k, scls]
-        prob = out.seg_logits.softmax(dim=-1)[..., 1]
-        maskf = out.mask.to(prob.dtype)
-        mean_obj = (prob * maskf).sum(1) / out.mask_count.clamp_min(1).to(prob.dtype)
-        obj = torch.where(out.mask_count > 0, mean_obj, prob.amax(dim=1))
-        score = obj * out.heading_scores.softmax(1).amax(1) * out.size_scores.softmax(1).amax(1)
-    hcls_np, scls_np = hcls.cpu().numpy(), scls.cpu().numpy()
+    o = as_numpy_outputs(out)
+    k = np.arange(len(o.center))
+    hcls = np.asarray(o.heading_scores).argmax(axis=1)
+    scls = np.asarray(o.size_scores).argmax(axis=1)
+    prob = _softmax(o.seg_logits, axis=-1)[..., 1]
+    count = np.asarray(o.mask_count)
+    mean_obj = (prob * np.asarray(o.mask, dtype=prob.dtype)).sum(axis=1) / np.maximum(count, 1).astype(prob.dtype)
+    obj = np.where(count > 0, mean_obj, prob.max(axis=1, initial=0.0))
+    score = obj * _softmax(o.heading_scores, 1).max(axis=1) * _softmax(o.size_scores, 1).max(axis=1)
     return DecodedBoxes(
-        center=out.center.detach().cpu().double().numpy(),
-        heading=class_to_angle(hcls_np, hres.cpu().double().numpy()),
-        size_lwh=class_to_size(scls_np, sres.cpu().double().numpy()),
-        score_3d=score.cpu().double().numpy(),
+        center=np.asarray(o.center, dtype=np.float64),
+        heading=class_to_angle(hcls, np.asarray(o.heading_residuals, dtype=np.float64)[k, hcls]),
+        size_lwh=class_to_size(scls, np.asarray(o.size_residuals, dtype=np.float64)[k, scls]),
+        score_3d=score.astype(np.float64),
     )
 
 

@@ -2,13 +2,16 @@
 
 Boxes are (left, top, right, bottom) ("xyxy") or (centre x, centre y, width, height) ("cxcywh"),
 continuous pixel coordinates: area = width x height (no "+1"). Divisions are guarded: an empty
-union gives IoU 0.
+union gives IoU 0. NMS and the numpy IoU are those of :mod:`.postprocess` (one implementation,
+shared with the ONNX victim); the functions here adapt torch tensors to them.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import torch
+
+from robustbench3d.victims.yolo import postprocess
 
 _EPS = 1e-9
 
@@ -35,8 +38,7 @@ def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def box_iou_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """numpy version of :func:`box_iou` (float64)."""
-    return box_iou(torch.as_tensor(np.asarray(a, np.float64)).reshape(-1, 4),
-                   torch.as_tensor(np.asarray(b, np.float64)).reshape(-1, 4)).numpy()
+    return postprocess.box_iou(a, b)
 
 
 def wh_iou(wh_a: torch.Tensor, wh_b: torch.Tensor) -> torch.Tensor:
@@ -47,32 +49,18 @@ def wh_iou(wh_a: torch.Tensor, wh_b: torch.Tensor) -> torch.Tensor:
 
 
 def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> torch.Tensor:
-    """Greedy NMS: indices (int64, decreasing score) of the kept xyxy boxes.
-
-    Visit boxes by decreasing score (ties by lower index); keep a box unless a kept box overlaps
-    it with IoU > ``iou_threshold``.
-    """
-    n = boxes.shape[0]
-    if n == 0:
-        return torch.zeros(0, dtype=torch.int64)
-    order = torch.as_tensor(np.argsort(-scores.detach().cpu().numpy(), kind="stable"))
-    iou = box_iou(boxes[order].detach(), boxes[order].detach()).cpu().numpy()
-    suppressed = np.zeros(n, dtype=bool)
-    keep: list[int] = []
-    for i in range(n):
-        if suppressed[i]:
-            continue
-        keep.append(i)
-        suppressed |= iou[i] > iou_threshold
-    return order[torch.as_tensor(keep, dtype=torch.int64)]
+    """Greedy NMS (:func:`robustbench3d.victims.yolo.postprocess.nms`, IoU in float64): indices
+    (int64, decreasing score, ties by lower index) of the kept xyxy boxes."""
+    keep = postprocess.nms(_np(boxes), _np(scores), iou_threshold)
+    return torch.as_tensor(keep, dtype=torch.int64)
 
 
 def batched_nms(boxes: torch.Tensor, scores: torch.Tensor, classes: torch.Tensor,
                 iou_threshold: float) -> torch.Tensor:
     """:func:`nms` within each class; kept indices sorted by decreasing score."""
-    keep = [torch.nonzero(classes == c).reshape(-1)[nms(boxes[classes == c], scores[classes == c], iou_threshold)]
-            for c in torch.unique(classes)]
-    if not keep:
-        return torch.zeros(0, dtype=torch.int64)
-    idx = torch.cat(keep)
-    return idx[torch.as_tensor(np.argsort(-scores[idx].detach().cpu().numpy(), kind="stable"))]
+    keep = postprocess.batched_nms(_np(boxes), _np(scores), classes.detach().cpu().numpy(), iou_threshold)
+    return torch.as_tensor(keep, dtype=torch.int64)
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().cpu().double().numpy()

@@ -2,34 +2,22 @@
 
 Detections are (left, top, right, bottom) boxes in the original image pixels, clipped to the
 image, with confidence = σ(objectness)·σ(class) (YOLOv3's ranking score) and per-class greedy NMS.
+Everything but the network is the numpy glue of :mod:`.postprocess`, shared with the ONNX victim.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from robustbench3d.victims.yolo.boxes import batched_nms, box_iou, cxcywh_to_xyxy
+from robustbench3d.victims.yolo.boxes import box_iou, cxcywh_to_xyxy
 from robustbench3d.victims.yolo.config import YoloConfig
-from robustbench3d.victims.yolo.letterbox import Letterbox, image_to_tensor, letterbox
+from robustbench3d.victims.yolo.letterbox import Letterbox, letterbox
 from robustbench3d.victims.yolo.model import Darknet, YoloPredictions, build_model, flatten
-
-
-@dataclass(frozen=True)
-class Detections2D:
-    """One image's detections: boxes (K, 4) original pixels, scores (K,), classes (K,) int64."""
-
-    boxes: np.ndarray
-    scores: np.ndarray
-    classes: np.ndarray
-
-
-#: At most this many highest-scoring priors per image enter NMS.
-PRE_NMS_TOP_K = 1000
+from robustbench3d.victims.yolo.postprocess import PRE_NMS_TOP_K, Detections2D, detect_images, select_detections
 
 
 class YoloDetector:
@@ -56,35 +44,22 @@ class YoloDetector:
         x, geo = letterbox(images, self.cfg.input_size, self.cfg.fill)
         return flatten(self.net(x), self.net), geo
 
+    def run_heads(self, images: np.ndarray) -> list[np.ndarray]:
+        """Raw head tensors of (B, 3, H_in, W_in) float32 letterboxed images (no gradients)."""
+        with torch.inference_mode():
+            return [h.numpy() for h in self.net(torch.from_numpy(np.ascontiguousarray(images, dtype=np.float32)))]
+
     def detect(self, images: Sequence[np.ndarray]) -> list[Detections2D]:
         """Detections for (H, W, 3) uint8 images (each letterboxed on its own)."""
-        out = []
-        with torch.no_grad():
-            for image in images:
-                pred, geo = self.predictions(image_to_tensor(image))
-                out.append(self.postprocess(pred, geo)[0])
-        return out
+        return detect_images(images, self.run_heads, self.cfg)
 
     def postprocess(self, pred: YoloPredictions, geo: Letterbox) -> list[Detections2D]:
         """Threshold, NMS and map back to original pixels, per image of the batch."""
-        cfg = self.cfg
-        w, h = geo.image_size
-        results = []
-        for b in range(pred.obj_logit.shape[0]):
-            conf = torch.sigmoid(pred.obj_logit[b])[:, None] * torch.sigmoid(pred.cls_logit[b])
-            score, cls = conf.max(dim=1)
-            keep = torch.nonzero(score >= cfg.conf_threshold).reshape(-1)
-            if len(keep) > PRE_NMS_TOP_K:  # bound NMS cost (IoU matrix) for untrained / noisy nets
-                keep = keep[torch.topk(score[keep], PRE_NMS_TOP_K).indices]
-            boxes = cxcywh_to_xyxy(pred.boxes[b][keep]).double()
-            score, cls = score[keep].double(), cls[keep]
-            kept = batched_nms(boxes, score, cls, cfg.nms_threshold)[: cfg.max_detections]
-            img_boxes = geo.to_image(boxes[kept])
-            assert isinstance(img_boxes, torch.Tensor)
-            img_boxes[:, 0::2] = img_boxes[:, 0::2].clamp(0, w - 1)
-            img_boxes[:, 1::2] = img_boxes[:, 1::2].clamp(0, h - 1)
-            results.append(Detections2D(img_boxes.numpy(), score[kept].numpy(), cls[kept].numpy().astype(np.int64)))
-        return results
+        def arr(t: torch.Tensor) -> np.ndarray:
+            return t.detach().cpu().float().numpy()
+
+        return [select_detections(arr(pred.boxes[b]), arr(pred.obj_logit[b]), arr(pred.cls_logit[b]), geo, self.cfg)
+                for b in range(pred.obj_logit.shape[0])]
 
 
 def candidates_for_targets(pred: YoloPredictions, geo: Letterbox, target_boxes: torch.Tensor,
@@ -103,3 +78,6 @@ def candidates_for_targets(pred: YoloPredictions, geo: Letterbox, target_boxes: 
               & (cy[:, None] >= tgt[None, :, 1]) & (cy[:, None] <= tgt[None, :, 3]))
     prior, target = torch.nonzero((iou >= iou_threshold) | inside, as_tuple=True)
     return {"prior": prior, "target": target, "iou": iou[prior, target], "boxes": boxes[prior]}
+
+
+__all__ = ["PRE_NMS_TOP_K", "Detections2D", "YoloDetector", "candidates_for_targets"]

@@ -4,7 +4,8 @@ Convolutions are conv-BN-leaky(0.1) without bias; ``HeadConv`` is linear with bi
 returns one raw tensor per ``Yolo`` layer, (B, A·(5 + C), H, W), channels per anchor ordered
 t_x, t_y, t_w, t_h, t_obj, class logits. :func:`flatten` decodes them (input pixels):
 centre = (σ(t_x) + cell_x)·stride, size = anchor·exp(t_w, t_h); objectness and classes are
-independent sigmoids, kept as logits.
+independent sigmoids, kept as logits. This is the differentiable twin (training, objectness
+oracle) of :func:`robustbench3d.victims.yolo.postprocess.decode_heads` (the inference path).
 """
 
 from __future__ import annotations
@@ -26,9 +27,7 @@ from robustbench3d.victims.yolo.config import (
     Yolo,
     YoloConfig,
 )
-
-#: exp(t_w) is evaluated on t_w clamped to this, so decoded sizes stay finite.
-MAX_LOG_SCALE = 8.0
+from robustbench3d.victims.yolo.postprocess import MAX_LOG_SCALE
 
 
 class _MaxPoolSame(nn.Module):

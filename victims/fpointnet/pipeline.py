@@ -1,0 +1,162 @@
+"""The F-PN cascade's inference pipeline in numpy: proposals -> frustums -> networks -> KITTI rows.
+
+One implementation for every backend: :class:`~robustbench3d.victims.cascade.FPointNetCascade`
+(torch) and the ONNX victim (:mod:`robustbench3d.victims.onnx`) both call :func:`detect_frames`
+with their own 2D detector function and :class:`~robustbench3d.victims.fpointnet.glue.FrustumStages`.
+
+Determinism: the resampling of each frustum to N points (with replacement, as the original) and
+the random object-point gather draw from ``numpy.random.default_rng([seed, frame, proposal])``,
+so a frustum's result does not depend on the batch or on other frames. Proposal filters follow
+§1.3: 2D height >= 25 px, and at least ``min_points_detector`` (5) frustum points for detector
+boxes or ``min_points_gt`` (1) for GT boxes.
+
+Imports numpy only (no torch).
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from robustbench3d.kitti.dataset import Frame
+from robustbench3d.kitti.labels import Labels
+from robustbench3d.victims.base import Proposals, ProposalsArg, empty_detections
+from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
+from robustbench3d.victims.fpointnet.frustum import (
+    Frustum,
+    extract_frustum,
+    project_scan,
+    resample_indices,
+    rotate_to_frustum,
+)
+from robustbench3d.victims.fpointnet.glue import FrustumStages, GatherMode, run_frustum_stages
+from robustbench3d.victims.fpointnet.to_kitti import decode, to_labels
+from robustbench3d.victims.yolo.postprocess import Detections2D
+
+#: A 2D detector: (H, W, 3) uint8 images -> one :class:`Detections2D` per image.
+Detect2DFn = Callable[[Sequence[np.ndarray]], list[Detections2D]]
+
+
+@dataclass(frozen=True)
+class CascadeSettings:
+    """Inference settings of the cascade.
+
+    seed: base seed of the per-frustum resampling / gather generators.
+    gather: "random" (original, seeded) or "topk" object-point choice.
+    min_box_height: proposals lower than this (px) are skipped.
+    min_points_detector / min_points_gt: minimum frustum points for detector / GT proposals.
+    gt_types: label types used as GT proposals.
+    batch_size: frustums per segmentation pass (4: larger batches of the full config run ~2x slower
+        per frustum on CPU, the 1091-channel per-point features no longer fit in cache); the T-Net
+        and the box net take one frustum at a time (see ``TorchFrustumStages``).
+    """
+
+    seed: int = 0
+    gather: GatherMode = "random"
+    min_box_height: float = 25.0
+    min_points_detector: int = 5
+    min_points_gt: int = 1
+    gt_types: tuple[str, ...] = ("Car",)
+    batch_size: int = 4
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**asdict(self), "gt_types": list(self.gt_types)}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> CascadeSettings:
+        d = dict(data)
+        if "gt_types" in d:
+            d["gt_types"] = tuple(d["gt_types"])
+        return cls(**d)
+
+
+def frame_key(frame_id: str) -> int:
+    """Integer seed component of a frame id (its value if numeric, else a CRC32)."""
+    return int(frame_id) if frame_id.isdigit() else zlib.crc32(frame_id.encode("utf-8"))
+
+
+def make_proposals(frames: Sequence[Frame], source: ProposalsArg, detect_2d: Detect2DFn, car_class: int,
+                   gt_types: Sequence[str]) -> list[Proposals]:
+    """2D proposals per frame: the detector's ``car_class`` detections, GT boxes of ``gt_types``,
+    or the given list (one :class:`Proposals` per frame)."""
+    if not isinstance(source, str):
+        if len(source) != len(frames):
+            raise ValueError(f"{len(source)} proposal sets for {len(frames)} frames")
+        return list(source)
+    if source == "detector":
+        dets = detect_2d([f.image for f in frames])
+        return [Proposals(d.boxes[d.classes == car_class], d.scores[d.classes == car_class]) for d in dets]
+    if source == "gt":
+        out = []
+        for f in frames:
+            if f.labels is None:
+                raise ValueError(f"frame {f.frame_id} has no labels; proposals='gt' needs them")
+            sel = np.isin(f.labels.type.astype(str), list(gt_types))
+            out.append(Proposals(f.labels.bbox[sel], np.ones(int(sel.sum()))))
+        return out
+    raise ValueError(f"proposals must be 'detector', 'gt' or a list of Proposals, got {source!r}")
+
+
+@dataclass(frozen=True)
+class FrustumInput:
+    """One usable proposal: its frame, frustum, 2D score, generator and the (N, 4) float32
+    network input (frustum-frame xyz in m, reflectance)."""
+
+    frame_index: int
+    frustum: Frustum
+    score: float
+    rng: np.random.Generator
+    points: np.ndarray
+
+
+def frustum_inputs(frames: Sequence[Frame], proposals: Sequence[Proposals], settings: CascadeSettings,
+                   num_points: int, min_points: int) -> list[FrustumInput]:
+    """Frustums of every proposal that passes the filters, resampled to ``num_points`` points."""
+    out: list[FrustumInput] = []
+    for fi, (frame, prop) in enumerate(zip(frames, proposals, strict=True)):
+        if len(prop.boxes) == 0:
+            continue
+        projected = project_scan(frame.scan, frame.calib, frame.image_size)
+        for k, (box, score) in enumerate(zip(prop.boxes, prop.scores, strict=True)):
+            if box[3] - box[1] < settings.min_box_height:
+                continue
+            fr = extract_frustum(projected, box, frame.calib)
+            if len(fr) < max(min_points, 1):
+                continue
+            rng = np.random.default_rng([settings.seed, frame_key(frame.frame_id), k])
+            idx = resample_indices(len(fr), num_points, rng)
+            pts = rotate_to_frustum(fr.points[idx], fr.rot_angle).astype(np.float32)
+            out.append(FrustumInput(fi, fr, float(score), rng, pts))
+    return out
+
+
+def detect_frames(frames: Sequence[Frame], proposals: ProposalsArg, *, detect_2d: Detect2DFn, car_class: int,
+                  stages: FrustumStages, settings: CascadeSettings, num_points: int,
+                  num_object_points: int) -> list[Labels]:
+    """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes).
+
+    ``settings.batch_size`` frustums go through ``stages`` at a time.
+    """
+    props = make_proposals(frames, proposals, detect_2d, car_class, settings.gt_types)
+    use_3d_score = isinstance(proposals, str) and proposals == "gt"
+    min_points = settings.min_points_gt if use_3d_score else settings.min_points_detector
+    inputs = frustum_inputs(frames, props, settings, num_points, min_points)
+    per_frame: list[list[Labels]] = [[] for _ in frames]
+    bs = settings.batch_size
+    for start in range(0, len(inputs), bs):
+        chunk = inputs[start:start + bs]
+        one_hot = np.zeros((len(chunk), len(ONE_HOT_CLASSES)), dtype=np.float32)
+        one_hot[:, 0] = 1.0
+        out = run_frustum_stages(stages, np.stack([j.points for j in chunk]), one_hot, num_object_points,
+                                 settings.gather, [j.rng for j in chunk])
+        boxes = decode(out)
+        scores = boxes.score_3d if use_3d_score else np.array([j.score for j in chunk])
+        rows = to_labels(boxes, np.array([j.frustum.rot_angle for j in chunk]),
+                         np.stack([j.frustum.box2d for j in chunk]), scores)
+        for r, job in enumerate(chunk):
+            per_frame[job.frame_index].append(rows.select(np.array([r])))
+    return [Labels.concatenate(p) if p else empty_detections() for p in per_frame]

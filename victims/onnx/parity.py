@@ -1,0 +1,326 @@
+"""Torch vs onnxruntime parity of an F-PN cascade and its ONNX export, at three levels.
+
+1. Stage tensors: each stage graph against its torch module on the same inputs (letterboxed
+   frame images; the frames' frustums; object points derived from the torch segmentation):
+   max |Δ| <= ``tensor_atol``; also reported: the share of elements that differ at all and the
+   share beyond ``mismatch_atol + mismatch_rtol·|ref|``. Input sensitivity: perturbing one input
+   at a time must move the ONNX outputs wherever it moves the torch outputs (catches inputs baked
+   in as constants), and the perturbed outputs must agree too.
+2. Boxes per frame: both victims' ``detect`` results as written to KITTI result files (geometry
+   columns at :data:`~robustbench3d.runner.config.RESULT_PRECISION` decimals) must be identical;
+   scores (written exactly) within ``score_atol``.
+3. AP: every AP value of the built-in evaluator (metrics x R11/R40 x difficulties, in percent)
+   on the written-and-parsed results, |ΔAP| <= ``ap_atol`` percentage points.
+
+Stage inputs are capped (:data:`MAX_IMAGES`, :data:`MAX_FRUSTUMS`); levels 2 and 3 use every frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from robustbench3d.kitti.dataset import Frame
+from robustbench3d.kitti.labels import Labels, parse_labels
+from robustbench3d.runner.config import RESULT_PRECISION
+from robustbench3d.victims.cascade import FPointNetCascade
+from robustbench3d.victims.fpointnet.glue import gather_points, mask_centroid, object_point_indices
+from robustbench3d.victims.fpointnet.model import TorchFrustumStages
+from robustbench3d.victims.fpointnet.pipeline import frustum_inputs, make_proposals
+from robustbench3d.victims.onnx.manifest import BOX, CENTER, DETECTOR_2D, SEGMENTATION, STAGES
+from robustbench3d.victims.onnx.runtime import OnnxCascade
+from robustbench3d.victims.yolo.preprocess import letterbox_image
+
+#: At most this many frame images and frustums enter the stage-tensor comparison.
+MAX_IMAGES = 8
+MAX_FRUSTUMS = 32
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """Pass thresholds (see the module docstring). ``ap_atol`` is in AP percentage points."""
+
+    tensor_atol: float = 1e-4
+    mismatch_atol: float = 1e-6
+    mismatch_rtol: float = 1e-5
+    score_atol: float = 1e-6
+    ap_atol: float = 0.01
+    sensitivity_min: float = 1e-6
+
+
+@dataclass(frozen=True)
+class TensorParity:
+    """One output tensor of one stage: ONNX vs torch."""
+
+    stage: str
+    tensor: str
+    shape: tuple[int, ...]
+    max_abs_diff: float
+    max_abs_ref: float
+    differing_fraction: float
+    mismatch_fraction: float
+    ok: bool
+
+
+@dataclass(frozen=True)
+class InputSensitivity:
+    """How much perturbing one input moves a stage's outputs, in torch and in ONNX."""
+
+    stage: str
+    input: str
+    torch_change: float
+    onnx_change: float
+    perturbed_max_abs_diff: float
+    ok: bool
+
+
+@dataclass(frozen=True)
+class BoxParity:
+    """Result rows of both victims over the frames, for one proposal source."""
+
+    proposals: str
+    frames: int
+    rows_torch: int
+    rows_onnx: int
+    identical_frames: int
+    max_score_diff: float
+    first_difference: str | None
+    ok: bool
+
+
+@dataclass(frozen=True)
+class APParity:
+    """Every AP value (percent) of both victims' results, for one proposal source."""
+
+    proposals: str
+    values: int
+    max_abs_delta: float
+    worst: str
+    bev_moderate_r40: tuple[float, float]
+    ok: bool
+
+
+@dataclass
+class ParityReport:
+    """All three levels (plus input sensitivity) and the tolerances they were judged by."""
+
+    tolerances: Tolerances
+    tensors: list[TensorParity] = field(default_factory=list)
+    sensitivity: list[InputSensitivity] = field(default_factory=list)
+    boxes: list[BoxParity] = field(default_factory=list)
+    ap: list[APParity] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        checks = [*self.tensors, *self.sensitivity, *self.boxes, *self.ap]
+        return bool(checks) and all(c.ok for c in checks)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"ok": self.ok, "tolerances": asdict(self.tolerances),
+                "tensors": [asdict(t) for t in self.tensors], "sensitivity": [asdict(s) for s in self.sensitivity],
+                "boxes": [asdict(b) for b in self.boxes], "ap": [asdict(a) for a in self.ap]}
+
+
+def compare_tensors(stage: str, name: str, ref: np.ndarray, got: np.ndarray, tol: Tolerances) -> TensorParity:
+    """ONNX output ``got`` against torch output ``ref``."""
+    if ref.shape != got.shape:
+        return TensorParity(stage, name, tuple(ref.shape), float("inf"), float(np.abs(ref).max(initial=0)), 1.0, 1.0,
+                            False)
+    ref64, got64 = ref.astype(np.float64), got.astype(np.float64)
+    diff = np.abs(got64 - ref64)
+    mismatch = diff > tol.mismatch_atol + tol.mismatch_rtol * np.abs(ref64)
+    max_diff = float(diff.max(initial=0.0))
+    return TensorParity(stage, name, tuple(ref.shape), max_diff, float(np.abs(ref64).max(initial=0.0)),
+                        float((diff > 0).mean()) if diff.size else 0.0,
+                        float(mismatch.mean()) if diff.size else 0.0,
+                        bool(np.isfinite(max_diff) and max_diff <= tol.tensor_atol))
+
+
+def stage_inputs(victim: FPointNetCascade, frames: Sequence[Frame],
+                 rng: np.random.Generator) -> dict[str, list[np.ndarray]]:
+    """Inputs of each stage: letterboxed images, frustum points (GT proposals when the frames
+    have labels, else the detector's; seeded random points if no frustum is usable), and the
+    object points the glue derives from the torch segmentation ("topk" gather)."""
+    cfg = victim.yolo.cfg
+    images = np.stack([letterbox_image(f.image, cfg.input_size, cfg.fill)[0] for f in frames[:MAX_IMAGES]])
+    source = "gt" if all(f.labels is not None for f in frames) else "detector"
+    props = make_proposals(frames, source, victim.yolo.detect, victim.car_class, victim.settings.gt_types)
+    found = frustum_inputs(frames, props, victim.settings, victim.num_points, min_points=1)[:MAX_FRUSTUMS]
+    n = victim.num_points
+    if found:
+        points = np.stack([j.points for j in found])
+    else:
+        xyz = rng.normal(0, 2, (4, n, 3)) + np.array([0.0, 1.0, 20.0])  # a blob 20 m ahead
+        points = np.concatenate([xyz, rng.uniform(0, 1, (4, n, 1))], axis=2).astype(np.float32)
+    k = victim.fpn.cfg.one_hot_dim
+    one_hot = np.eye(k, dtype=np.float32)[np.arange(len(points)) % k]
+    stages = TorchFrustumStages(victim.fpn)
+    logits = stages.segmentation(points, one_hot)
+    xyz = points[..., :3].astype(np.float64)
+    mask, _, centroid = mask_centroid(logits, xyz)
+    idx = object_point_indices(mask, logits[..., 1] - logits[..., 0], victim.fpn.cfg.num_object_points, "topk")
+    object_points = gather_points(xyz - centroid[:, None, :], idx).astype(np.float32)
+    delta = stages.center_delta(object_points, one_hot)
+    box_points = (object_points - delta[:, None, :]).astype(np.float32)
+    return {DETECTOR_2D: [images], SEGMENTATION: [points, one_hot], CENTER: [object_points, one_hot],
+            BOX: [box_points, one_hot]}
+
+
+def torch_stage_outputs(victim: FPointNetCascade, stage: str,
+                        inputs: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """The torch module of ``stage`` on numpy inputs (eval mode; as the torch victim runs it)."""
+    if stage == DETECTOR_2D:
+        return victim.yolo.run_heads(inputs[0])
+    stages = TorchFrustumStages(victim.fpn)
+    fn = {SEGMENTATION: stages.segmentation, CENTER: stages.center_delta, BOX: stages.box_output}[stage]
+    return [fn(*inputs)]
+
+
+def _perturb(stage: str, index: int, x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A different value of one input: image noise, point jitter, or the next one-hot class."""
+    if stage == DETECTOR_2D:
+        return np.clip(x + rng.uniform(-0.1, 0.1, x.shape), 0, 1).astype(np.float32)
+    if index == 1:  # one-hot
+        return np.roll(x, 1, axis=1)
+    out = x.copy()
+    out[..., :3] += rng.normal(0, 0.05, out[..., :3].shape).astype(np.float32)
+    return out
+
+
+def tensor_parity(victim: FPointNetCascade, onnx_victim: OnnxCascade, frames: Sequence[Frame], tol: Tolerances,
+                  seed: int = 0) -> tuple[list[TensorParity], list[InputSensitivity]]:
+    """Level 1 and the input-sensitivity check, for every stage."""
+    rng = np.random.default_rng(seed)
+    inputs = stage_inputs(victim, frames, rng)
+    tensors: list[TensorParity] = []
+    sensitivity: list[InputSensitivity] = []
+    for stage in STAGES:
+        session = onnx_victim.stages[stage]
+        ref = torch_stage_outputs(victim, stage, inputs[stage])
+        got = session.run(*inputs[stage])
+        tensors += [compare_tensors(stage, name, r, g, tol) for name, r, g in zip(session.output_names, ref, got,
+                                                                                 strict=True)]
+        for i, name in enumerate(session.input_names):
+            changed = list(inputs[stage])
+            changed[i] = _perturb(stage, i, changed[i], rng)
+            ref2, got2 = torch_stage_outputs(victim, stage, changed), session.run(*changed)
+            t_change = max(float(np.abs(a - b).max()) for a, b in zip(ref2, ref, strict=True))
+            o_change = max(float(np.abs(a - b).max()) for a, b in zip(got2, got, strict=True))
+            diff = max(float(np.abs(a.astype(np.float64) - b).max()) for a, b in zip(got2, ref2, strict=True))
+            baked = t_change > tol.sensitivity_min and o_change <= tol.sensitivity_min
+            sensitivity.append(InputSensitivity(stage, name, t_change, o_change, diff,
+                                                not baked and diff <= tol.tensor_atol))
+    return tensors, sensitivity
+
+
+def _geometry_lines(labels: Labels) -> list[str]:
+    """Result-file lines without the score column (the geometry as written)."""
+    return [line.rsplit(" ", 1)[0] for line in labels.to_text(RESULT_PRECISION).splitlines()]
+
+
+def box_parity(frames: Sequence[Frame], proposals: str, dets_torch: Sequence[Labels], dets_onnx: Sequence[Labels],
+               tol: Tolerances) -> BoxParity:
+    """Level 2 for one proposal source."""
+    identical, max_score, first = 0, 0.0, None
+    for frame, a, b in zip(frames, dets_torch, dets_onnx, strict=True):
+        la, lb = _geometry_lines(a), _geometry_lines(b)
+        if la == lb:
+            identical += 1
+            if len(a):
+                max_score = max(max_score, float(np.abs(a.score - b.score).max()))
+        elif first is None:
+            diff = next((i for i, (x, y) in enumerate(zip(la, lb, strict=False)) if x != y), min(len(la), len(lb)))
+            first = (f"frame {frame.frame_id} row {diff}: torch {la[diff] if diff < len(la) else '<none>'!r} vs "
+                     f"onnx {lb[diff] if diff < len(lb) else '<none>'!r}")
+    ok = identical == len(frames) and max_score <= tol.score_atol
+    return BoxParity(proposals, len(frames), sum(len(x) for x in dets_torch), sum(len(x) for x in dets_onnx),
+                     identical, max_score, first, ok)
+
+
+def _as_written(dets: Sequence[Labels]) -> list[Labels]:
+    """Detections parsed back from their result-file text (what the runner evaluates)."""
+    return [parse_labels(d.to_text(RESULT_PRECISION), "<result>", scored=True) for d in dets]
+
+
+def _ap_values(metrics: dict[str, Any], prefix: str = "") -> dict[str, float]:
+    out: dict[str, float] = {}
+    for key, value in metrics.items():
+        if key == "meta":
+            continue
+        if isinstance(value, dict):
+            out.update(_ap_values(value, f"{prefix}{key}/"))
+        elif isinstance(value, int | float):
+            out[f"{prefix}{key}"] = float(value)
+    return out
+
+
+def ap_parity(gt: Sequence[Labels], proposals: str, dets_torch: Sequence[Labels], dets_onnx: Sequence[Labels],
+              tol: Tolerances) -> APParity:
+    """Level 3 for one proposal source (Car, every metric, R11 and R40, every difficulty)."""
+    from robustbench3d.eval.kitti_eval import evaluate
+
+    a = _ap_values(evaluate(gt, _as_written(dets_torch)))
+    b = _ap_values(evaluate(gt, _as_written(dets_onnx)))
+    keys = sorted(set(a) | set(b))
+    deltas = {k: abs(a.get(k, np.nan) - b.get(k, np.nan)) for k in keys}
+    max_delta = float(np.nanmax(list(deltas.values()))) if keys else 0.0
+    worst = max(keys, key=lambda k: np.inf if np.isnan(deltas[k]) else deltas[k]) if max_delta > 0 else "-"
+    bev = "Car/bev/R40/moderate"
+    ok = bool(keys) and not any(np.isnan(v) for v in deltas.values()) and max_delta <= tol.ap_atol
+    return APParity(proposals, len(keys), max_delta, worst, (a.get(bev, np.nan), b.get(bev, np.nan)), ok)
+
+
+def run_parity(victim: FPointNetCascade, onnx_victim: OnnxCascade, frames: Sequence[Frame],
+               tol: Tolerances | None = None, proposals: Sequence[str] = ("gt", "detector")) -> ParityReport:
+    """All levels on ``frames``; AP only for frames with labels (GT proposals need them too)."""
+    tol = tol or Tolerances()
+    report = ParityReport(tol)
+    report.tensors, report.sensitivity = tensor_parity(victim, onnx_victim, frames, tol)
+    labelled = all(f.labels is not None for f in frames)
+    for source in proposals:
+        if source == "gt" and not labelled:
+            continue
+        dets_torch = victim.detect(frames, source)
+        dets_onnx = onnx_victim.detect(frames, source)
+        report.boxes.append(box_parity(frames, source, dets_torch, dets_onnx, tol))
+        if labelled:
+            gt = [f.labels for f in frames if f.labels is not None]
+            report.ap.append(ap_parity(gt, source, dets_torch, dets_onnx, tol))
+    return report
+
+
+def format_report(report: ParityReport) -> str:
+    """Plain-text tables of every level."""
+    from robustbench3d.bench import format_table
+
+    t = report.tolerances
+    parts = [f"== stage tensors (pass: max |Δ| <= {t.tensor_atol:g}; mismatch: |Δ| > {t.mismatch_atol:g} + "
+             f"{t.mismatch_rtol:g}·|ref|)",
+             format_table([{"stage": r.stage, "tensor": r.tensor, "shape": "x".join(map(str, r.shape)),
+                            "max_abs_diff": r.max_abs_diff, "max_abs_ref": r.max_abs_ref,
+                            "differing": r.differing_fraction, "mismatch": r.mismatch_fraction, "ok": r.ok}
+                           for r in report.tensors]),
+             "== input sensitivity (an input that moves the torch output must move the ONNX output)",
+             format_table([{"stage": s.stage, "input": s.input, "torch_change": s.torch_change,
+                            "onnx_change": s.onnx_change, "perturbed_max_abs_diff": s.perturbed_max_abs_diff,
+                            "ok": s.ok, "note": "" if s.torch_change > t.sensitivity_min else
+                            "vacuous: constant in torch too (e.g. the zero-initialised T-Net head)"}
+                           for s in report.sensitivity])]
+    if report.boxes:
+        parts += [f"== boxes per frame (geometry as written, {RESULT_PRECISION} decimals, identical; "
+                  f"|Δscore| <= {t.score_atol:g})",
+                  format_table([{"proposals": b.proposals, "frames": b.frames, "rows_torch": b.rows_torch,
+                                 "rows_onnx": b.rows_onnx, "identical_frames": b.identical_frames,
+                                 "max_score_diff": b.max_score_diff, "ok": b.ok} for b in report.boxes])]
+        parts += [f"  first difference ({b.proposals}): {b.first_difference}" for b in report.boxes
+                  if b.first_difference]
+    if report.ap:
+        parts += [f"== AP (Car; all metrics, R11/R40, difficulties; |ΔAP| <= {t.ap_atol:g} points)",
+                  format_table([{"proposals": a.proposals, "values": a.values, "max_abs_delta": a.max_abs_delta,
+                                 "worst": a.worst, "bev_R40_mod_torch": a.bev_moderate_r40[0],
+                                 "bev_R40_mod_onnx": a.bev_moderate_r40[1], "ok": a.ok} for a in report.ap])]
+    parts.append(f"parity: {'PASS' if report.ok else 'FAIL'}")
+    return "\n".join(parts)

@@ -1,0 +1,180 @@
+"""ONNX victim directories in the victim registry.
+
+Two ways in, both through :data:`robustbench3d.victims.VICTIMS`:
+
+* ``robustbench3d victims add-onnx DIR --name NAME`` records NAME -> DIR in the user registry file
+  ``<cache>/victims/onnx.json`` (:func:`user_registry_file`); this module is one of the registry's
+  in-tree modules, so every lookup registers the file's entries.
+* a directory given directly to ``run --victims`` (:func:`resolve_victim_reference`) is
+  registered under its sanitised directory name for the run.
+
+An entry's ``weights_sha256`` is the sha256 of the directory's ``manifest.json`` (which pins every
+stage file's sha256), so results record exactly which graphs ran. Nothing is validated at
+registration; creating the victim validates everything (:class:`~.runtime.OnnxCascade`).
+
+Standard library only (listing victims stays cheap).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import warnings
+from pathlib import Path
+from typing import Any
+
+from robustbench3d.errors import DataFormatError, RobustBenchError
+from robustbench3d.fileio import atomic_write_text, sha256_file
+from robustbench3d.paths import cache_dir
+from robustbench3d.registry import Capabilities, EntryInfo, RegistryError
+from robustbench3d.victims import VICTIMS
+from robustbench3d.victims.onnx import MANIFEST_FILE
+from robustbench3d.victims.spec import VictimSpec
+
+REGISTRY_FORMAT = "robustbench3d.onnx_victims/1"
+ONNX_CAPABILITIES = Capabilities(modalities=("camera", "lidar"), backend="onnx", gradients=False, deterministic=True)
+_INVALID = re.compile(r"[^a-z0-9._-]+")
+
+
+def user_registry_file() -> Path:
+    """``<cache>/victims/onnx.json`` (see :func:`robustbench3d.paths.cache_dir`)."""
+    return cache_dir() / "victims" / "onnx.json"
+
+
+class OnnxVictimFactory:
+    """Factory of the ONNX victim in one directory.
+
+    Its registry identity (``__module__:__qualname__``) names the resolved directory, so
+    registering the same directory twice under a name is a no-op and a different directory under
+    a taken name is a collision.
+    """
+
+    def __init__(self, directory: str | Path):
+        self.directory = Path(directory).expanduser().resolve()
+        self.__module__ = __name__
+        self.__qualname__ = f"OnnxVictimFactory[{self.directory}]"
+
+    def __call__(self, *, seed: int | None = None, gather: str | None = None, threads: int = 1) -> Any:
+        from robustbench3d.victims.onnx.runtime import OnnxCascade
+
+        return OnnxCascade(self.directory, seed=seed, gather=gather, threads=threads)
+
+
+def victim_spec(directory: str | Path) -> VictimSpec:
+    """The registry entry of an ONNX victim directory (not validated here)."""
+    factory = OnnxVictimFactory(directory)
+    manifest = factory.directory / MANIFEST_FILE
+    sha = sha256_file(manifest) if manifest.is_file() else None
+    state = "" if sha else " (manifest.json missing)"
+    info = EntryInfo(capabilities=ONNX_CAPABILITIES, weights_sha256=sha,
+                     summary=f"ONNX F-PN cascade in {factory.directory}{state}")
+    return VictimSpec(factory=factory, info=info)
+
+
+def register_directory(name: str, directory: str | Path) -> str:
+    """Register the ONNX victim in ``directory`` as ``name`` (idempotent for the same directory)."""
+    VICTIMS.register(name, victim_spec(directory))
+    return name
+
+
+def sanitise_name(text: str) -> str:
+    """A registry name from a directory name: lowercase, runs of other characters -> "-"."""
+    name = _INVALID.sub("-", text.lower()).strip("-._")
+    return name or "onnx-victim"
+
+
+def looks_like_path(reference: str) -> bool:
+    """True if a ``--victims`` entry names a directory rather than a registered victim."""
+    return (os.sep in reference or "/" in reference or reference.startswith((".", "~"))
+            or (Path(reference).is_dir() and (Path(reference) / MANIFEST_FILE).is_file()))
+
+
+def resolve_victim_reference(reference: str) -> str:
+    """A registered victim name for a ``--victims`` entry: names pass through; an ONNX victim
+    directory is registered under its sanitised directory name, which is returned."""
+    if not looks_like_path(reference):
+        return reference
+    directory = Path(reference).expanduser().resolve()
+    if not (directory / MANIFEST_FILE).is_file():
+        raise DataFormatError(directory / MANIFEST_FILE, "not an ONNX victim directory (no manifest.json); "
+                                                         "write one with `robustbench3d export-onnx`")
+    name = sanitise_name(directory.name)
+    try:
+        return register_directory(name, directory)
+    except RegistryError:
+        raise RobustBenchError(f"--victims {reference}: the directory's name {name!r} is already a registered "
+                               "victim; rename the directory or register it under another name with "
+                               "`robustbench3d victims add-onnx DIR --name NAME`") from None
+
+
+def resolve_victim_references(victims: list[str], victim_args: dict[str, Any]) -> tuple[list[str], dict[str, Any]]:
+    """:func:`resolve_victim_reference` over ``run``'s victim list and the keys of its
+    ``--victim-arg`` mapping (so ``--victim-arg DIR:threads=2`` follows the directory)."""
+    return ([resolve_victim_reference(v) for v in victims],
+            {resolve_victim_reference(k): v for k, v in victim_args.items()})
+
+
+def read_user_registry(path: Path | None = None) -> dict[str, str]:
+    """NAME -> directory entries of the user registry file ({} if there is none)."""
+    path = path or user_registry_file()
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataFormatError(path, f"not valid JSON ({exc}); fix or delete the file") from None
+    if not isinstance(data, dict) or data.get("format") != REGISTRY_FORMAT or not isinstance(data.get("victims"), dict):
+        raise DataFormatError(path, f"expected {{'format': {REGISTRY_FORMAT!r}, 'victims': {{NAME: DIR}}}}; "
+                                    "fix or delete the file")
+    entries = data["victims"]
+    bad = [k for k, v in entries.items() if not isinstance(v, str)]
+    if bad:
+        raise DataFormatError(path, f"entry {bad[0]!r}: the directory must be a string")
+    return dict(entries)
+
+
+def add_user_victim(name: str, directory: str | Path, *, replace: bool = False) -> Path:
+    """Record ``name`` -> ``directory`` in the user registry file (atomically) and register it.
+
+    Raises :class:`RobustBenchError` if ``name`` is taken by another victim (unless ``replace``
+    and the other one is a user ONNX entry; a replaced entry takes effect in new processes).
+    Returns the registry file.
+    """
+    path = user_registry_file()
+    entries = read_user_registry(path)
+    directory = Path(directory).expanduser().resolve()
+    if sanitise_name(name) != name:
+        raise RobustBenchError(f"victim name {name!r} must be lowercase letters, digits, '.', '_' or '-' "
+                               f"(e.g. {sanitise_name(name)!r})")
+    if name in VICTIMS and name not in entries:
+        raise RobustBenchError(f"victim name {name!r} is taken by a {VICTIMS.entry(name).origin} victim; choose "
+                               "another --name")
+    if name in entries and Path(entries[name]) != directory and not replace:
+        raise RobustBenchError(f"victim {name!r} already points to {entries[name]} in {path}; pass --replace to "
+                               "point it to the new directory")
+    entries[name] = str(directory)
+    text = json.dumps({"format": REGISTRY_FORMAT, "victims": dict(sorted(entries.items()))}, indent=2) + "\n"
+    atomic_write_text(path, text)
+    if name not in VICTIMS:
+        register_directory(name, directory)
+    return path
+
+
+def register_user_victims() -> None:
+    """Register every entry of the user registry file. A broken file or entry is skipped with a
+    warning naming it (it must not make every other victim unusable)."""
+    VICTIMS.names()  # in-tree victims first, whichever module is imported first
+    try:
+        entries = read_user_registry()
+    except DataFormatError as exc:
+        warnings.warn(f"ignoring the ONNX victim registry: {exc}", stacklevel=2)
+        return
+    for name, directory in entries.items():
+        try:
+            register_directory(name, directory)
+        except (RegistryError, OSError) as exc:
+            warnings.warn(f"{user_registry_file()}: ignoring entry {name!r}: {exc}", stacklevel=2)
+
+
+register_user_victims()
