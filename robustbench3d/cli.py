@@ -17,18 +17,18 @@ from robustbench3d.errors import RobustBenchError
 
 #: name -> (module, one-line help). Nested groups use "group name".
 COMMANDS: dict[str, tuple[str, str]] = {
-    "data stats": ("robustbench3d.dataset_stats", "LiDAR/label statistics of KITTI-layout datasets, side by side"),
-    "show": ("robustbench3d.show", "draw a frame: image with 3D boxes and a bird's-eye view of the scan"),
-    "bench": ("robustbench3d.bench", "run speed/memory benchmarks and print a table"),
-    "data synth": ("robustbench3d.synth.cli", "generate the embedded procedural dataset in KITTI layout"),
-    "eval": ("robustbench3d.eval.cli", "score KITTI result files against ground-truth labels"),
     "run": ("robustbench3d.run_cli", "benchmark victims x attacks x proposal sources on a dataset split"),
+    "data synth": ("robustbench3d.synth.cli", "generate the embedded procedural dataset in KITTI layout"),
+    "data stats": ("robustbench3d.dataset_stats", "LiDAR/label statistics of KITTI-layout datasets, side by side"),
+    "eval": ("robustbench3d.eval.cli", "score KITTI result files against ground-truth labels"),
+    "show": ("robustbench3d.show", "draw a frame: image with 3D boxes and a bird's-eye view of the scan"),
     "victims list": ("robustbench3d.victims.list_command", "list registered victims and their capabilities"),
     "victims add-onnx": ("robustbench3d.victims.onnx.add_command", "register an ONNX victim directory under a name"),
-    "export-onnx": ("robustbench3d.victims.onnx.export_command", "export an F-PN cascade victim as per-stage ONNX"),
-    "parity": ("robustbench3d.victims.onnx.parity_command", "torch vs onnxruntime parity: tensors, boxes, AP"),
     "train yolo": ("robustbench3d.victims.train_yolo", "train the YOLO 2D detector on a KITTI-layout dataset"),
     "train fpointnet": ("robustbench3d.victims.train_fpointnet", "train Frustum-PointNet v1 on GT-box frustums"),
+    "export-onnx": ("robustbench3d.victims.onnx.export_command", "export an F-PN cascade victim as per-stage ONNX"),
+    "parity": ("robustbench3d.victims.onnx.parity_command", "torch vs onnxruntime parity: tensors, boxes, AP"),
+    "bench": ("robustbench3d.bench", "run speed/memory benchmarks and print a table"),
 }
 
 
