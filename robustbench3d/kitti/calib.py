@@ -11,6 +11,7 @@ velodyne -> rect: ``R0_rect @ (Tr_velo_to_cam @ [x; 1])``; rect -> image: ``P2 @
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -32,9 +33,17 @@ def _homogeneous(m: np.ndarray) -> np.ndarray:
     return out
 
 
+def _read_only(m: np.ndarray) -> np.ndarray:
+    m.setflags(write=False)
+    return m
+
+
 @dataclass(frozen=True, eq=False)
 class Calibration:
-    """The seven matrices of a KITTI object calib file (float64)."""
+    """The seven matrices of a KITTI object calib file (float64).
+
+    Treat the matrices as read-only: the derived transforms are computed once and cached.
+    """
 
     P0: np.ndarray
     P1: np.ndarray
@@ -52,12 +61,12 @@ class Calibration:
             object.__setattr__(self, key, m)
 
     # ---- derived matrices -------------------------------------------------------------
-    @property
+    @cached_property
     def velo_to_rect(self) -> np.ndarray:
         """4x4 homogeneous transform velodyne -> rect."""
-        return _homogeneous(self.R0_rect) @ _homogeneous(self.Tr_velo_to_cam)
+        return _read_only(_homogeneous(self.R0_rect) @ _homogeneous(self.Tr_velo_to_cam))
 
-    @property
+    @cached_property
     def rect_to_velo(self) -> np.ndarray:
         """4x4 homogeneous transform rect -> velodyne (exact rigid inverse)."""
         m = self.velo_to_rect
@@ -67,12 +76,12 @@ class Calibration:
         out = np.eye(4)
         out[:3, :3] = r_inv
         out[:3, 3] = -r_inv @ t
-        return out
+        return _read_only(out)
 
-    @property
+    @cached_property
     def velo_to_image(self) -> np.ndarray:
         """3x4 projection velodyne -> image-2 pixels (homogeneous)."""
-        return self.P2 @ self.velo_to_rect
+        return _read_only(self.P2 @ self.velo_to_rect)
 
     @property
     def intrinsics(self) -> tuple[float, float, float, float]:

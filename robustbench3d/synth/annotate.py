@@ -152,12 +152,14 @@ def annotate(scene: Scene, geometry: SceneGeometry, object_id: np.ndarray,
     n_points = np.bincount(np.asarray(point_object, np.int64), minlength=len(scene.objects))
     records: list[ObjectAnnotation] = []
     rows: list[tuple[int, float, str, float, int, np.ndarray, int]] = []
-    for i in scene.labelled_indices():
-        obj = scene.objects[i]
-        # cheap reject first: the mesh lies inside its box, so a box missing the image hides the mesh too
-        corners = box_corners(obj.dimensions[None], obj.location[None], np.array([obj.rotation_y]))
-        in_view = project_boxes_to_image(corners, scene.calib, (w, h), near=0.5 * NEAR_DEPTH_M)[1][0]
-        extent = _projected_extent(scene, obj.mesh.vertices, obj.mesh.faces) if in_view else None
+    labelled = scene.labelled_indices()
+    objs = [scene.objects[i] for i in labelled]
+    # cheap reject first: the mesh lies inside its box, so a box missing the image hides the mesh too
+    corners = box_corners(np.array([o.dimensions for o in objs]).reshape(-1, 3),
+                          np.array([o.location for o in objs]).reshape(-1, 3), np.array([o.rotation_y for o in objs]))
+    in_view = project_boxes_to_image(corners, scene.calib, (w, h), near=0.5 * NEAR_DEPTH_M)[1]
+    for i, obj, seen in zip(labelled, objs, in_view, strict=True):
+        extent = _projected_extent(scene, obj.mesh.vertices, obj.mesh.faces) if seen else None
         if extent is None or extent[2] < 0 or extent[3] < 0 or extent[0] > w - 1 or extent[1] > h - 1:
             records.append(ObjectAnnotation(i, "out_of_view", 1.0, 1.0, 0.0, np.zeros(4), int(n_points[i])))
             continue

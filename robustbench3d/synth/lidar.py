@@ -24,10 +24,11 @@ Models (fitted by eye to the six real KITTI scans; ranges in m):
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
-from robustbench3d.sensors.hdl64e import AZIMUTH_QUANTUM_DEG, HDL64E, MAX_RANGE_M, BeamRays
+from robustbench3d.sensors.hdl64e import AZIMUTH_QUANTUM_DEG, HDL64E, MAX_RANGE_M
 from robustbench3d.synth.materials import REFLECTIVITY, RETURN_PROB, Mat
 from robustbench3d.synth.raytrace import SceneGeometry
 from robustbench3d.synth.scene import Scene
@@ -51,25 +52,41 @@ def ground_reflectivity(scene: Scene, x: np.ndarray, y: np.ndarray) -> np.ndarra
     return rho
 
 
-def surface_reflectivity(scene: Scene, material: np.ndarray, color: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Reflectivity rho in [0, 1) per hit from material, albedo brightness and road markings."""
-    rho = REFLECTIVITY[material].copy()
+#: Materials whose reflectivity scales with the albedo's brightness (indexed by material id).
+_TINTED = np.isin(np.arange(len(Mat)), [Mat.PAINT, Mat.FACADE, Mat.WALL, Mat.CLOTH])
+
+
+def surface_reflectivity(scene: Scene, material: np.ndarray, color: np.ndarray, x: np.ndarray,
+                         y: np.ndarray) -> np.ndarray:
+    """Reflectivity rho in [0, 1) per hit (velodyne x, y) from material, albedo brightness and road markings."""
+    rho = REFLECTIVITY[material]
     lum = color @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
-    tinted = np.isin(material, [Mat.PAINT, Mat.FACADE, Mat.WALL, Mat.CLOTH])
+    tinted = _TINTED[material]
     rho[tinted] *= 0.55 + 0.9 * np.sqrt(lum[tinted])
     g = material == Mat.GROUND
     if g.any():
-        rho[g] = ground_reflectivity(scene, points[g, 0], points[g, 1])
+        rho[g] = ground_reflectivity(scene, x[g], y[g])
     return np.clip(rho, 0.0, 0.98)
 
 
+class _Beams(NamedTuple):
+    """The rays of :func:`_base_rays` as the scan simulation uses them (vectors stored by component, (3, N),
+    so that elementwise operations run over whole rows)."""
+
+    origins: np.ndarray  # (N, 3) float32, Embree's input
+    origin_rows: np.ndarray  # (3, N) float64
+    direction_rows: np.ndarray  # (3, N) float64, before the frame's rotation phase
+
+
 @lru_cache(maxsize=1)
-def _base_rays() -> BeamRays:
+def _base_rays() -> _Beams:
     """One revolution of the default sensor with fixed per-laser firing offsets (like the real unit's
     per-laser rotational corrections), in [0, half the azimuth quantum)."""
     sensor = HDL64E()
     offsets = np.random.default_rng(64).uniform(0.0, AZIMUTH_QUANTUM_DEG / 2, sensor.num_lasers)
-    return sensor.rays(offsets)
+    rays = sensor.rays(offsets)
+    return _Beams(rays.origins.astype(np.float32), np.ascontiguousarray(rays.origins.T),
+                  np.ascontiguousarray(rays.directions.T))
 
 
 def simulate_scan(scene: Scene, geometry: SceneGeometry, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -79,30 +96,35 @@ def simulate_scan(scene: Scene, geometry: SceneGeometry, rng: np.random.Generato
         scan: (N, 4) float32 x, y, z (velodyne, m), reflectance in [0, 0.99].
         point_object: (N,) int32 index into ``scene.objects`` of the surface each point lies on.
     """
-    base = _base_rays()
+    beams = _base_rays()
     phase = np.radians(rng.uniform(0.0, AZIMUTH_QUANTUM_DEG / 2))
     c, s = np.cos(phase), np.sin(phase)
-    bd = base.directions
-    directions = np.column_stack([c * bd[:, 0] - s * bd[:, 1], s * bd[:, 0] + c * bd[:, 1], bd[:, 2]])
-    hits = geometry.intersect(base.origins, directions, MAX_RANGE_M)
+    bx, by, bz = beams.direction_rows
+    directions = np.stack([c * bx - s * by, s * bx + c * by, bz])
+    hits = geometry.intersect(beams.origins, directions.T, MAX_RANGE_M)
     idx = np.flatnonzero(hits.hit & (hits.t > MIN_RANGE_M))
     prim = hits.prim[idx]
     t = hits.t[idx].astype(np.float64)
-    d = directions[idx]
-    cos_inc = np.abs(np.sum(geometry.face_normals[prim] * d, axis=1))
+    d = directions.take(idx, axis=1)
+    o = beams.origin_rows.take(idx, axis=1)
+    nrm = geometry.face_normals.take(prim, axis=0)
+    cos_inc = np.abs(nrm[:, 0] * d[0] + nrm[:, 1] * d[1] + nrm[:, 2] * d[2])  # = sum(nrm * d.T, axis=1)
     material = geometry.tri_material[prim]
-    rho = surface_reflectivity(scene, material, geometry.tri_color[prim], base.origins[idx] + t[:, None] * d)
+    rho = surface_reflectivity(scene, material, geometry.tri_color.take(prim, axis=0), o[0] + t * d[0],
+                               o[1] + t * d[1])
 
     signal = rho * np.maximum(cos_inc, 0.02) / (t * t)
     p_return = RETURN_PROB[material] * _sigmoid(np.log(np.maximum(signal, 1e-30) / SIGNAL_THRESHOLD) / 0.5)
     keep = np.flatnonzero(rng.random(len(idx)) < p_return)
-    idx, prim, t, d, cos_inc, rho = idx[keep], prim[keep], t[keep], d[keep], cos_inc[keep], rho[keep]
+    prim, t, cos_inc, rho = prim[keep], t[keep], cos_inc[keep], rho[keep]
+    d, o = d.take(keep, axis=1), o.take(keep, axis=1)
 
-    n = len(idx)
+    n = len(keep)
     r = t + np.clip(rng.normal(0.0, RANGE_NOISE_SD, n), -3 * RANGE_NOISE_SD, 3 * RANGE_NOISE_SD)
-    points = base.origins[idx] + r[:, None] * d
     level = np.clip(1.0 - 0.012 * np.maximum(r - 20.0, 0.0), 0.3, 1.0)
     refl = rho * (0.55 + 0.45 * cos_inc) * level * np.exp(rng.normal(0.0, 0.12, n))
     zero = rng.random(n) < 0.04 + 0.9 * _sigmoid((r - 45.0) / 5.0)
-    refl = np.where(zero, 0.0, np.clip(np.floor(refl * 100.0) / 100.0, 0.0, 0.99))
-    return np.column_stack([points, refl]).astype(np.float32), geometry.tri_object[prim]
+    scan = np.empty((n, 4), dtype=np.float32)
+    scan[:, :3] = (o + r * d).T
+    scan[:, 3] = np.where(zero, 0.0, np.clip(np.floor(refl * 100.0) / 100.0, 0.0, 0.99))
+    return scan, geometry.tri_object[prim]

@@ -68,8 +68,8 @@ def merge(meshes: list[Mesh]) -> Mesh:
 def _faces_colored(vertices: np.ndarray, faces: np.ndarray, material: Mat | np.ndarray,
                    color: np.ndarray) -> Mesh:
     f = len(faces)
-    mat = np.broadcast_to(np.asarray(material, dtype=np.uint8), (f,)).copy()
-    col = np.broadcast_to(np.asarray(color, dtype=np.float32), (f, 3)).copy()
+    mat = np.full(f, np.asarray(material, dtype=np.uint8))
+    col = np.full((f, 3), np.asarray(color, dtype=np.float32))
     return Mesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64), mat, col)
 
 
@@ -189,6 +189,22 @@ def beam(p0: np.ndarray, p1: np.ndarray, radius: float, material: Mat, color: np
     return bs.mesh()
 
 
+@lru_cache(maxsize=64)
+def _loft_faces(m: int, k: int) -> np.ndarray:
+    """Faces (read-only) of :func:`loft` for M rings of K points: the quads, then both caps."""
+    idx = np.arange(m * k).reshape(m, k)
+    a, b = idx[:-1], np.roll(idx[:-1], -1, axis=1)
+    c, d = idx[1:], np.roll(idx[1:], -1, axis=1)
+    quads = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    ring0 = np.arange(k)
+    ring1 = (m - 1) * k + np.arange(k)
+    cap0 = np.stack([np.full(k, m * k), np.roll(ring0, -1), ring0], 1)
+    cap1 = np.stack([np.full(k, m * k + 1), ring1, np.roll(ring1, -1)], 1)
+    faces = np.concatenate([quads, cap0, cap1])
+    faces.flags.writeable = False
+    return faces
+
+
 def loft(rings: np.ndarray, material: np.ndarray, color: np.ndarray, cap_material: tuple[Mat, Mat],
          cap_color: tuple[np.ndarray, np.ndarray]) -> Mesh:
     """Closed tube through M rings of K points each, capped at both ends.
@@ -201,23 +217,14 @@ def loft(rings: np.ndarray, material: np.ndarray, color: np.ndarray, cap_materia
     """
     r = np.asarray(rings, dtype=np.float64)
     m, k = r.shape[:2]
-    idx = np.arange(m * k).reshape(m, k)
-    a, b = idx[:-1], np.roll(idx[:-1], -1, axis=1)
-    c, d = idx[1:], np.roll(idx[1:], -1, axis=1)
-    quads = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
-    mat = np.concatenate([material.reshape(-1), material.reshape(-1)]).astype(np.uint8)
-    col = np.concatenate([color.reshape(-1, 3), color.reshape(-1, 3)]).astype(np.float32)
+    quad_mat = material.reshape(-1)
+    mat = np.concatenate([quad_mat, quad_mat, np.full(k, cap_material[0]), np.full(k, cap_material[1])])
+    quad_col = color.reshape(-1, 3)
+    cap_col = [np.broadcast_to(np.asarray(c, np.float32), (k, 3)) for c in cap_color]
+    col = np.concatenate([quad_col, quad_col, *cap_col])
     centers = np.stack([r[0].mean(axis=0), r[-1].mean(axis=0)])
     verts = np.concatenate([r.reshape(-1, 3), centers])
-    ring0 = np.arange(k)
-    ring1 = (m - 1) * k + np.arange(k)
-    cap0 = np.stack([np.full(k, m * k), np.roll(ring0, -1), ring0], 1)
-    cap1 = np.stack([np.full(k, m * k + 1), ring1, np.roll(ring1, -1)], 1)
-    faces = np.concatenate([quads, cap0, cap1])
-    mat = np.concatenate([mat, np.full(k, cap_material[0], np.uint8), np.full(k, cap_material[1], np.uint8)])
-    col = np.concatenate([col, np.tile(np.asarray(cap_color[0], np.float32), (k, 1)),
-                          np.tile(np.asarray(cap_color[1], np.float32), (k, 1))])
-    return Mesh(verts, faces, mat, col)
+    return Mesh(verts, _loft_faces(m, k), mat.astype(np.uint8), col.astype(np.float32))
 
 
 @lru_cache(maxsize=4)

@@ -8,9 +8,10 @@ built on demand for the annotation's "what would this object cover if nothing hi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
-from embreex import rtcore_scene
+from embreex import rtcore, rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from robustbench3d.synth.scene import Scene
@@ -35,8 +36,15 @@ class Hits:
         return self.prim >= 0
 
 
+@lru_cache(maxsize=1)
+def _device() -> rtcore.EmbreeDevice:
+    """The process's Embree device, shared by all scenes (one device per scene costs a device start-up
+    for each of the per-object scenes of the annotation)."""
+    return rtcore.EmbreeDevice()
+
+
 def _embree(vertices: np.ndarray, faces: np.ndarray) -> rtcore_scene.EmbreeScene:
-    scene = rtcore_scene.EmbreeScene()
+    scene = rtcore_scene.EmbreeScene(_device())
     TriangleMesh(scene, np.ascontiguousarray(vertices, dtype=np.float32), np.ascontiguousarray(faces, dtype=np.int32))
     return scene
 
@@ -53,19 +61,24 @@ class SceneGeometry:
         counts = np.array([m.num_faces for m in meshes])
         offsets = np.concatenate([[0], np.cumsum([len(m.vertices) for m in meshes])[:-1]])
         self.vertices = np.concatenate([m.vertices for m in meshes])
-        self.faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
+        self.faces = np.concatenate([m.faces for m in meshes]) + np.repeat(offsets, counts)[:, None]
         #: (F,) int32 object index of each triangle.
         self.tri_object = np.repeat(np.arange(len(meshes), dtype=np.int32), counts)
         #: (F,) uint8 material id of each triangle.
         self.tri_material = np.concatenate([m.material for m in meshes])
         #: (F, 3) float32 linear-RGB albedo of each triangle.
         self.tri_color = np.concatenate([m.color for m in meshes]).astype(np.float32)
-        v = self.vertices[self.faces]
-        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        v0, v1, v2 = (np.take(self.vertices, self.faces[:, k], axis=0) for k in range(3))
+        a, b = v1 - v0, v2 - v0
+        n = np.empty_like(a)  # the cross product a x b, computed like np.cross
+        n[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+        n[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+        n[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+        length = np.sqrt(n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1] + n[:, 2] * n[:, 2])  # = np.linalg.norm(n, axis=1)
         #: (F, 3) float32 unit normals (orientation arbitrary).
-        self.face_normals = (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+        self.face_normals = (n / np.maximum(length, 1e-12)[:, None]).astype(np.float32)
         #: (F, 3) float32 first vertex of each triangle.
-        self.face_anchor = v[:, 0].astype(np.float32)
+        self.face_anchor = v0.astype(np.float32)
         self._meshes = meshes
         self._scene = _embree(self.vertices, self.faces)
         self._solo: dict[int, rtcore_scene.EmbreeScene] = {}
@@ -82,12 +95,13 @@ class SceneGeometry:
         out = self._scene.run(o, d, dists=dists, output=1)
         return Hits(out["primID"], out["tfar"], out["Ng"])
 
-    def occluded(self, origins: np.ndarray, directions: np.ndarray, max_dist: float) -> np.ndarray:
-        """(N,) bool: something lies along the ray within ``max_dist`` (shadow rays)."""
-        d = _f32(directions)
-        o = _f32(np.broadcast_to(origins, d.shape))
-        dists = np.full(len(d), max_dist, dtype=np.float32)
-        return self._scene.run(o, d, dists=dists, query="OCCLUDED") == 0
+    def occluded(self, origins: np.ndarray, direction: np.ndarray, max_dist: float) -> np.ndarray:
+        """(N,) bool: something lies within ``max_dist`` along the rays from ``origins`` (N, 3) in the
+        common unit ``direction`` (3,) (shadow rays)."""
+        o = _f32(origins)
+        dists = np.full(len(o), max_dist, dtype=np.float32)
+        # a single direction row is used for every ray by EmbreeScene.run (no (N, 3) copy of it needed)
+        return self._scene.run(o, _f32(direction).reshape(1, 3), dists=dists, query="OCCLUDED") == 0
 
     def hits_object_alone(self, index: int, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """(N,) bool: rays hit object ``index`` when it is alone in the scene."""

@@ -27,6 +27,13 @@ CAR_STYLES = ("sedan", "hatchback", "wagon", "suv")
 _LOWER, _UPPER, _WINDOW, _ROOF_EDGE, _ROOF, _BOTTOM = 0, 1, 2, 3, 4, 5
 _SEGMENT_ROLE = np.array([_LOWER, _UPPER, _WINDOW, _ROOF_EDGE, _ROOF, _ROOF_EDGE, _WINDOW, _UPPER, _LOWER,
                           _BOTTOM])
+_IS_LOWER, _IS_UPPER, _IS_WINDOW, _IS_BOTTOM = (np.isin(_SEGMENT_ROLE, r) for r in (_LOWER, _UPPER, _WINDOW, _BOTTOM))
+_IS_TOP = np.isin(_SEGMENT_ROLE, (_ROOF, _ROOF_EDGE))
+#: Body colour per material (float32, indexed by material id); the paint row is set per car.
+_BODY_COLORS = np.zeros((len(Mat), 3), dtype=np.float32)
+for _m, _c in ((Mat.GLASS, mt.GLASS), (Mat.TRIM, mt.TRIM), (Mat.HEADLIGHT, mt.HEADLIGHT),
+               (Mat.TAILLIGHT, mt.TAILLIGHT)):
+    _BODY_COLORS[_m] = _c
 
 
 def _rings(half_width: np.ndarray, z_bot: np.ndarray, z_belt: np.ndarray, z_top: np.ndarray,
@@ -75,28 +82,24 @@ def _body(l: float, w: float, h: float, p: dict, paint: np.ndarray) -> Mesh:
     rings = _rings(w / 2 * plan, bot, belt, top, p["roof_half"] * w / 2)
     rings[:, :, 0] = (0.5 - u[:, None]) * l  # u = 0 is the front (x = +l/2)
 
-    # materials of the bands between stations
+    # materials of the bands between stations (columns: ring segments, see _SEGMENT_ROLE)
     um = 0.5 * (u[:-1] + u[1:])
-    role = np.broadcast_to(_SEGMENT_ROLE, (len(um), 10))
-    mat = np.full(role.shape, Mat.PAINT, dtype=np.uint8)
+    mat = np.full((len(um), len(_SEGMENT_ROLE)), Mat.PAINT, dtype=np.uint8)
     side_glass = (um > a1 + 0.015) & (um < p["side_glass_end"]) & ~((um > ub - 0.012) & (um < ub + 0.012))
-    mat[(role == _WINDOW) & side_glass[:, None]] = Mat.GLASS
+    mat[side_glass[:, None] & _IS_WINDOW] = Mat.GLASS
     windshield = (um > a1) & (um < a2)
     rear_glass = (um > a3) & (um < a4 - 0.01)
-    top_roles = (role == _ROOF) | (role == _ROOF_EDGE)
-    mat[top_roles & (windshield | rear_glass)[:, None]] = Mat.GLASS
-    mat[role == _BOTTOM] = Mat.TRIM
+    mat[(windshield | rear_glass)[:, None] & _IS_TOP] = Mat.GLASS
+    mat[:, _IS_BOTTOM] = Mat.TRIM
     front_band = um < 0.05
     rear_band = um > 0.965
-    mat[(role == _UPPER) & front_band[:, None]] = Mat.HEADLIGHT
-    mat[(role == _UPPER) & rear_band[:, None]] = Mat.TAILLIGHT
+    mat[front_band[:, None] & _IS_UPPER] = Mat.HEADLIGHT
+    mat[rear_band[:, None] & _IS_UPPER] = Mat.TAILLIGHT
     bumper = (um < 0.05) | (um > 0.965)
-    mat[(role == _LOWER) & bumper[:, None]] = Mat.TRIM
-    color = np.empty((*mat.shape, 3), dtype=np.float32)
-    color[:] = paint
-    for m_id, c in ((Mat.GLASS, mt.GLASS), (Mat.TRIM, mt.TRIM), (Mat.HEADLIGHT, mt.HEADLIGHT),
-                    (Mat.TAILLIGHT, mt.TAILLIGHT)):
-        color[mat == m_id] = c
+    mat[bumper[:, None] & _IS_LOWER] = Mat.TRIM
+    palette = _BODY_COLORS.copy()
+    palette[Mat.PAINT] = paint
+    color = palette[mat]
     return loft(rings, mat, color, (Mat.PAINT, Mat.PAINT), (0.8 * paint, paint))
 
 
@@ -112,19 +115,30 @@ def _unit_wheel() -> Mesh:
     return merge([tyre, rim])
 
 
+@lru_cache(maxsize=4)
+def _wheel_set(n: int) -> Mesh:
+    """Faces, materials and colours (read-only) of ``n`` unit wheels, left and right ones alternating
+    (the right ones mirrored, so their faces are flipped); the vertices are left empty."""
+    unit = _unit_wheel()
+    faces = np.concatenate([(unit.faces if k % 2 == 0 else unit.faces[:, ::-1]) + k * len(unit.vertices)
+                            for k in range(n)])
+    out = Mesh(np.empty((0, 3)), faces, np.tile(unit.material, n), np.tile(unit.color, (n, 1)))
+    for a in (out.faces, out.material, out.color):
+        a.flags.writeable = False
+    return out
+
+
 def _wheels(l: float, w: float, p: dict, axles: list[float]) -> Mesh:
     """Four (or more) wheels of radius p['wheel_radius'] at the axle stations (fractions of l from the front)."""
     rw = p["wheel_radius"]
     tw = min(0.22, 0.14 * w)
     unit = _unit_wheel()
-    verts, faces = [], []
-    for k, (ua, side) in enumerate((ua, side) for ua in axles for side in (1.0, -1.0)):
-        center = np.array([(0.5 - ua) * l, side * (w / 2 - 0.02 - tw / 2), rw])
-        verts.append(unit.vertices * np.array([rw, side * tw, rw]) + center)
-        f = unit.faces if side > 0 else unit.faces[:, ::-1]
-        faces.append(f + k * len(unit.vertices))
-    n = len(axles) * 2
-    return Mesh(np.concatenate(verts), np.concatenate(faces), np.tile(unit.material, n), np.tile(unit.color, (n, 1)))
+    wheels = [(ua, side) for ua in axles for side in (1.0, -1.0)]
+    centers = np.array([[(0.5 - ua) * l, side * (w / 2 - 0.02 - tw / 2), rw] for ua, side in wheels])
+    scales = np.array([[rw, side * tw, rw] for _, side in wheels])
+    topology = _wheel_set(len(wheels))
+    verts = (unit.vertices * scales[:, None] + centers[:, None]).reshape(-1, 3)
+    return Mesh(verts, topology.faces, topology.material, topology.color)
 
 
 def car_shape(style: str, l: float, w: float, h: float, rng: np.random.Generator) -> dict:
