@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from simple_calibration import SIMPLE_CALIB
 
 from robustbench3d.eval import evaluate
 from robustbench3d.kitti import (
-    Calibration,
     Labels,
     write_calibration,
     write_image,
@@ -28,14 +28,6 @@ from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.spec import VictimSpec
 
 N_FRAMES, CARS_PER_FRAME = 6, 8
-CALIB = Calibration(
-    P0=np.eye(3, 4), P1=np.eye(3, 4),
-    P2=np.array([[721.5377, 0.0, 609.5593, 44.85728], [0.0, 721.5377, 172.854, 0.2163791],
-                 [0.0, 0.0, 1.0, 0.002745884]]),
-    P3=np.eye(3, 4), R0_rect=np.eye(3),
-    Tr_velo_to_cam=np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, -0.08], [1.0, 0.0, 0.0, -0.27]]),
-    Tr_imu_to_velo=np.eye(3, 4),
-)
 
 
 def toy_labels(rng: np.random.Generator) -> Labels:
@@ -69,7 +61,7 @@ def toy_dataset(tmp_path_factory) -> Path:
     for fid in ids:
         train = root / "training"
         write_labels(train / "label_2" / f"{fid}.txt", toy_labels(rng))
-        write_calibration(train / "calib" / f"{fid}.txt", CALIB)
+        write_calibration(train / "calib" / f"{fid}.txt", SIMPLE_CALIB)
         write_image(train / "image_2" / f"{fid}.png", np.zeros((375, 1242, 3), dtype=np.uint8))
         write_scan(train / "velodyne" / f"{fid}.bin", rng.normal(size=(64, 4)).astype(np.float32))
     write_split(root / "ImageSets" / "val.txt", ids)

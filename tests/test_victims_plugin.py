@@ -10,9 +10,9 @@ import importlib.util
 
 import numpy as np
 import pytest
+from simple_calibration import SIMPLE_CALIB
 
 from robustbench3d.geometry import box_corners, points_in_boxes
-from robustbench3d.kitti.calib import Calibration
 from robustbench3d.kitti.dataset import Frame, KittiDataset
 from robustbench3d.victims import VICTIMS, create_victim
 from robustbench3d.victims.base import Detector, FrustumSegmentationOracle, ImageObjectnessOracle
@@ -22,14 +22,6 @@ pytestmark = pytest.mark.skipif(
     reason="example plugin not installed: pip install -c constraints.txt -e examples/lidar_cluster_victim",
 )
 
-KITTI_CALIB = Calibration(
-    P0=np.eye(3, 4), P1=np.eye(3, 4),
-    P2=np.array([[721.5377, 0.0, 609.5593, 44.85728], [0.0, 721.5377, 172.854, 0.2163791],
-                 [0.0, 0.0, 1.0, 0.002745884]]),
-    P3=np.eye(3, 4), R0_rect=np.eye(3),
-    Tr_velo_to_cam=np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, -0.08], [1.0, 0.0, 0.0, -0.27]]),
-    Tr_imu_to_velo=np.eye(3, 4),
-)
 
 
 def synthetic_scene(rng: np.random.Generator) -> tuple[Frame, np.ndarray, float]:
@@ -49,7 +41,7 @@ def synthetic_scene(rng: np.random.Generator) -> tuple[Frame, np.ndarray, float]
     scan = np.concatenate([ground, car]).astype(np.float32)
     scan = np.concatenate([scan, np.full((len(scan), 1), 0.3, np.float32)], axis=1)
     image = np.zeros((375, 1242, 3), dtype=np.uint8)
-    return Frame("000000", image, scan, KITTI_CALIB, None), centre, yaw
+    return Frame("000000", image, scan, SIMPLE_CALIB, None), centre, yaw
 
 
 def test_plugin_is_registered_from_its_entry_point():
@@ -70,7 +62,7 @@ def test_plugin_finds_the_synthetic_car():
     dets = victim.detect([frame])[0]
     assert dets.has_score and len(dets) == 1
     # back to velodyne to compare with the scene definition
-    loc_velo = KITTI_CALIB.rect_to_velo_points(dets.location)[0]
+    loc_velo = SIMPLE_CALIB.rect_to_velo_points(dets.location)[0]
     assert np.hypot(*(loc_velo[:2] - centre)) < 0.3
     assert abs(loc_velo[2] - (-1.73)) < 0.1  # bottom centre on the ground
     h, w, l = dets.dimensions[0]
@@ -79,7 +71,7 @@ def test_plugin_finds_the_synthetic_car():
     err = (dets.rotation_y[0] - (-yaw - np.pi / 2)) % np.pi
     assert min(err, np.pi - err) < np.deg2rad(3)
     # every car point lies inside the detected box (grown by 5 cm)
-    car_rect = KITTI_CALIB.velo_to_rect_points(frame.scan[-3000:, :3])
+    car_rect = SIMPLE_CALIB.velo_to_rect_points(frame.scan[-3000:, :3])
     assert points_in_boxes(car_rect, dets.dimensions, dets.location, dets.rotation_y, margin=0.05).all()
     assert np.isfinite(box_corners(dets.dimensions, dets.location, dets.rotation_y)).all()
     assert victim.detect([frame])[0].to_text() == dets.to_text()  # deterministic

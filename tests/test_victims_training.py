@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from simple_calibration import SIMPLE_CALIB
 
 from robustbench3d.cli import main
 from robustbench3d.geometry import alpha_from_rotation_y, box_corners, points_in_boxes, project_boxes_to_image
@@ -22,7 +23,6 @@ from robustbench3d.kitti import (
     write_scan,
     write_split,
 )
-from robustbench3d.kitti.calib import Calibration
 from robustbench3d.victims.cascade import FPointNetCascade
 from robustbench3d.victims.fpointnet.box_coding import angle_to_class
 from robustbench3d.victims.fpointnet.data import build_frustum_set, make_item
@@ -39,14 +39,6 @@ from robustbench3d.victims.yolo.training import train as train_yolo
 
 torch.set_num_threads(1)
 
-CALIB = Calibration(
-    P0=np.eye(3, 4), P1=np.eye(3, 4),
-    P2=np.array([[721.5377, 0.0, 609.5593, 44.85728], [0.0, 721.5377, 172.854, 0.2163791],
-                 [0.0, 0.0, 1.0, 0.002745884]]),
-    P3=np.eye(3, 4), R0_rect=np.eye(3),
-    Tr_velo_to_cam=np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, -0.08], [1.0, 0.0, 0.0, -0.27]]),
-    Tr_imu_to_velo=np.eye(3, 4),
-)
 W, H = 1242, 375
 
 
@@ -75,9 +67,9 @@ def write_tiny_dataset(root: Path, n_train: int = 4, n_val: int = 2, seed: int =
             rect = np.stack([c * local[:, 0] + s * local[:, 2], local[:, 1], -s * local[:, 0] + c * local[:, 2]], 1)
             cars.append(rect + loc[k])
         rect_pts = np.concatenate([ground[~points_in_boxes(ground, dims, loc, ry, margin=0.1).any(axis=1)], *cars])
-        velo = CALIB.rect_to_velo_points(rect_pts)
+        velo = SIMPLE_CALIB.rect_to_velo_points(rect_pts)
         scan = np.concatenate([velo, rng.uniform(0, 1, (len(velo), 1))], axis=1).astype(np.float32)
-        bbox, valid = project_boxes_to_image(corners, CALIB, (W, H))
+        bbox, valid = project_boxes_to_image(corners, SIMPLE_CALIB, (W, H))
         image = rng.integers(150, 200, (H, W, 3), dtype=np.uint8)
         for b in bbox[valid]:
             image[int(b[1]):int(b[3]), int(b[0]):int(b[2])] = (40, 40, 60)
@@ -88,7 +80,7 @@ def write_tiny_dataset(root: Path, n_train: int = 4, n_val: int = 2, seed: int =
         write_scan(d / "velodyne" / f"{fid}.bin", scan)
         write_image(d / "image_2" / f"{fid}.png", image)
         write_labels(d / "label_2" / f"{fid}.txt", labels)
-        write_calibration(d / "calib" / f"{fid}.txt", CALIB)
+        write_calibration(d / "calib" / f"{fid}.txt", SIMPLE_CALIB)
     write_split(root / "ImageSets" / "train.txt", ids[:n_train])
     write_split(root / "ImageSets" / "val.txt", ids[n_train:])
     return root
