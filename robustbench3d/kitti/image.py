@@ -38,18 +38,23 @@ def image_size(path: str | Path) -> tuple[int, int]:
         raise DataFormatError(path, f"unreadable image ({exc.__class__.__name__}: {exc})") from None
 
 
-def encode_png(image: np.ndarray, compress_level: int = 6) -> bytes:
-    """PNG bytes of an (H, W, 3) uint8 image (deterministic for identical input)."""
+def encode_png(image: np.ndarray, compress_level: int = 6, strategy: int | None = None) -> bytes:
+    """PNG bytes of an (H, W, 3) uint8 image (deterministic for identical input).
+
+    ``strategy`` is a zlib strategy (e.g. ``zlib.Z_HUFFMAN_ONLY``); None keeps zlib's default.
+    """
     from PIL import Image
 
     image = np.asarray(image)
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"image must be (H, W, 3) uint8, got {image.shape} {image.dtype}")
     buf = io.BytesIO()
-    Image.fromarray(image, "RGB").save(buf, format="PNG", compress_level=compress_level)
+    options = {} if strategy is None else {"compress_type": strategy}
+    Image.fromarray(np.ascontiguousarray(image), "RGB").save(buf, format="PNG", compress_level=compress_level,
+                                                           **options)
     return buf.getvalue()
 
 
-def write_image(path: str | Path, image: np.ndarray, compress_level: int = 6) -> None:
-    """Write an (H, W, 3) uint8 image as PNG, atomically."""
-    atomic_write_bytes(path, encode_png(image, compress_level))
+def write_image(path: str | Path, image: np.ndarray, compress_level: int = 6, strategy: int | None = None) -> None:
+    """Write an (H, W, 3) uint8 image as PNG, atomically (see :func:`encode_png`)."""
+    atomic_write_bytes(path, encode_png(image, compress_level, strategy))

@@ -26,13 +26,14 @@ TARGET_RSS_MB = 1500.0
 def _stage_rows(frames: int) -> list[dict]:
     import numpy as np
 
+    from robustbench3d.kitti.image import encode_png
     from robustbench3d.synth.annotate import annotate
     from robustbench3d.synth.camera import render_image
     from robustbench3d.synth.frame import SynthFrame, frame_generators
     from robustbench3d.synth.layout import sample_scene
     from robustbench3d.synth.lidar import simulate_scan
     from robustbench3d.synth.raytrace import SceneGeometry
-    from robustbench3d.synth.writer import encode_png, write_frame
+    from robustbench3d.synth.writer import PNG_COMPRESS_LEVEL, PNG_STRATEGY, write_frame
 
     times: dict[str, list[float]] = {}
 
@@ -56,7 +57,7 @@ def _stage_rows(frames: int) -> list[dict]:
             t = lap("camera image", t)
             labels, records = annotate(scene, geometry, object_id, point_object)
             t = lap("labels (truncation, occlusion)", t)
-            encode_png(image)
+            encode_png(image, PNG_COMPRESS_LEVEL, PNG_STRATEGY)
             t = lap("PNG encoding", t)
             frame = SynthFrame(image, scan, scene.calib, labels, scene, object_id, point_object, records)
             write_frame(Path(tmp), i, frame)  # encodes the PNG again, subtracted below

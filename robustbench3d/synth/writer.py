@@ -15,7 +15,6 @@ does not depend on the number of workers or on interruptions.
 
 from __future__ import annotations
 
-import io
 import json
 import multiprocessing
 import sys
@@ -27,8 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from robustbench3d.errors import RobustBenchError
-from robustbench3d.fileio import atomic_write_bytes, atomic_write_text
+from robustbench3d.fileio import atomic_write_text
 from robustbench3d.kitti.calib import write_calibration
+from robustbench3d.kitti.image import write_image
 from robustbench3d.kitti.labels import Labels
 from robustbench3d.kitti.splits import write_split
 from robustbench3d.kitti.velodyne import write_scan
@@ -62,23 +62,13 @@ def label_text(labels: Labels) -> str:
     return "".join(lines)
 
 
-def encode_png(image: np.ndarray, level: int = PNG_COMPRESS_LEVEL, strategy: int = PNG_STRATEGY) -> bytes:
-    """PNG bytes of an (H, W, 3) uint8 image (deterministic)."""
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image, dtype=np.uint8), "RGB").save(
-        buf, format="PNG", compress_level=level, compress_type=strategy)
-    return buf.getvalue()
-
-
 def write_frame(root: Path, index: int, frame: SynthFrame, png_level: int = PNG_COMPRESS_LEVEL) -> None:
     """Write one frame's four files (label last: it marks the frame complete)."""
     fid = frame_id(index)
     train = root / "training"
     write_calibration(train / "calib" / f"{fid}.txt", frame.calib)
     write_scan(train / "velodyne" / f"{fid}.bin", frame.scan)
-    atomic_write_bytes(train / "image_2" / f"{fid}.png", encode_png(frame.image, png_level))
+    write_image(train / "image_2" / f"{fid}.png", frame.image, png_level, PNG_STRATEGY)
     atomic_write_text(train / "label_2" / f"{fid}.txt", label_text(frame.labels))
 
 
