@@ -18,7 +18,8 @@ def dataset_statistics(root: str, max_frames: int | None = None, split: str | No
 
     from robustbench3d.geometry import points_in_boxes
     from robustbench3d.kitti import KittiDataset
-    from robustbench3d.scan_stats import azimuth_step_deg, fit_ring_cones, ground_height, ring_ids
+    from robustbench3d.scan_stats import azimuth_step_deg, fit_ring_cones, ground_height
+    from robustbench3d.sensors.hdl64e import ring_ids_from_azimuth_wrap
 
     ds = KittiDataset(root, split=split)
     ids = ds.frame_ids[:max_frames] if max_frames else ds.frame_ids
@@ -26,7 +27,7 @@ def dataset_statistics(root: str, max_frames: int | None = None, split: str | No
     car_points: dict[float, list[int]] = {c: [] for c, _ in CAR_DISTANCE_BINS}
     for fid in ids:
         scan = ds.scan(fid)
-        rid = ring_ids(scan)
+        rid = ring_ids_from_azimuth_wrap(scan)
         fit = fit_ring_cones(scan, rid)
         points.append(len(scan))
         rings.append(int(rid.max()) + 1)

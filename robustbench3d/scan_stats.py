@@ -1,8 +1,8 @@
 """Statistics of LiDAR scans, used to compare generated scans with real KITTI ones.
 
 All inputs are velodyne-frame scans (x forward, y left, z up; m) in sensor order. KITTI scans are
-stored laser by laser, each laser sweeping counter-clockwise; a laser's sweep ends just before
-the +x axis, so a new ring starts where the azimuth measured from -x wraps around.
+stored laser by laser, each laser sweeping counter-clockwise from just above the +x axis; ring
+indices come from :func:`robustbench3d.sensors.hdl64e.ring_ids_from_azimuth_wrap`.
 """
 
 from __future__ import annotations
@@ -11,12 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-def ring_ids(scan: np.ndarray) -> np.ndarray:
-    """(N,) ring index per point (0 = first laser in the file) from the forward azimuth wrap."""
-    yaw = np.arctan2(scan[:, 1], -scan[:, 0])  # discontinuous at the +x axis
-    jumps = np.abs(np.diff(yaw)) > np.pi
-    return np.concatenate([[0], np.cumsum(jumps)]).astype(np.int64)
+from robustbench3d.sensors.hdl64e import ring_ids_from_azimuth_wrap
 
 
 @dataclass(frozen=True)
@@ -32,7 +27,7 @@ class RingFit:
 def fit_ring_cones(scan: np.ndarray, rings: np.ndarray | None = None,
                    rho_range: tuple[float, float] = (2.5, 70.0)) -> RingFit:
     """Fit each ring's cone over points with rho in ``rho_range`` (m); rings with < 10 points get NaN."""
-    rings = ring_ids(scan) if rings is None else rings
+    rings = ring_ids_from_azimuth_wrap(scan) if rings is None else rings
     rho = np.hypot(scan[:, 0], scan[:, 1]).astype(np.float64)
     z = scan[:, 2].astype(np.float64)
     use = (rho > rho_range[0]) & (rho < rho_range[1])
@@ -69,7 +64,7 @@ def ground_height(scan: np.ndarray, bin_m: float = 0.02) -> float:
 
 def azimuth_step_deg(scan: np.ndarray, rings: np.ndarray | None = None) -> float:
     """Median azimuth spacing (deg) between consecutive returns of the same ring."""
-    rings = ring_ids(scan) if rings is None else rings
+    rings = ring_ids_from_azimuth_wrap(scan) if rings is None else rings
     az = np.degrees(np.arctan2(scan[:, 1], scan[:, 0]))
     d = np.diff(az)
     same = (np.diff(rings) == 0) & (np.abs(d) < 1.0)

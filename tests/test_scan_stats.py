@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from robustbench3d.kitti import read_scan
-from robustbench3d.scan_stats import azimuth_step_deg, fit_ring_cones, ground_height, ring_ids
+from robustbench3d.scan_stats import azimuth_step_deg, fit_ring_cones, ground_height
+from robustbench3d.sensors.hdl64e import ring_ids_from_azimuth_wrap
 
 
 def _constructed_scan(phis_deg: np.ndarray, h0: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -28,7 +29,7 @@ def test_rings_and_cones_recovered_exactly_on_constructed_scan() -> None:
     phis = np.linspace(2.0, -24.0, 64)
     h0 = np.where(np.arange(64) < 32, 0.2, 0.12)
     scan = _constructed_scan(phis, h0, rng)
-    rings = ring_ids(scan)
+    rings = ring_ids_from_azimuth_wrap(scan)
     assert rings.max() == 63 and np.all(np.diff(rings) >= 0)
     fit = fit_ring_cones(scan, rings)
     np.testing.assert_allclose(fit.elevation_deg, phis, atol=1e-3)

@@ -10,7 +10,7 @@ per-laser fits of reference.md §4.2 (measured on real KITTI scans; ring 0 = top
 Scan order (as in KITTI ``velodyne/*.bin``, checked on the real sample scans): laser by laser,
 top laser first; within a laser, azimuth atan2(y, x) increases from just above 0 deg (straight
 ahead) through 180 deg to just below 360 deg. A new laser therefore starts where the azimuth,
-taken in [0, 360), drops by more than 180 deg (:func:`ring_ids_from_azimuth_wrap`).
+measured from -x, jumps by more than 180 deg (:func:`ring_ids_from_azimuth_wrap`).
 
 Azimuth sampling (measured on the real scans): consecutive returns of one laser are 0.18 deg
 apart, except that about every seventh step is a half step of 0.09 deg; a revolution at 10 Hz
@@ -160,12 +160,15 @@ def _occluded(ring: int, azimuth_deg: np.ndarray) -> np.ndarray:
 def ring_ids_from_azimuth_wrap(points: np.ndarray) -> np.ndarray:
     """Laser index of each point of a KITTI-ordered scan (velodyne frame, (N, >=2)).
 
-    A new laser starts where the azimuth atan2(y, x), taken in [0, 360), drops by more than
-    180 deg. Returns (N,) int64 starting at 0; a full real scan yields 0..63.
+    Each laser sweeps counter-clockwise from just above the +x axis, so a new laser starts where
+    consecutive points cross the +x axis: there the azimuth measured from -x, atan2(y, -x),
+    jumps by more than 180 deg. (Testing the crossing, not a drop of atan2(y, x) in [0, 360),
+    keeps points whose azimuth jitters around 0 deg at a sweep's ends on the right laser.)
+    Returns (N,) int64 starting at 0; a full real scan yields 0..63.
     """
     pts = np.asarray(points, dtype=np.float64)
-    az = np.degrees(np.arctan2(pts[:, 1], pts[:, 0])) % 360.0
+    yaw = np.arctan2(pts[:, 1], -pts[:, 0])
     ring = np.zeros(len(pts), dtype=np.int64)
     if len(pts) > 1:
-        ring[1:] = np.cumsum(np.diff(az) < -180.0)
+        ring[1:] = np.cumsum(np.abs(np.diff(yaw)) > np.pi)
     return ring
