@@ -232,3 +232,31 @@ def test_train_cli(tiny_data, tmp_path, capsys):
     assert main(argv) == 0
     assert (out / "model.pt").exists() and (out / "last.pt").exists() and (out / "frustums_train.npz").exists()
     assert "finished" in capsys.readouterr().err
+
+
+def test_zoom_augmentation_moves_content_and_boxes_together():
+    from robustbench3d.victims.yolo.data import zoom
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (48, 96, 3)).astype(np.uint8)
+    out, (b,) = zoom(img, [np.array([[10.0, 20, 50, 40]])], 1.0, (0.0, 0.0), 128)
+    assert np.array_equal(out, img) and np.array_equal(b, [[10.0, 20, 50, 40]])
+    img = np.full((48, 96, 3), 128, np.uint8)
+    img[10:20, 30:50] = 255
+    for scale, off in ((1.2, (-8.0, -4.0)), (0.8, (12.0, 6.0))):
+        out, (b,) = zoom(img, [np.array([[30.0, 10, 50, 20]])], scale, off, 128)
+        ys, xs = np.nonzero(out[..., 0] > 191)  # pixels more than half covered by the white patch
+        assert np.allclose(b, [[xs.min(), ys.min(), xs.max() + 1, ys.max() + 1]], atol=1.0)
+        assert np.allclose(b, [[30 * scale + off[0], 10 * scale + off[1], 50 * scale + off[0], 20 * scale + off[1]]])
+    # a box pushed mostly out of view is dropped, one partly out is clipped
+    _, (b,) = zoom(img, [np.array([[0.0, 0, 20, 10], [60, 10, 96, 30]])], 1.0, (-15.0, 0.0), 128)
+    assert np.allclose(b, [[45.0, 10, 81, 30]])
+
+
+def test_cosine_lr_endpoints():
+    from robustbench3d.victims.training import cosine_lr
+
+    assert cosine_lr(1e-3, 0, 100, 1e-5) == pytest.approx(1e-3)
+    assert cosine_lr(1e-3, 50, 100, 1e-5) == pytest.approx((1e-3 + 1e-5) / 2)
+    assert cosine_lr(1e-3, 100, 100, 1e-5) == pytest.approx(1e-5)
+    assert cosine_lr(1e-3, 250, 100, 1e-5) == pytest.approx(1e-5)

@@ -199,3 +199,79 @@ def test_detector_postprocess_maps_to_original_pixels():
     assert out.scores[0] == pytest.approx(float(torch.sigmoid(torch.tensor(5.0)) ** 2))
     c = candidates_for_targets(pred, geo, torch.tensor(expect), 0.9, 0)
     assert p in c["prior"].tolist() and float(c["iou"][c["prior"].tolist().index(p)]) == pytest.approx(1.0)
+
+
+def test_multi_assignment_by_hand():
+    """A 60x40 car with ``assign="multi"``: every anchor whose w and h ratios are < 4 trains, each
+    in its own head's cell; anchor 0 (14x10: ratio 60/14 = 4.29) does not."""
+    from robustbench3d.victims.yolo.config import LOSSES
+
+    cfg = replace(MINI, **LOSSES["iou"])
+    net = build_model(cfg)
+    pred = flatten([torch.zeros(1, 18, 12, 40), torch.zeros(1, 18, 24, 80)], net)
+    car = torch.tensor([[100.0 - 30, 50 - 20, 100 + 30, 50 + 20]])
+    t = build_targets(pred, cfg, [car], [torch.tensor([0])])
+
+    def prior(a: int) -> int:
+        if a >= 3:   # head 0: stride 16, 12x40, anchors 3, 4, 5
+            return ((a - 3) * 12 + 50 // 16) * 40 + 100 // 16
+        return 3 * 12 * 40 + (a * 24 + 50 // 8) * 80 + 100 // 8
+
+    assert t.obj_index.tolist() == sorted(prior(a) for a in (1, 2, 3, 4, 5))
+    assert np.allclose(t.box.numpy(), car.numpy().repeat(5, axis=0))
+    anchors = np.array(MINI.anchors)
+    order = np.argsort([prior(a) for a in (1, 2, 3, 4, 5)])
+    expect_twh = np.log(np.array([60.0, 40.0]) / anchors[[1, 2, 3, 4, 5]])[order]
+    assert np.allclose(t.twh.numpy(), expect_twh, atol=1e-6)
+    # the faithful mode keeps only the best-shaped anchor
+    assert build_targets(pred, MINI, [car], [torch.tensor([0])]).obj_index.tolist() == [prior(3)]
+
+
+def test_multi_assignment_conflict_keeps_better_shape():
+    """Two cars centred in the same cells: a prior both claim goes to the better-shaped car."""
+    from robustbench3d.victims.yolo.config import LOSSES
+
+    cfg = replace(MINI, **LOSSES["iou"])
+    pred = flatten([torch.zeros(1, 18, 12, 40), torch.zeros(1, 18, 24, 80)], build_model(cfg))
+    a = torch.tensor([[100.0 - 30, 50 - 20, 100 + 30, 50 + 20]])   # 60x40: anchor 3 exactly
+    b = torch.tensor([[100.0 - 48, 50 - 31, 100 + 48, 50 + 31]])   # 96x62: anchor 4 exactly
+    t = build_targets(pred, cfg, [torch.cat([a, b])], [torch.tensor([0, 0])])
+    p3 = (0 * 12 + 3) * 40 + 6
+    p4 = (1 * 12 + 3) * 40 + 6
+    rows = {k: i for i, k in enumerate(t.obj_index.tolist())}
+    assert torch.equal(t.box[rows[p3]], a[0]) and torch.equal(t.box[rows[p4]], b[0])
+
+
+def test_giou_hand_values_and_degenerate_gradients():
+    from robustbench3d.victims.yolo.loss import giou
+
+    a = torch.tensor([[0.0, 0, 2, 2], [0, 0, 1, 1], [0, 0, 1, 1]])
+    b = torch.tensor([[1.0, 1, 3, 3], [2, 0, 3, 1], [0, 0, 1, 1]])
+    iou, g = giou(a, b)
+    assert np.allclose(iou.numpy(), [1 / 7, 0, 1])
+    assert np.allclose(g.numpy(), [1 / 7 - 2 / 9, -1 / 3, 1])
+    for k in range(3):
+        assert iou[k].item() == pytest.approx(brute_iou(a[k].tolist(), b[k].tolist()))
+    # zero-size and coincident zero-size boxes: finite values and gradients
+    z = torch.tensor([[5.0, 5, 5, 5], [1, 1, 1, 1]], requires_grad=True)
+    iou, g = giou(z, torch.tensor([[5.0, 5, 5, 5], [0, 0, 2, 2]]))
+    (g.sum() + iou.sum()).backward()
+    assert torch.isfinite(g).all() and torch.isfinite(z.grad).all()
+
+
+def test_iou_objectness_target_is_the_decoded_iou():
+    """With ``obj_target="iou"`` the assigned prior's objectness BCE target is the IoU of its
+    decoded box (here its anchor box at the cell centre) with the GT."""
+    from robustbench3d.victims.yolo.config import LOSSES
+
+    cfg = replace(MINI, **{**LOSSES["iou"], "assign": "best"})
+    heads = [torch.zeros(1, 18, 12, 40), torch.zeros(1, 18, 24, 80)]
+    pred = flatten(heads, build_model(cfg))
+    car = torch.tensor([[100.0 - 20, 50 - 20, 100 + 40, 50 + 20]])  # 60x40, centre (110, 50)
+    t = build_targets(pred, cfg, [car], [torch.tensor([0])])
+    _, terms = yolo_loss(pred, t, cfg)
+    decoded = [6 * 16 + 8 - 30, 3 * 16 + 8 - 20, 6 * 16 + 8 + 30, 3 * 16 + 8 + 20]  # anchor 3 at cell (6, 3)
+    target = brute_iou(decoded, car[0].tolist())
+    expect = -(target * np.log(0.5) + (1 - target) * np.log(0.5))  # logit 0 -> p = 0.5
+    assert terms["obj"].item() == pytest.approx(expect, rel=1e-6)
+    assert terms["box"].item() > 0 and terms["xy"].item() == terms["wh"].item() == 0.0

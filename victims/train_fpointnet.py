@@ -18,6 +18,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="random-shift augmentation: the original code's, the intended Gaussian, or none")
     parser.add_argument("--single-size-residual", action="store_true",
                         help="fix the corner-loss quirk that adds the size residual twice")
+    parser.add_argument("--lr-schedule", choices=("step", "cosine"), default="step",
+                        help="step: x0.7 every 20 epochs (the PyTorch port); cosine: to 1e-5 over the run")
+    parser.add_argument("--bn-decay-step", type=int, default=800_000, metavar="SAMPLES",
+                        help="halve the BatchNorm momentum every SAMPLES training samples (default 800000, "
+                             "the original; scale it down with the run length)")
     parser.add_argument("--no-flip", action="store_true", help="disable the random flip")
     parser.add_argument("--val-limit", type=int, default=None, help="evaluate on at most this many val frustums")
 
@@ -26,7 +31,8 @@ def run(args: argparse.Namespace) -> int:
     from robustbench3d.victims.fpointnet.training import FPointNetTrainConfig, train
 
     cfg = FPointNetTrainConfig(model=args.model, types=tuple(t for t in args.types.split(",") if t),
-                               augment_x=args.augment_x, flip=not args.no_flip, shift=args.shift,
+                               augment_x=args.augment_x, lr_schedule=args.lr_schedule, bn_decay_step=args.bn_decay_step,
+                               flip=not args.no_flip, shift=args.shift,
                                double_size_residual=not args.single_size_residual,
                                train_split=args.train_split, val_split=args.val_split,
                                **({"lr": args.lr} if args.lr is not None else {}))

@@ -169,6 +169,12 @@ def step_lr(base: float, epoch: int, decay: float, every: int, minimum: float) -
     return max(minimum, base * decay ** (epoch // every))
 
 
+def cosine_lr(base: float, step: int, total_steps: int, minimum: float) -> float:
+    """Cosine decay from ``base`` at step 0 to ``minimum`` at ``total_steps`` (held after it)."""
+    t = min(max(step / max(total_steps, 1), 0.0), 1.0)
+    return minimum + 0.5 * (base - minimum) * (1.0 + math.cos(math.pi * t))
+
+
 def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
     for group in optimizer.param_groups:
         group["lr"] = lr

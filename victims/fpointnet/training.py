@@ -3,6 +3,8 @@
 Defaults follow the PyTorch port: Adam (lr 1e-3, β 0.9/0.999), lr × 0.7 every 20 epochs with a
 1e-5 floor, batch 32, car-only frustums, 5 perturbed copies per train box, flip and the faithful
 shift augmentation; BatchNorm momentum follows the TF schedule (0.5·0.5^⌊samples/800k⌋, ≥ 0.01).
+For short CPU runs, ``lr_schedule="cosine"`` decays from lr to the floor over the whole run and
+``bn_decay_step`` compresses the BatchNorm schedule to the run length.
 Frustum sets are cached in the output directory (``frustums_<split>.npz``).
 """
 
@@ -35,6 +37,7 @@ class FPointNetTrainConfig:
     lr_decay: float = 0.7
     lr_decay_every: int = 20
     lr_min: float = 1e-5
+    lr_schedule: str = "step"
     bn_decay_step: int = 800_000
     flip: bool = True
     shift: ShiftMode = "faithful"
@@ -77,8 +80,9 @@ class FPointNetTask:
     """:class:`~robustbench3d.victims.training.TrainingTask` for F-PN v1."""
 
     def __init__(self, train_set: FrustumSet, val_set: FrustumSet, cfg: FPointNetTrainConfig, seed: int,
-                 val_limit: int | None = None):
+                 val_limit: int | None = None, total_steps: int = 0):
         self.cfg = cfg
+        self.total_steps = total_steps
         self.seed = seed
         self.train_set, self.val_set = train_set, val_set
         self.val_limit = val_limit
@@ -93,8 +97,13 @@ class FPointNetTask:
         return {**asdict(self.cfg), "seed": self.seed, "train_frustums": len(self.train_set)}
 
     def schedule(self, epoch: int, step: int, samples_seen: int) -> None:
-        loop.set_lr(self.optimizer, loop.step_lr(self.cfg.lr, epoch, self.cfg.lr_decay, self.cfg.lr_decay_every,
-                                                 self.cfg.lr_min))
+        if self.cfg.lr_schedule == "cosine":
+            lr = loop.cosine_lr(self.cfg.lr, step, self.total_steps, self.cfg.lr_min)
+        elif self.cfg.lr_schedule == "step":
+            lr = loop.step_lr(self.cfg.lr, epoch, self.cfg.lr_decay, self.cfg.lr_decay_every, self.cfg.lr_min)
+        else:
+            raise ValueError(f"unknown lr_schedule {self.cfg.lr_schedule!r} (expected 'step' or 'cosine')")
+        loop.set_lr(self.optimizer, lr)
         set_bn_momentum(self.model, bn_momentum_at(samples_seen, decay_step=self.cfg.bn_decay_step))
 
     def loss(self, indices: np.ndarray, rng: np.random.Generator,
@@ -143,5 +152,6 @@ def train(data_dir: str | Path, out_dir: str | Path, cfg: FPointNetTrainConfig, 
     out.mkdir(parents=True, exist_ok=True)
     train_set = cached_frustum_set(data, cfg.train_split, out, cfg, options.seed, train=True)
     val_set = cached_frustum_set(data, cfg.val_split, out, cfg, options.seed, train=False)
-    task = FPointNetTask(train_set, val_set, cfg, options.seed, val_limit)
+    steps = len(loop.epoch_batches(len(train_set), options.batch_size, options.seed, 0))
+    task = FPointNetTask(train_set, val_set, cfg, options.seed, val_limit, total_steps=steps * options.epochs)
     return loop.run(task, out, options, resume)

@@ -130,6 +130,14 @@ class YoloConfig:
         ignore_thresh: predictions whose box overlaps any GT (or ignore box) above this IoU get no
             "no object" loss.
         obj_scale, noobj_scale: weights of the objectness BCE for assigned / unassigned priors.
+        assign: ``"best"`` — each GT trains the single best-shaped anchor (YOLOv3 paper); ``"multi"``
+            — also every other anchor whose width and height ratios to the GT are below
+            ``anchor_ratio`` (in the cell of that anchor's head containing the GT centre).
+        box_loss: ``"mse"`` on σ(t_x), σ(t_y), t_w, t_h (2019 PyTorch-YOLOv3), or ``"giou"`` on the
+            decoded box (input pixels).
+        obj_target: objectness target of an assigned prior: ``"binary"`` (1) or ``"iou"`` (the
+            detached IoU of its decoded box with its GT, as the current PyTorch-YOLOv3 port), so the
+            score ranks boxes by localisation quality.
         conf_threshold: minimum objectness x class probability kept by :meth:`detect`.
         nms_threshold: IoU above which NMS suppresses a lower-scored box of the same class.
         max_detections: cap per image after NMS.
@@ -143,6 +151,10 @@ class YoloConfig:
     ignore_thresh: float = 0.5
     obj_scale: float = 1.0
     noobj_scale: float = 1.0
+    assign: str = "best"
+    anchor_ratio: float = 4.0
+    box_loss: str = "mse"
+    obj_target: str = "binary"
     conf_threshold: float = 0.05
     nms_threshold: float = 0.4
     max_detections: int = 100
@@ -171,3 +183,11 @@ MINI = YoloConfig()
 TINY = replace(MINI, layout="tiny", input_size=(416, 416), anchors=TINY_ANCHORS, ignore_thresh=0.7)
 V3 = replace(MINI, layout="v3", input_size=(416, 416), anchors=V3_ANCHORS, ignore_thresh=0.7)
 CONFIGS: dict[str, YoloConfig] = {"mini": MINI, "tiny": TINY, "v3": V3}
+
+#: Loss variants (reference §2.1): ``"v3"`` — the 2019 PyTorch-YOLOv3 loss (one prior per GT,
+#: MSE coordinates, binary objectness); ``"iou"`` — several priors per GT, GIoU box loss and IoU
+#: objectness targets (the current port's choices), which trains far faster on a CPU budget.
+LOSSES: dict[str, dict[str, Any]] = {
+    "v3": {"assign": "best", "box_loss": "mse", "obj_target": "binary"},
+    "iou": {"assign": "multi", "box_loss": "giou", "obj_target": "iou"},
+}

@@ -83,12 +83,49 @@ def build_image_set(dataset: KittiDataset, input_size: tuple[int, int], fill: fl
     return YoloImageSet(images=np.load(npy, mmap_mode="r"), **rest)
 
 
+def zoom(img: np.ndarray, boxes: list[np.ndarray], scale: float, offset: tuple[float, float], fill: int,
+         min_visible: float = 0.4, min_size: float = 2.0) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Zoom an (H, W, 3) uint8 image by ``scale`` about the origin then shift by ``offset`` (px):
+    output pixel (x, y) shows source point ((x − ox)/scale, (y − oy)/scale) (bilinear, ``fill``
+    outside). Each xyxy box array is mapped the same way, clipped to the image and dropped when
+    less than ``min_visible`` of its mapped area or less than ``min_size`` px in width or height
+    remains."""
+    h, w = img.shape[:2]
+    ox, oy = offset
+    xs = (np.arange(w) + 0.5 - ox) / scale - 0.5
+    ys = (np.arange(h) + 0.5 - oy) / scale - 0.5
+    x0, y0 = np.floor(xs).astype(np.int64), np.floor(ys).astype(np.int64)
+    fx, fy = (xs - x0)[None, :, None], (ys - y0)[:, None, None]
+    src = np.concatenate([np.full((1, w, 3), fill, np.float32), img.astype(np.float32),
+                          np.full((1, w, 3), fill, np.float32)])
+    src = np.concatenate([np.full((h + 2, 1, 3), fill, np.float32), src, np.full((h + 2, 1, 3), fill, np.float32)],
+                         axis=1)
+    cx0, cx1 = np.clip(x0 + 1, 0, w + 1), np.clip(x0 + 2, 0, w + 1)
+    cy0, cy1 = np.clip(y0 + 1, 0, h + 1), np.clip(y0 + 2, 0, h + 1)
+    top = src[cy0][:, cx0] * (1 - fx) + src[cy0][:, cx1] * fx
+    bottom = src[cy1][:, cx0] * (1 - fx) + src[cy1][:, cx1] * fx
+    out = np.clip(np.rint(top * (1 - fy) + bottom * fy), 0, 255).astype(np.uint8)
+    mapped: list[np.ndarray] = []
+    for b in boxes:
+        m = b * scale + np.array([ox, oy, ox, oy])
+        area = np.prod(np.clip(m[:, 2:] - m[:, :2], 0, None), axis=1)
+        c = np.clip(m, 0, [w, h, w, h])
+        wh = c[:, 2:] - c[:, :2]
+        keep = (wh.min(axis=1) >= min_size) & (np.prod(np.clip(wh, 0, None), axis=1) >= min_visible * area)
+        mapped.append(c[keep])
+    return out, mapped
+
+
 def make_batch(ds: YoloImageSet, indices: np.ndarray, rng: np.random.Generator | None,
-               flip: bool) -> tuple[torch.Tensor, list[torch.Tensor], list[torch.Tensor]]:
+               flip: bool, scale_jitter: float = 0.0,
+               fill: int = 128) -> tuple[torch.Tensor, list[torch.Tensor], list[torch.Tensor]]:
     """(images (B, 3, H, W) float in [0, 1], target boxes, ignore boxes); with ``flip`` each image
-    is mirrored left-right with probability 0.5 (drawn from ``rng``)."""
+    is mirrored left-right with probability 0.5, with ``scale_jitter`` = j > 0 zoomed by
+    U(1 − j, 1 + j) and shifted uniformly within the range that keeps the view inside the zoomed
+    image (or the zoomed image inside the view) — all drawn from ``rng``."""
     imgs, tboxes, iboxes = [], [], []
     w = ds.images.shape[2]
+    h = ds.images.shape[1]
     for i in indices:
         img = np.array(ds.images[int(i)])
         gt, ign = (b.astype(np.float64).copy() for b in ds.targets(int(i)))
@@ -96,6 +133,11 @@ def make_batch(ds: YoloImageSet, indices: np.ndarray, rng: np.random.Generator |
             img = img[:, ::-1]
             for b in (gt, ign):
                 b[:, [0, 2]] = w - b[:, [2, 0]]
+        if scale_jitter > 0 and rng is not None:
+            s = float(rng.uniform(1 - scale_jitter, 1 + scale_jitter))
+            ox = float(rng.uniform(min(0.0, w - s * w), max(0.0, w - s * w)))
+            oy = float(rng.uniform(min(0.0, h - s * h), max(0.0, h - s * h)))
+            img, (gt, ign) = zoom(np.ascontiguousarray(img), [gt, ign], s, (ox, oy), fill)
         imgs.append(torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1).float() / 255.0)
         tboxes.append(torch.from_numpy(gt))
         iboxes.append(torch.from_numpy(ign))

@@ -1,8 +1,14 @@
 """Training of the YOLO 2D detector (default: the mini-YOLO of §2.3) on a KITTI-layout dataset.
 
+Loss variant ``"iou"`` by default (several priors per GT, GIoU, IoU objectness targets;
+``"v3"`` is the 2019 loss, see :data:`~robustbench3d.victims.yolo.config.LOSSES`).
 Adam (lr 1e-3) with a linear warm-up and ×0.1 steps at 80 % and 90 % of the epochs (darknet's
-step schedule, compressed); horizontal flips (p = 0.5); anchors by k-means (IoU distance) on the
-training Car boxes unless ``anchors="config"``. Validation: loss, and Car AP at IoU 0.5 / 0.7
+step schedule, compressed; or ``lr_schedule="cosine"`` down to lr/100). ``precision="bf16"``
+runs the network's forward/backward under bfloat16 autocast (weights, decoding and loss stay
+float32): about 2x faster on CPUs with AVX512-BF16, bit-reproducible on the same CPU type.
+Augmentation: horizontal flips (p = 0.5) and, with ``scale_jitter`` = j, a zoom by U(1 − j, 1 + j)
+with a random shift. Anchors by k-means (IoU distance) on the training Car boxes unless
+``anchors="config"``. Validation: loss, and Car AP at IoU 0.5 / 0.7
 (all-point interpolated, every GT counted, DontCare / Van detections not excused — a training
 monitor, not the KITTI metric).
 """
@@ -20,7 +26,7 @@ from robustbench3d.kitti.dataset import KittiDataset
 from robustbench3d.victims import training as loop
 from robustbench3d.victims.yolo.anchors import kmeans_anchors
 from robustbench3d.victims.yolo.boxes import box_iou_np
-from robustbench3d.victims.yolo.config import CONFIGS, YoloConfig
+from robustbench3d.victims.yolo.config import CONFIGS, LOSSES, YoloConfig
 from robustbench3d.victims.yolo.data import YoloImageSet, build_image_set, make_batch
 from robustbench3d.victims.yolo.detector import YoloDetector
 from robustbench3d.victims.yolo.letterbox import letterbox_geometry
@@ -31,10 +37,15 @@ from robustbench3d.victims.yolo.model import build_model, flatten
 @dataclass(frozen=True)
 class YoloTrainConfig:
     layout: str = "mini"
+    loss: Literal["v3", "iou"] = "iou"
     anchors: Literal["kmeans", "config"] = "kmeans"
     lr: float = 1e-3
     weight_decay: float = 0.0
     warmup_steps: int = 100
+    lr_schedule: Literal["step", "cosine"] = "step"
+    precision: Literal["fp32", "bf16"] = "fp32"
+    scale_jitter: float = 0.0
+    val_limit: int | None = None
     flip: bool = True
     train_split: str = "train"
     val_split: str = "val"
@@ -76,7 +87,8 @@ class YoloTask:
         self.train_set, self.val_set = train_set, val_set
         self.cfg, self.net_cfg, self.seed = cfg, net_cfg, seed
         self.epochs, self.steps_per_epoch = epochs, steps_per_epoch
-        self.model = build_model(net_cfg, seed)
+        # channels-last convolutions are ~1.6x faster on these CPUs; the weights' values are unchanged
+        self.model = build_model(net_cfg, seed).to(memory_format=torch.channels_last)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
 
     def num_items(self) -> int:
@@ -88,41 +100,47 @@ class YoloTask:
 
     def schedule(self, epoch: int, step: int, samples_seen: int) -> None:
         lr = self.cfg.lr * min(1.0, (step + 1) / max(self.cfg.warmup_steps, 1))
-        if epoch >= int(0.9 * self.epochs) and self.epochs >= 10:
+        if self.cfg.lr_schedule == "cosine":
+            lr = min(lr, loop.cosine_lr(self.cfg.lr, step, self.epochs * self.steps_per_epoch, self.cfg.lr * 1e-2))
+        elif epoch >= int(0.9 * self.epochs) and self.epochs >= 10:
             lr *= 0.01
         elif epoch >= int(0.8 * self.epochs) and self.epochs >= 10:
             lr *= 0.1
         loop.set_lr(self.optimizer, lr)
 
     def _loss(self, images: torch.Tensor, gt: list[torch.Tensor], ign: list[torch.Tensor]) -> tuple[torch.Tensor, dict]:
-        pred = flatten(self.model(images), self.model)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.cfg.precision == "bf16"):
+            heads = self.model(images.contiguous(memory_format=torch.channels_last))
+        pred = flatten([h.float() for h in heads], self.model)  # decoding and loss in float32
         classes = [torch.zeros(len(g), dtype=torch.int64) for g in gt]
         targets = build_targets(pred, self.net_cfg, gt, classes, ign)
         return yolo_loss(pred, targets, self.net_cfg)
 
     def loss(self, indices: np.ndarray, rng: np.random.Generator,
              generator: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
-        images, gt, ign = make_batch(self.train_set, indices, rng, self.cfg.flip)
+        images, gt, ign = make_batch(self.train_set, indices, rng, self.cfg.flip, self.cfg.scale_jitter,
+                                     fill=round(self.net_cfg.fill * 255))
         total, terms = self._loss(images, gt, ign)
         return total, {k: v.item() for k, v in terms.items()}
 
     def evaluate(self, batch_size: int = 16) -> dict[str, float]:
+        """Loss and AP on the first ``val_limit`` val images (all if None), float32 forward."""
         det = YoloDetector(self.model)
         losses, scores, boxes, gts = [], [], [], []
         wi, hi = self.net_cfg.input_size
         geo = letterbox_geometry((wi, hi), (wi, hi))  # identity: cached images are already letterboxed
-        for start in range(0, len(self.val_set), batch_size):
-            idx = np.arange(start, min(len(self.val_set), start + batch_size))
+        n = len(self.val_set) if self.cfg.val_limit is None else min(self.cfg.val_limit, len(self.val_set))
+        for start in range(0, n, batch_size):
+            idx = np.arange(start, min(n, start + batch_size))
             images, gt, ign = make_batch(self.val_set, idx, None, False)
-            total, _ = self._loss(images, gt, ign)
-            losses.append(total.item() * len(idx))
             pred = flatten(self.model(images), self.model)
+            targets = build_targets(pred, self.net_cfg, gt, [torch.zeros(len(g), dtype=torch.int64) for g in gt], ign)
+            losses.append(yolo_loss(pred, targets, self.net_cfg)[0].item() * len(idx))
             for d, g in zip(det.postprocess(pred, geo), gt, strict=True):
                 scores.append(d.scores)
                 boxes.append(d.boxes)
                 gts.append(g.numpy())
-        n = max(len(self.val_set), 1)
-        return {"loss": sum(losses) / n, "ap50": average_precision(scores, boxes, gts, 0.5),
+        return {"loss": sum(losses) / max(n, 1), "ap50": average_precision(scores, boxes, gts, 0.5),
                 "ap70": average_precision(scores, boxes, gts, 0.7)}
 
     def export(self) -> dict[str, Any]:
@@ -135,7 +153,7 @@ def train(data_dir: str | Path, out_dir: str | Path, cfg: YoloTrainConfig, optio
     """Letterbox / cache the images, fit anchors, and run the training loop."""
     data, out = Path(data_dir), Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    net_cfg = CONFIGS[cfg.layout]
+    net_cfg = replace(CONFIGS[cfg.layout], **LOSSES[cfg.loss])
     train_set = build_image_set(KittiDataset(data, split=cfg.train_split), net_cfg.input_size, net_cfg.fill,
                                 out / f"images_{cfg.train_split}")
     val_set = build_image_set(KittiDataset(data, split=cfg.val_split), net_cfg.input_size, net_cfg.fill,
