@@ -275,3 +275,17 @@ def test_iou_objectness_target_is_the_decoded_iou():
     expect = -(target * np.log(0.5) + (1 - target) * np.log(0.5))  # logit 0 -> p = 0.5
     assert terms["obj"].item() == pytest.approx(expect, rel=1e-6)
     assert terms["box"].item() > 0 and terms["xy"].item() == terms["wh"].item() == 0.0
+
+
+def test_nms_clusters_and_merge_by_hand():
+    from robustbench3d.victims.yolo.postprocess import merge_clusters, nms_clusters
+
+    boxes = np.array([[0.0, 0, 10, 10], [1, 0, 11, 10], [50, 50, 60, 60], [0, 1, 10, 11], [100, 0, 101, 1]])
+    scores = np.array([0.9, 0.6, 0.8, 0.3, 0.7])
+    clusters = nms_clusters(boxes, scores, 0.5)
+    assert [c.tolist() for c in clusters] == [[0, 1, 3], [2], [4]]
+    merged = merge_clusters(boxes, scores, clusters)
+    assert np.allclose(merged[0], (0.9 * boxes[0] + 0.6 * boxes[1] + 0.3 * boxes[3]) / 1.8)
+    assert np.allclose(merged[1:], boxes[[2, 4]], rtol=0, atol=1e-12)
+    # the kept boxes are those of plain NMS, which matches brute force
+    assert [c[0] for c in clusters] == brute_nms(boxes.tolist(), scores.tolist(), 0.5)

@@ -100,9 +100,14 @@ def run(args: argparse.Namespace) -> int:
         options = ExportOptions(args.exporter, args.opset, args.batch_2d, args.batch_seg)
     except ValueError as exc:
         raise RobustBenchError(str(exc)) from None
+    from robustbench3d.victims import VICTIMS
+
     cascade = create_cascade(args.victim, kwargs)
-    manifest = export_cascade(cascade, args.out, options,
-                              source={"victim": args.victim, "kwargs": describe_kwargs(kwargs)},
+    source: dict[str, Any] = {"victim": args.victim, "kwargs": describe_kwargs(kwargs)}
+    if not any(kwargs.get(k) for k in ("weights", "yolo_weights", "fpointnet_weights", "allow_untrained")):
+        # no weights given: the victim loaded its shipped file
+        source["weights_sha256"] = VICTIMS.get(args.victim).info.weights_sha256
+    manifest = export_cascade(cascade, args.out, options, source=source,
                               reproduce_command=reproduce_command(args, kwargs))
     for st in manifest.stages:
         shapes = ", ".join(f"{t.name} {'x'.join(map(str, t.shape))}" for t in st.inputs)

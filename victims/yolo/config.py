@@ -140,6 +140,8 @@ class YoloConfig:
             score ranks boxes by localisation quality.
         conf_threshold: minimum objectness x class probability kept by :meth:`detect`.
         nms_threshold: IoU above which NMS suppresses a lower-scored box of the same class.
+        nms_merge: replace each kept box by the score-weighted mean of itself and the boxes it
+            suppresses (the 2019 PyTorch-YOLOv3 port's NMS; the score is the kept box's).
         max_detections: cap per image after NMS.
         fill: letterbox padding value (in [0, 1]).
     """
@@ -157,6 +159,7 @@ class YoloConfig:
     obj_target: str = "binary"
     conf_threshold: float = 0.05
     nms_threshold: float = 0.4
+    nms_merge: bool = False
     max_detections: int = 100
     fill: float = 0.5
 

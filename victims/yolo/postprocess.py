@@ -103,43 +103,66 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return inter / np.maximum(union, _EPS)
 
 
-def nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
-    """Greedy NMS: indices (int64, decreasing score) of the kept xyxy boxes.
+def nms_clusters(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> list[np.ndarray]:
+    """Greedy NMS with the suppressed boxes: one index array per kept box (kept box first, then
+    the boxes it suppressed), clusters in decreasing score of their kept box.
 
     Visit boxes by decreasing score (ties by lower index); keep a box unless a kept box overlaps
-    it with IoU > ``iou_threshold``.
+    it with IoU > ``iou_threshold``; a kept box suppresses the remaining boxes it overlaps so.
     """
     n = len(boxes)
     if n == 0:
-        return np.zeros(0, dtype=np.int64)
+        return []
     order = np.argsort(-np.asarray(scores), kind="stable")
     iou = box_iou(np.asarray(boxes)[order], np.asarray(boxes)[order])
     suppressed = np.zeros(n, dtype=bool)
-    keep: list[int] = []
+    clusters: list[np.ndarray] = []
     for i in range(n):
         if suppressed[i]:
             continue
-        keep.append(i)
-        suppressed |= iou[i] > iou_threshold
-    return order[np.array(keep, dtype=np.int64)]
+        members = ~suppressed & (iou[i] > iou_threshold)
+        members[i] = False
+        clusters.append(order[np.concatenate([[i], np.flatnonzero(members)]).astype(np.int64)])
+        suppressed |= members
+        suppressed[i] = True
+    return clusters
+
+
+def nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
+    """Greedy NMS (:func:`nms_clusters`): indices (int64, decreasing score) of the kept xyxy boxes."""
+    return np.array([c[0] for c in nms_clusters(boxes, scores, iou_threshold)], dtype=np.int64)
+
+
+def batched_nms_clusters(boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray,
+                         iou_threshold: float) -> list[np.ndarray]:
+    """:func:`nms_clusters` within each class; clusters sorted by decreasing score of their kept box."""
+    classes = np.asarray(classes)
+    clusters = [np.flatnonzero(classes == c)[cl] for c in np.unique(classes)
+                for cl in nms_clusters(boxes[classes == c], scores[classes == c], iou_threshold)]
+    order = np.argsort([-np.asarray(scores)[c[0]] for c in clusters], kind="stable")
+    return [clusters[k] for k in order]
 
 
 def batched_nms(boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray, iou_threshold: float) -> np.ndarray:
     """:func:`nms` within each class; kept indices sorted by decreasing score (stable)."""
-    classes = np.asarray(classes)
-    keep = [np.flatnonzero(classes == c)[nms(boxes[classes == c], scores[classes == c], iou_threshold)]
-            for c in np.unique(classes)]
-    if not keep:
-        return np.zeros(0, dtype=np.int64)
-    idx = np.concatenate(keep)
-    return idx[np.argsort(-np.asarray(scores)[idx], kind="stable")]
+    return np.array([c[0] for c in batched_nms_clusters(boxes, scores, classes, iou_threshold)], dtype=np.int64)
+
+
+def merge_clusters(boxes: np.ndarray, scores: np.ndarray, clusters: Sequence[np.ndarray]) -> np.ndarray:
+    """(K, 4) score-weighted mean box of each NMS cluster (the 2019 PyTorch-YOLOv3 "merge")."""
+    out = np.zeros((len(clusters), 4), dtype=np.float64)
+    for k, c in enumerate(clusters):
+        w = np.asarray(scores, dtype=np.float64)[c]
+        out[k] = (w[:, None] * np.asarray(boxes, dtype=np.float64)[c]).sum(axis=0) / max(float(w.sum()), _EPS)
+    return out
 
 
 def select_detections(boxes: np.ndarray, obj_logit: np.ndarray, cls_logit: np.ndarray, geo: Letterbox,
                       cfg: YoloConfig) -> Detections2D:
     """One image's priors (boxes (P, 4) cx, cy, w, h input px; logits (P,), (P, C)) -> detections:
-    score threshold, at most :data:`PRE_NMS_TOP_K` priors, per-class NMS, ``max_detections``,
-    mapped to original pixels and clipped to the image."""
+    score threshold, at most :data:`PRE_NMS_TOP_K` priors, per-class NMS (with ``cfg.nms_merge``
+    each kept box becomes the score-weighted mean of the boxes it suppressed and itself),
+    ``max_detections``, mapped to original pixels and clipped to the image."""
     conf = sigmoid(np.asarray(obj_logit, dtype=np.float32))[:, None] * sigmoid(np.asarray(cls_logit, np.float32))
     cls = conf.argmax(axis=1)
     score = conf[np.arange(len(conf)), cls]
@@ -150,9 +173,10 @@ def select_detections(boxes: np.ndarray, obj_logit: np.ndarray, cls_logit: np.nd
     half = b[:, 2:4] / np.float32(2.0)
     xyxy = np.concatenate([b[:, 0:2] - half, b[:, 0:2] + half], axis=1).astype(np.float64)
     score64 = score[keep].astype(np.float64)
-    kept = batched_nms(xyxy, score64, cls[keep], cfg.nms_threshold)[: cfg.max_detections]
+    clusters = batched_nms_clusters(xyxy, score64, cls[keep], cfg.nms_threshold)[: cfg.max_detections]
+    kept = np.array([c[0] for c in clusters], dtype=np.int64)
     w, h = geo.image_size
-    img_boxes = geo.to_image(xyxy[kept])
+    img_boxes = geo.to_image(merge_clusters(xyxy, score64, clusters) if cfg.nms_merge else xyxy[kept])
     img_boxes[:, 0::2] = np.clip(img_boxes[:, 0::2], 0, w - 1)
     img_boxes[:, 1::2] = np.clip(img_boxes[:, 1::2], 0, h - 1)
     return Detections2D(img_boxes, score64[kept], cls[keep][kept].astype(np.int64))
