@@ -22,6 +22,7 @@ BENCHMARKS: dict[str, str] = {
     "eval": "robustbench3d.eval.bench:run",
     "synth": "robustbench3d.synth.bench:run",
     "onnx": "robustbench3d.victims.onnx.bench:run",
+    "victim": "robustbench3d.victims.bench:run",
 }
 
 

@@ -27,3 +27,62 @@ def test_pack_round_trip(tmp_path: Path, capsys) -> None:
         want, got = state[part]["state_dict"], loaded.state()[part]["state_dict"]
         assert want.keys() == got.keys()
         assert all(torch.equal(want[k], got[k]) for k in want)
+
+
+def _summary(path: Path, weights_sha: str) -> None:
+    """A minimal run summary: one clean detector cell that ran with ``weights_sha``."""
+    import json
+
+    ap = {rp: {"easy": 90.0, "moderate": 80.0, "hard": 70.0} for rp in ("R40", "R11")}
+    cell = {"victim": "v", "attack": "none", "proposals": "detector", "status": "ok",
+            "dataset": {"split": "val"}, "metrics": {"Car": {"2d": ap, "bev": ap, "3d": ap, "aos": ap}},
+            "provenance": {"config": {"victim": {"weights_sha256": None, "weight_files": {"weights": weights_sha}}}}}
+    other = {**cell, "victim": "another", "provenance": {"config": {"victim": {"weights_sha256": None,
+                                                                               "weight_files": {}}}}}
+    path.write_text(json.dumps([cell, other]), encoding="utf-8")
+
+
+def test_pack_writes_a_manifest_entry_checked_against_the_run(tmp_path: Path, capsys) -> None:
+    import json
+
+    import pytest
+
+    from robustbench3d.errors import RobustBenchError
+    from robustbench3d.victims.shipped import shipped
+
+    torch.set_num_threads(1)
+    state = FPointNetCascade.untrained("lite", "mini", seed=3).state()
+    torch.save(state["yolo"], tmp_path / "yolo.pt")
+    torch.save(state["fpointnet"], tmp_path / "fpn.pt")
+    script = tmp_path / "reproduce.sh"
+    script.write_text("#!/bin/sh\n# comment\nrobustbench3d train yolo --seed 0\n\nrobustbench3d victims pack\n")
+    out, manifest = tmp_path / "w.pt", tmp_path / "manifest.json"
+    args = ["victims", "pack", "--yolo", str(tmp_path / "yolo.pt"), "--fpointnet", str(tmp_path / "fpn.pt"),
+            "--out", str(out), "--manifest", str(manifest), "--victim", "v", "--reproduce", str(script)]
+    assert main(args) == 0
+    sha = hashlib.sha256(out.read_bytes()).hexdigest()
+    entry = shipped("v", manifest)
+    assert entry.sha256 == sha and entry.size_bytes == out.stat().st_size and entry.path == out
+    assert entry.record["reproduce"]["commands"] == ["robustbench3d train yolo --seed 0", "robustbench3d victims pack"]
+    assert entry.record["networks"]["fpointnet"]["config"]["name"] == "lite"
+    # accuracy only from a run that used this very file
+    _summary(tmp_path / "summary.json", sha)
+    assert main([*args, "--summary", str(tmp_path / "summary.json")]) == 0
+    record = json.loads(manifest.read_text())["weights"][0]
+    assert record["accuracy"]["cells"]["detector"]["bev"]["R40"]["moderate"] == 80.0
+    assert "aos" not in record["accuracy"]["cells"]["detector"]
+    _summary(tmp_path / "other.json", "0" * 64)
+    with pytest.raises(RobustBenchError, match="did not run with the packed weights"):
+        from robustbench3d.victims import pack_command
+
+        pack_command.run(pack_command_args([*args, "--summary", str(tmp_path / "other.json")]))
+
+
+def pack_command_args(argv: list[str]):
+    import argparse
+
+    from robustbench3d.victims import pack_command
+
+    parser = argparse.ArgumentParser()
+    pack_command.add_arguments(parser)
+    return parser.parse_args(argv[2:])

@@ -28,7 +28,8 @@ def test_in_tree_victims_are_registered_with_metadata():
     assert isinstance(spec, VictimSpec)
     cap = spec.info.capabilities
     assert cap.modalities == ("camera", "lidar") and cap.backend == "torch" and cap.gradients and cap.deterministic
-    assert spec.info.weights_sha256 is None  # no weights shipped yet
+    assert spec.info.weights_sha256 is None  # the full v1 network ships no weights
+    assert VICTIMS.get("fpointnet-v1-lite").info.weights_sha256 is not None  # the lite cascade does
 
 
 def test_listing_does_not_import_torch():
@@ -41,7 +42,7 @@ def test_listing_does_not_import_torch():
 
 def test_factory_refuses_to_run_without_weights_unless_asked():
     with pytest.raises(RobustBenchError, match="no shipped weights"):
-        create_victim("fpointnet-v1-lite")
+        create_victim("fpointnet-v1")
     victim = create_victim("fpointnet-v1-lite", allow_untrained=True)
     assert isinstance(victim, Detector)
     assert isinstance(victim, ImageObjectnessOracle) and isinstance(victim, FrustumSegmentationOracle)
@@ -73,7 +74,8 @@ def test_victims_list_cli(capsys):
     assert main(["victims", "list", "--json", "fpointnet*"]) == 0
     rows = json.loads(capsys.readouterr().out)
     by_name = {r["name"]: r for r in rows}
-    assert set(by_name) == {"fpointnet-v1", "fpointnet-v1-lite"}
+    assert {"fpointnet-v1", "fpointnet-v1-lite"} <= set(by_name) <= {"fpointnet-v1", "fpointnet-v1-lite",
+                                                                     "fpointnet-v1-lite-onnx"}
     assert by_name["fpointnet-v1"]["capabilities"]["modalities"] == ["camera", "lidar"]
     assert by_name["fpointnet-v1"]["weights_sha256"] is None and by_name["fpointnet-v1"]["origin"] == "in-tree"
     assert main(["victims", "list"]) == 0

@@ -1,8 +1,9 @@
 """In-tree victims, registered with :func:`robustbench3d.victims.register_victim`.
 
-Factories import torch only when called, so listing victims stays cheap. No trained weights ship
-yet (``weights_sha256=None``): pass ``weights=`` (a file written by
-:meth:`~robustbench3d.victims.cascade.FPointNetCascade.save`) or the two trainers' outputs
+Factories import torch only when called, so listing victims stays cheap. A victim with shipped
+weights (:mod:`robustbench3d.victims.shipped`, ``weights/manifest.json``) loads them by default,
+checked against the sha256 its registry entry declares. Otherwise pass ``weights=`` (a file written
+by :meth:`~robustbench3d.victims.cascade.FPointNetCascade.save`) or the two trainers' outputs
 (``yolo_weights=``, ``fpointnet_weights=``), or ``allow_untrained=True`` for plumbing tests.
 """
 
@@ -14,6 +15,7 @@ from typing import Any
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.registry import Capabilities
 from robustbench3d.victims import VICTIMS, register_victim
+from robustbench3d.victims.shipped import shipped, shipped_sha256
 
 CASCADE_CAPABILITIES = Capabilities(modalities=("camera", "lidar"), backend="torch", gradients=True,
                                     deterministic=True)
@@ -25,19 +27,25 @@ def _cascade(name: str, fpn_config: str, weights: str | Path | None, yolo_weight
     from robustbench3d.victims.cascade import CascadeSettings, FPointNetCascade
 
     settings = CascadeSettings(seed=seed, gather=gather)  # type: ignore[arg-type]
-    if weights is not None:
-        return FPointNetCascade.load(weights, settings, sha256=VICTIMS.get(name).info.weights_sha256)
+    if weights is not None:  # the user's file: loaded as given (its hash goes into provenance)
+        return FPointNetCascade.load(weights, settings)
     if yolo_weights is not None and fpointnet_weights is not None:
         return FPointNetCascade.from_parts(yolo_weights, fpointnet_weights, settings)
     if allow_untrained:
         return FPointNetCascade.untrained(fpn_config, yolo_config, seed=seed, settings=settings)
+    ship = shipped(name)
+    if ship is not None:
+        ship.verify()
+        return FPointNetCascade.load(ship.path, settings, sha256=VICTIMS.get(name).info.weights_sha256)
+    others = [n for n in ("fpointnet-v1-lite", "fpointnet-v1") if n != name and shipped(n) is not None]
     raise RobustBenchError(
-        f"victim {name!r} has no shipped weights yet: pass weights=FILE (FPointNetCascade.save), "
-        "yolo_weights= and fpointnet_weights= (outputs of `robustbench3d train yolo|fpointnet`), "
-        "or allow_untrained=True")
+        f"victim {name!r} has no shipped weights"
+        + (f" ({', '.join(others)} has)" if others else "")
+        + ": pass weights=FILE (FPointNetCascade.save), yolo_weights= and fpointnet_weights= "
+        "(outputs of `robustbench3d train yolo|fpointnet`), or allow_untrained=True")
 
 
-@register_victim("fpointnet-v1", capabilities=CASCADE_CAPABILITIES,
+@register_victim("fpointnet-v1", capabilities=CASCADE_CAPABILITIES, weights_sha256=shipped_sha256("fpointnet-v1"),
                  summary="mini-YOLO 640x192 -> Frustum-PointNet v1 (1024 pts), KITTI Car")
 def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
                  fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,
@@ -47,6 +55,7 @@ def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path 
 
 
 @register_victim("fpointnet-v1-lite", capabilities=CASCADE_CAPABILITIES,
+                 weights_sha256=shipped_sha256("fpointnet-v1-lite"),
                  summary="mini-YOLO 640x192 -> Frustum-PointNet v1 lite (512 pts, CPU config)")
 def fpointnet_v1_lite(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
                       fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,

@@ -1,6 +1,8 @@
 """ONNX victim directories in the victim registry.
 
-Two ways in, both through :data:`robustbench3d.victims.VICTIMS`:
+Shipped ONNX exports (:data:`SHIPPED`, directories under the package's ``victims/weights/``)
+register as in-tree victims. Users add theirs in two ways, both through
+:data:`robustbench3d.victims.VICTIMS`:
 
 * ``robustbench3d victims add-onnx DIR --name NAME`` records NAME -> DIR in the user registry file
   ``<cache>/victims/onnx.json`` (:func:`user_registry_file`); this module is one of the registry's
@@ -161,10 +163,25 @@ def add_user_victim(name: str, directory: str | Path, *, replace: bool = False) 
     return path
 
 
+#: shipped ONNX victim name -> its directory under :func:`robustbench3d.victims.shipped.weights_dir`
+SHIPPED: dict[str, str] = {"fpointnet-v1-lite-onnx": "fpointnet-v1-lite-onnx"}
+
+
+def register_shipped_victims() -> None:
+    """Register every shipped ONNX export whose directory is present."""
+    from robustbench3d.victims.shipped import weights_dir
+
+    for name, sub in SHIPPED.items():
+        directory = weights_dir() / sub
+        if (directory / MANIFEST_FILE).is_file():
+            register_directory(name, directory)
+
+
 def register_user_victims() -> None:
     """Register every entry of the user registry file. A broken file or entry is skipped with a
     warning naming it (it must not make every other victim unusable)."""
     VICTIMS.names()  # in-tree victims first, whichever module is imported first
+    register_shipped_victims()
     try:
         entries = read_user_registry()
     except DataFormatError as exc:
