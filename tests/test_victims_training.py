@@ -13,6 +13,8 @@ import torch
 from simple_calibration import SIMPLE_CALIB
 
 from robustbench3d.cli import main
+from robustbench3d.errors import RobustBenchError
+from robustbench3d.fileio import sha256_file
 from robustbench3d.geometry import alpha_from_rotation_y, box_corners, points_in_boxes, project_boxes_to_image
 from robustbench3d.kitti import (
     KittiDataset,
@@ -182,6 +184,27 @@ def test_yolo_resume_reproduces_the_uninterrupted_run(tiny_data, tmp_path):
     frame = KittiDataset(tiny_data, split="val")[0]
     rows = victim.detect([frame], proposals="gt")[0]
     assert len(rows) == len(frame.labels)
+
+
+def test_yolo_fine_tune_starts_from_the_init_weights_at_a_new_input_size(tiny_data, tmp_path):
+    opts = LoopOptions(epochs=1, batch_size=2, seed=0, progress=False)
+    train_yolo(tiny_data, tmp_path / "base", YoloTrainConfig(warmup_steps=1), opts)
+    base = torch.load(tmp_path / "base" / "model.pt", weights_only=True)
+    # lr 0: Adam leaves every weight where the init put it (BN running statistics still move)
+    cfg = YoloTrainConfig(warmup_steps=1, lr=0.0, init=str(tmp_path / "base" / "model.pt"), input_size=(320, 96))
+    train_yolo(tiny_data, tmp_path / "ft", cfg, opts)
+    ft = torch.load(tmp_path / "ft" / "model.pt", weights_only=True)
+    assert tuple(ft["config"]["input_size"]) == (320, 96)
+    assert [list(a) for a in ft["config"]["anchors"]] == [list(a) for a in base["config"]["anchors"]]
+    weights = [k for k in base["state_dict"] if not k.endswith(("running_mean", "running_var", "num_batches_tracked"))]
+    assert weights and all(torch.equal(base["state_dict"][k], ft["state_dict"][k]) for k in weights)
+    assert ft["train_config"]["init_sha256"] == sha256_file(tmp_path / "base" / "model.pt")
+    with pytest.raises(RobustBenchError, match="largest stride 16"):
+        train_yolo(tiny_data, tmp_path / "bad", YoloTrainConfig(input_size=(330, 96)), opts)
+    with pytest.raises(RobustBenchError, match="does not match --layout 'tiny'"):
+        train_yolo(tiny_data, tmp_path / "bad", YoloTrainConfig(layout="tiny", init=cfg.init), opts)
+    with pytest.raises(RobustBenchError, match="no such YOLO weights file"):
+        train_yolo(tiny_data, tmp_path / "bad", YoloTrainConfig(init=str(tmp_path / "missing.pt")), opts)
 
 
 def test_fpointnet_overfits_a_few_frustums(tiny_data):

@@ -24,6 +24,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--anchors", choices=("kmeans", "config"), default="kmeans",
                         help="k-means anchors on the training boxes, or the layout's defaults")
     parser.add_argument("--no-flip", action="store_true", help="disable horizontal-flip augmentation")
+    parser.add_argument("--input-size", type=_size, default=None, metavar="WxH",
+                        help="network input size in px, multiples of the largest stride (default: the layout's)")
+    parser.add_argument("--init", default=None, metavar="MODEL",
+                        help="start from this trained model.pt or cascade weights file (its weights and anchors)")
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"input size must be WxH in pixels, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise argparse.ArgumentTypeError(f"input size must be positive, got {text!r}")
+    return w, h
 
 
 def run(args: argparse.Namespace) -> int:
@@ -31,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = YoloTrainConfig(layout=args.layout, loss=args.loss, lr_schedule=args.lr_schedule, precision=args.precision,
                           scale_jitter=args.scale_jitter, val_limit=args.val_limit, anchors=args.anchors,
-                          flip=not args.no_flip,
+                          flip=not args.no_flip, input_size=args.input_size, init=args.init,
                           train_split=args.train_split, val_split=args.val_split,
                           **({"lr": args.lr} if args.lr is not None else {}))
     state = train(args.data, args.out, cfg, loop_options(args), resume=args.resume)

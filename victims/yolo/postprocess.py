@@ -157,15 +157,20 @@ def merge_clusters(boxes: np.ndarray, scores: np.ndarray, clusters: Sequence[np.
     return out
 
 
+def prior_scores(obj_logit: np.ndarray, cls_logit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per prior: float32 score σ(objectness)·σ(class) of its best class, and that class (int64)."""
+    conf = sigmoid(np.asarray(obj_logit, dtype=np.float32))[:, None] * sigmoid(np.asarray(cls_logit, np.float32))
+    cls = conf.argmax(axis=1)
+    return conf[np.arange(len(conf)), cls], cls
+
+
 def select_detections(boxes: np.ndarray, obj_logit: np.ndarray, cls_logit: np.ndarray, geo: Letterbox,
                       cfg: YoloConfig) -> Detections2D:
     """One image's priors (boxes (P, 4) cx, cy, w, h input px; logits (P,), (P, C)) -> detections:
     score threshold, at most :data:`PRE_NMS_TOP_K` priors, per-class NMS (with ``cfg.nms_merge``
     each kept box becomes the score-weighted mean of the boxes it suppressed and itself),
     ``max_detections``, mapped to original pixels and clipped to the image."""
-    conf = sigmoid(np.asarray(obj_logit, dtype=np.float32))[:, None] * sigmoid(np.asarray(cls_logit, np.float32))
-    cls = conf.argmax(axis=1)
-    score = conf[np.arange(len(conf)), cls]
+    score, cls = prior_scores(obj_logit, cls_logit)
     keep = np.flatnonzero(score >= np.float32(cfg.conf_threshold))
     if len(keep) > PRE_NMS_TOP_K:  # bound NMS cost (IoU matrix) for untrained / noisy nets
         keep = keep[np.argsort(-score[keep], kind="stable")[:PRE_NMS_TOP_K]]

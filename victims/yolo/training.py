@@ -8,9 +8,11 @@ runs the network's forward/backward under bfloat16 autocast (weights, decoding a
 float32): about 2x faster on CPUs with AVX512-BF16, bit-reproducible on the same CPU type.
 Augmentation: horizontal flips (p = 0.5) and, with ``scale_jitter`` = j, a zoom by U(1 − j, 1 + j)
 with a random shift. Anchors by k-means (IoU distance) on the training Car boxes unless
-``anchors="config"``. Validation: loss, and Car AP at IoU 0.5 / 0.7
-(all-point interpolated, every GT counted, DontCare / Van detections not excused — a training
-monitor, not the KITTI metric).
+``anchors="config"``. Fine-tuning: ``init`` names a trained ``model.pt`` (or a cascade weights
+file) whose network weights and anchors start the run (its layout must match); ``input_size``
+overrides the layout's input (e.g. 960x288 to resolve small cars at stride 8).
+Validation: loss, and Car AP at IoU 0.5 / 0.7 (all-point interpolated, every GT counted,
+DontCare / Van detections not excused — a training monitor, not the KITTI metric).
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from robustbench3d.errors import RobustBenchError
+from robustbench3d.fileio import sha256_file
 from robustbench3d.kitti.dataset import KittiDataset
 from robustbench3d.victims import training as loop
 from robustbench3d.victims.yolo.anchors import kmeans_anchors
@@ -49,6 +53,9 @@ class YoloTrainConfig:
     flip: bool = True
     train_split: str = "train"
     val_split: str = "val"
+    input_size: tuple[int, int] | None = None
+    init: str | None = None
+    init_sha256: str | None = None
 
 
 def average_precision(scores: list[np.ndarray], boxes: list[np.ndarray], gts: list[np.ndarray],
@@ -83,12 +90,19 @@ class YoloTask:
     """:class:`~robustbench3d.victims.training.TrainingTask` for the YOLO detector."""
 
     def __init__(self, train_set: YoloImageSet, val_set: YoloImageSet, net_cfg: YoloConfig, cfg: YoloTrainConfig,
-                 seed: int, epochs: int, steps_per_epoch: int):
+                 seed: int, epochs: int, steps_per_epoch: int, init_state: dict[str, torch.Tensor] | None = None):
         self.train_set, self.val_set = train_set, val_set
         self.cfg, self.net_cfg, self.seed = cfg, net_cfg, seed
         self.epochs, self.steps_per_epoch = epochs, steps_per_epoch
+        self.model = build_model(net_cfg, seed)
+        stride = max(self.model.head_strides)
+        if any(v % stride for v in net_cfg.input_size):
+            raise RobustBenchError(f"input size {net_cfg.input_size} is not a multiple of the {net_cfg.layout} "
+                                   f"layout's largest stride {stride}")
+        if init_state is not None:
+            self.model.load_state_dict(init_state)
         # channels-last convolutions are ~1.6x faster on these CPUs; the weights' values are unchanged
-        self.model = build_model(net_cfg, seed).to(memory_format=torch.channels_last)
+        self.model = self.model.to(memory_format=torch.channels_last)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
 
     def num_items(self) -> int:
@@ -154,14 +168,37 @@ def train(data_dir: str | Path, out_dir: str | Path, cfg: YoloTrainConfig, optio
     data, out = Path(data_dir), Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     net_cfg = replace(CONFIGS[cfg.layout], **LOSSES[cfg.loss])
+    init_state = None
+    if cfg.init is not None:
+        init_cfg, init_state, digest = load_init(cfg.init, cfg.layout)
+        net_cfg = replace(net_cfg, anchors=init_cfg.anchors, input_size=init_cfg.input_size)
+        cfg = replace(cfg, init_sha256=digest)
+    if cfg.input_size is not None:
+        net_cfg = replace(net_cfg, input_size=tuple(cfg.input_size))
     train_set = build_image_set(KittiDataset(data, split=cfg.train_split), net_cfg.input_size, net_cfg.fill,
                                 out / f"images_{cfg.train_split}")
     val_set = build_image_set(KittiDataset(data, split=cfg.val_split), net_cfg.input_size, net_cfg.fill,
                               out / f"images_{cfg.val_split}")
-    if cfg.anchors == "kmeans":
+    if cfg.anchors == "kmeans" and init_state is None:
         wh = train_set.boxes[:, 2:] - train_set.boxes[:, :2]
         anchors, _ = kmeans_anchors(wh, len(net_cfg.anchors), np.random.default_rng([options.seed, 3]))
         net_cfg = replace(net_cfg, anchors=tuple((round(float(w), 2), round(float(h), 2)) for w, h in anchors))
     steps = len(loop.epoch_batches(len(train_set), options.batch_size, options.seed, 0))
-    task = YoloTask(train_set, val_set, net_cfg, cfg, options.seed, options.epochs, steps)
+    task = YoloTask(train_set, val_set, net_cfg, cfg, options.seed, options.epochs, steps, init_state)
     return loop.run(task, out, options, resume)
+
+
+def load_init(path: str | Path, layout: str) -> tuple[YoloConfig, dict[str, torch.Tensor], str]:
+    """Configuration, state dict and sha256 of the YOLO in ``path`` (a trainer ``model.pt`` or a
+    cascade weights file); its layout must be ``layout``."""
+    path = Path(path)
+    if not path.is_file():
+        raise RobustBenchError(f"{path}: no such YOLO weights file (--init)")
+    data = torch.load(path, map_location="cpu", weights_only=True)
+    data = data.get("yolo", data) if isinstance(data, dict) else data
+    if not isinstance(data, dict) or "config" not in data or "state_dict" not in data:
+        raise RobustBenchError(f"{path}: not a YOLO model.pt or cascade weights file (no 'config'/'state_dict')")
+    init_cfg = YoloConfig.from_dict(data["config"])
+    if init_cfg.layout != layout:
+        raise RobustBenchError(f"{path}: layout {init_cfg.layout!r} does not match --layout {layout!r}")
+    return init_cfg, data["state_dict"], sha256_file(path)
