@@ -86,3 +86,40 @@ def pack_command_args(argv: list[str]):
     parser = argparse.ArgumentParser()
     pack_command.add_arguments(parser)
     return parser.parse_args(argv[2:])
+
+
+def test_pack_records_the_run_a_fine_tuned_network_started_from(tmp_path: Path) -> None:
+    import json
+
+    from robustbench3d.fileio import sha256_file
+    from robustbench3d.victims.shipped import shipped
+    from robustbench3d.victims.training import CHECKPOINT, LOG
+
+    torch.set_num_threads(1)
+    state = FPointNetCascade.untrained("lite", "mini", seed=3).state()
+
+    def trainer_dir(name: str, task: dict, val: float) -> Path:
+        d = tmp_path / name
+        d.mkdir()
+        torch.save(state["yolo"], d / "model.pt")
+        torch.save({"run_config": {"task": task, "loop": {}}, "state": {"step": 7}}, d / CHECKPOINT)
+        (d / LOG).write_text(json.dumps({"epoch": 1, "val_ap70": val}) + "\n")
+        return d / "model.pt"
+
+    torch.save(state["fpointnet"], tmp_path / "fpn.pt")
+    base = trainer_dir("base", {"epochs": 80}, 0.5)
+    tuned = trainer_dir("tuned", {"epochs": 30, "init": str(base), "init_sha256": sha256_file(base)}, 0.6)
+    manifest = tmp_path / "manifest.json"
+    pack = ["victims", "pack", "--fpointnet", str(tmp_path / "fpn.pt"), "--manifest", str(manifest)]
+    assert main([*pack, "--yolo", str(tuned), "--out", str(tmp_path / "a.pt"), "--victim", "a"]) == 0
+    chain = shipped("a", manifest).record["training"]["yolo"]
+    assert chain["last_validation"] == {"val_ap70": 0.6} and chain["run_config"]["task"]["epochs"] == 30
+    assert chain["init"]["sha256"] == sha256_file(base) and chain["init"]["run_config"]["task"] == {"epochs": 80}
+    assert chain["init"]["last_validation"] == {"val_ap70": 0.5}
+    # once the first run's directory is gone, its record comes from the manifest entry of the file it was
+    packed = tmp_path / "a.pt"
+    again = trainer_dir("again", {"epochs": 5, "init": str(packed), "init_sha256": sha256_file(packed)}, 0.7)
+    assert main([*pack, "--yolo", str(again), "--out", str(tmp_path / "b.pt"), "--victim", "b"]) == 0
+    second = shipped("b", manifest).record["training"]["yolo"]
+    assert second["init"]["victim"] == "a" and second["init"]["run_config"]["task"]["epochs"] == 30
+    assert second["init"]["init"]["run_config"]["task"] == {"epochs": 80}

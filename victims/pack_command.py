@@ -5,7 +5,8 @@ The file (``FPointNetCascade.save``) is what ships in ``robustbench3d/victims/we
 ``--victim`` the entry of that victim in the shipped-weights manifest
 (:mod:`robustbench3d.victims.shipped`) is written too: file, sha256, size, each network's
 configuration and parameter count, each training run's configuration and last validation record
-(read from the trainers' output directories), the reproduction script, the environment, and —
+(read from the trainers' output directories; a fine-tuning run also records the run it started
+from), the reproduction script, the environment, and —
 with ``--summary`` — the accuracy measured by a ``robustbench3d run`` that used this very file
 (checked through the run's recorded weight hashes).
 """
@@ -32,8 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the script that reproduces the weights (recorded with its commands)")
 
 
-def _training_record(model_file: Path) -> dict[str, Any]:
-    """Run configuration and validation history of a trainer's output directory."""
+def _training_record(model_file: Path, network: str, earlier: list[dict[str, Any]], depth: int = 0) -> dict[str, Any]:
+    """Run configuration and validation history of a trainer's output directory. A fine-tuning run
+    (``init``) also records the run it started from, as ``"init"``: read from that file's
+    directory if it is still there, else from an ``earlier`` manifest entry with its sha256."""
     import json
 
     import torch
@@ -52,6 +55,18 @@ def _training_record(model_file: Path) -> dict[str, Any]:
         history = [json.loads(line) for line in log.read_text(encoding="utf-8").splitlines() if line.strip()]
         record["epochs"] = len(history)
         record["last_validation"] = {k: v for k, v in history[-1].items() if k.startswith("val_")} if history else {}
+    task = record.get("run_config", {}).get("task", {})
+    init, init_sha = task.get("init"), task.get("init_sha256")
+    if init and depth < 8:
+        source = next((e for e in earlier if e.get("sha256") == init_sha), None)
+        if Path(init).is_file() and (Path(init).parent / CHECKPOINT).is_file():  # a trainer's output
+            record["init"] = {"file": init, "sha256": init_sha,
+                              **_training_record(Path(init), network, earlier, depth + 1)}
+        elif source is not None:
+            record["init"] = {"file": source["file"], "sha256": init_sha, "victim": source["victim"],
+                              **source.get("training", {}).get(network, {})}
+        else:
+            record["init"] = {"file": init, "sha256": init_sha, "note": "its training record was not found"}
     return record
 
 
@@ -94,16 +109,18 @@ def run(args: argparse.Namespace) -> int:
 
     from robustbench3d.provenance import host_provenance
     from robustbench3d.victims.fpointnet.model import count_parameters
-    from robustbench3d.victims.shipped import upsert_entry
+    from robustbench3d.victims.shipped import read_manifest, upsert_entry
 
     out = Path(args.out)
+    earlier = read_manifest(args.manifest)["weights"]
     entry: dict[str, Any] = {
         "victim": args.victim, "file": out.name, "sha256": sha, "size_bytes": out.stat().st_size,
         "networks": {
             "yolo": {"config": cascade.yolo.cfg.to_dict(), "parameters": count_parameters(cascade.yolo.net)},
             "fpointnet": {"config": cascade.fpn.cfg.to_dict(), "parameters": count_parameters(cascade.fpn)},
         },
-        "training": {"yolo": _training_record(Path(args.yolo)), "fpointnet": _training_record(Path(args.fpointnet))},
+        "training": {name: _training_record(Path(path), name, earlier)
+                     for name, path in (("yolo", args.yolo), ("fpointnet", args.fpointnet))},
         "environment": host_provenance(),
     }
     if args.reproduce is not None:
