@@ -101,7 +101,7 @@ def test_pack_records_the_run_a_fine_tuned_network_started_from(tmp_path: Path) 
     def trainer_dir(name: str, task: dict, val: float) -> Path:
         d = tmp_path / name
         d.mkdir()
-        torch.save(state["yolo"], d / "model.pt")
+        torch.save(FPointNetCascade.untrained("lite", "mini", seed=round(val * 10)).state()["yolo"], d / "model.pt")
         torch.save({"run_config": {"task": task, "loop": {}}, "state": {"step": 7}}, d / CHECKPOINT)
         (d / LOG).write_text(json.dumps({"epoch": 1, "val_ap70": val}) + "\n")
         return d / "model.pt"
@@ -116,10 +116,17 @@ def test_pack_records_the_run_a_fine_tuned_network_started_from(tmp_path: Path) 
     assert chain["last_validation"] == {"val_ap70": 0.6} and chain["run_config"]["task"]["epochs"] == 30
     assert chain["init"]["sha256"] == sha256_file(base) and chain["init"]["run_config"]["task"] == {"epochs": 80}
     assert chain["init"]["last_validation"] == {"val_ap70": 0.5}
-    # once the first run's directory is gone, its record comes from the manifest entry of the file it was
+    # a run started from a packed file: its record comes from the manifest entry of that file
     packed = tmp_path / "a.pt"
     again = trainer_dir("again", {"epochs": 5, "init": str(packed), "init_sha256": sha256_file(packed)}, 0.7)
     assert main([*pack, "--yolo", str(again), "--out", str(tmp_path / "b.pt"), "--victim", "b"]) == 0
     second = shipped("b", manifest).record["training"]["yolo"]
-    assert second["init"]["victim"] == "a" and second["init"]["run_config"]["task"]["epochs"] == 30
+    assert second["run_config"]["task"]["epochs"] == 5
+    assert second["init"]["recorded_in"]["victim"] == "a" and second["init"]["run_config"]["task"]["epochs"] == 30
     assert second["init"]["init"]["run_config"]["task"] == {"epochs": 80}
+    # the same network from another container (the packed cascade file) keeps its record
+    assert main([*pack, "--yolo", str(tmp_path / "b.pt"), "--out", str(tmp_path / "c.pt"), "--victim", "c"]) == 0
+    third = shipped("c", manifest).record
+    assert third["training"]["yolo"]["run_config"]["task"]["epochs"] == 5
+    b_yolo = shipped("b", manifest).record["networks"]["yolo"]
+    assert third["networks"]["yolo"]["state_sha256"] == b_yolo["state_sha256"]

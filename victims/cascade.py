@@ -43,6 +43,9 @@ from robustbench3d.victims.yolo.config import YoloConfig
 from robustbench3d.victims.yolo.detector import YoloDetector, candidates_for_targets
 from robustbench3d.victims.yolo.model import Darknet
 
+#: ``format`` of a cascade weights file (both networks, :meth:`FPointNetCascade.save`).
+CASCADE_FORMAT = "robustbench3d.fpointnet_cascade/1"
+
 
 class FPointNetCascade:
     """YOLO -> Frustum-PointNet v1 for KITTI cars (see the module docstring)."""
@@ -67,7 +70,7 @@ class FPointNetCascade:
         return cls(YoloDetector.untrained(yolo_config, seed), build_model(fpn_config, seed + 1), settings)
 
     def state(self) -> dict[str, Any]:
-        return {"format": "robustbench3d.fpointnet_cascade/1",
+        return {"format": CASCADE_FORMAT,
                 "yolo": {"config": self.yolo.cfg.to_dict(), "state_dict": self.yolo.net.state_dict()},
                 "fpointnet": {"config": self.fpn.cfg.to_dict(), "state_dict": self.fpn.state_dict()}}
 
@@ -89,10 +92,15 @@ class FPointNetCascade:
     @classmethod
     def from_parts(cls, yolo: dict[str, Any] | str | Path, fpointnet: dict[str, Any] | str | Path,
                    settings: CascadeSettings | None = None) -> FPointNetCascade:
-        """From the two trainers' ``model.pt`` files (or their loaded dicts)."""
-        y = yolo if isinstance(yolo, dict) else torch.load(Path(yolo), map_location="cpu", weights_only=True)
-        p = fpointnet if isinstance(fpointnet, dict) else torch.load(Path(fpointnet), map_location="cpu",
-                                                                     weights_only=True)
+        """From the two trainers' ``model.pt`` files (or their loaded dicts); a cascade weights file
+        (:meth:`save`) given for a part contributes that network."""
+
+        def part(source: dict[str, Any] | str | Path, name: str) -> dict[str, Any]:
+            data = source if isinstance(source, dict) else torch.load(Path(source), map_location="cpu",
+                                                                      weights_only=True)
+            return data[name] if data.get("format") == CASCADE_FORMAT else data
+
+        y, p = part(yolo, "yolo"), part(fpointnet, "fpointnet")
         net = Darknet(YoloConfig.from_dict(y["config"]))
         net.load_state_dict(y["state_dict"])
         fpn = FrustumPointNetV1(FPointNetConfig.from_dict(p["config"]))

@@ -19,9 +19,10 @@ from typing import Any
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--yolo", required=True, metavar="FILE", help="model.pt of `robustbench3d train yolo`")
+    parser.add_argument("--yolo", required=True, metavar="FILE",
+                        help="model.pt of `robustbench3d train yolo` (or a cascade weights file: its YOLO)")
     parser.add_argument("--fpointnet", required=True, metavar="FILE",
-                        help="model.pt of `robustbench3d train fpointnet`")
+                        help="model.pt of `robustbench3d train fpointnet` (or a cascade weights file: its F-PN)")
     parser.add_argument("--out", required=True, metavar="FILE", help="cascade weights file to write")
     parser.add_argument("--manifest", metavar="FILE", type=Path,
                         help="shipped-weights manifest to update (victims/weights/manifest.json)")
@@ -33,16 +34,49 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the script that reproduces the weights (recorded with its commands)")
 
 
-def _training_record(model_file: Path, network: str, earlier: list[dict[str, Any]], depth: int = 0) -> dict[str, Any]:
-    """Run configuration and validation history of a trainer's output directory. A fine-tuning run
-    (``init``) also records the run it started from, as ``"init"``: read from that file's
-    directory if it is still there, else from an ``earlier`` manifest entry with its sha256."""
+def network_sha256(state_dict: dict[str, Any]) -> str:
+    """sha256 of a network's weights: every tensor's name, dtype, shape and bytes, in name order
+    (the same for a trainer's ``model.pt``, a cascade file or a checkpoint holding that state)."""
+    import hashlib
+
+    import torch
+
+    h = hashlib.sha256()
+    for name in sorted(state_dict):
+        t = torch.as_tensor(state_dict[name]).detach().cpu().contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
+def _known_record(earlier: list[dict[str, Any]], network: str, *, state_sha: str | None = None,
+                  file_sha: str | None = None) -> dict[str, Any] | None:
+    """The training record of ``network`` in the earlier manifest entry holding these weights
+    (by network hash, or — for entries written before network hashes — by file hash)."""
+    for e in earlier:
+        net = e.get("networks", {}).get(network, {})
+        if (state_sha and net.get("state_sha256") == state_sha) or (file_sha and e.get("sha256") == file_sha):
+            return {**e.get("training", {}).get(network, {}),
+                    "recorded_in": {"victim": e["victim"], "file": e["file"], "sha256": e["sha256"]}}
+    return None
+
+
+def _training_record(model_file: Path, network: str, state_sha: str, earlier: list[dict[str, Any]],
+                     depth: int = 0) -> dict[str, Any]:
+    """How ``network`` (weights hash ``state_sha``, from ``model_file``) was trained: the record of
+    an earlier manifest entry with the same weights, else the run configuration and last
+    validation of the trainer directory holding ``model_file``. A fine-tuning run (``init``) also
+    records the run it started from, as ``"init"`` (looked up the same way)."""
     import json
 
     import torch
 
+    from robustbench3d.fileio import sha256_file
     from robustbench3d.victims.training import CHECKPOINT, LOG
 
+    known = _known_record(earlier, network, state_sha=state_sha, file_sha=sha256_file(model_file))
+    if known is not None:
+        return known
     run_dir = model_file.parent
     record: dict[str, Any] = {"model_file": model_file.name}
     ckpt = run_dir / CHECKPOINT
@@ -58,16 +92,23 @@ def _training_record(model_file: Path, network: str, earlier: list[dict[str, Any
     task = record.get("run_config", {}).get("task", {})
     init, init_sha = task.get("init"), task.get("init_sha256")
     if init and depth < 8:
-        source = next((e for e in earlier if e.get("sha256") == init_sha), None)
-        if Path(init).is_file() and (Path(init).parent / CHECKPOINT).is_file():  # a trainer's output
-            record["init"] = {"file": init, "sha256": init_sha,
-                              **_training_record(Path(init), network, earlier, depth + 1)}
-        elif source is not None:
-            record["init"] = {"file": source["file"], "sha256": init_sha, "victim": source["victim"],
-                              **source.get("training", {}).get(network, {})}
-        else:
-            record["init"] = {"file": init, "sha256": init_sha, "note": "its training record was not found"}
+        source = _known_record(earlier, network, file_sha=init_sha)
+        if source is None and Path(init).is_file() and sha256_file(Path(init)) == init_sha:
+            part = _load_part(Path(init), network)
+            source = _training_record(Path(init), network, network_sha256(part["state_dict"]), earlier, depth + 1)
+        record["init"] = {"file": init, "sha256": init_sha,
+                          **(source if source is not None else {"note": "its training record was not found"})}
     return record
+
+
+def _load_part(path: Path, network: str) -> dict[str, Any]:
+    """``{"config", "state_dict"}`` of ``network`` from a trainer ``model.pt`` or a cascade file."""
+    import torch
+
+    from robustbench3d.victims.cascade import CASCADE_FORMAT
+
+    data = torch.load(path, map_location="cpu", weights_only=True)
+    return data[network] if data.get("format") == CASCADE_FORMAT else data
 
 
 def _accuracy(summary_file: Path, victim_name: str, weights_sha: str) -> dict[str, Any]:
@@ -100,7 +141,19 @@ def run(args: argparse.Namespace) -> int:
 
     if args.manifest is not None and not args.victim:
         raise RobustBenchError("--manifest needs --victim NAME")
-    cascade = FPointNetCascade.from_parts(args.yolo, args.fpointnet)
+    from robustbench3d.victims.fpointnet.model import count_parameters
+    from robustbench3d.victims.shipped import read_manifest, upsert_entry
+
+    sources = {"yolo": Path(args.yolo), "fpointnet": Path(args.fpointnet)}
+    parts = {name: _load_part(path, name) for name, path in sources.items()}
+    cascade = FPointNetCascade.from_parts(parts["yolo"], parts["fpointnet"])
+    networks = {name: {"config": part["config"], "state_sha256": network_sha256(part["state_dict"])}
+                for name, part in parts.items()}
+    training: dict[str, Any] = {}
+    if args.manifest is not None:  # read before --out is written: it may replace one of the sources
+        earlier = read_manifest(args.manifest)["weights"]
+        training = {name: _training_record(path, name, networks[name]["state_sha256"], earlier)
+                    for name, path in sources.items()}
     cascade.save(args.out)
     sha = sha256_file(args.out)
     print(f"{sha}  {args.out}")
@@ -108,20 +161,13 @@ def run(args: argparse.Namespace) -> int:
         return 0
 
     from robustbench3d.provenance import host_provenance
-    from robustbench3d.victims.fpointnet.model import count_parameters
-    from robustbench3d.victims.shipped import read_manifest, upsert_entry
 
     out = Path(args.out)
-    earlier = read_manifest(args.manifest)["weights"]
+    networks["yolo"]["parameters"] = count_parameters(cascade.yolo.net)
+    networks["fpointnet"]["parameters"] = count_parameters(cascade.fpn)
     entry: dict[str, Any] = {
         "victim": args.victim, "file": out.name, "sha256": sha, "size_bytes": out.stat().st_size,
-        "networks": {
-            "yolo": {"config": cascade.yolo.cfg.to_dict(), "parameters": count_parameters(cascade.yolo.net)},
-            "fpointnet": {"config": cascade.fpn.cfg.to_dict(), "parameters": count_parameters(cascade.fpn)},
-        },
-        "training": {name: _training_record(Path(path), name, earlier)
-                     for name, path in (("yolo", args.yolo), ("fpointnet", args.fpointnet))},
-        "environment": host_provenance(),
+        "networks": networks, "training": training, "environment": host_provenance(),
     }
     if args.reproduce is not None:
         lines = args.reproduce.read_text(encoding="utf-8").splitlines()
