@@ -130,3 +130,7 @@ def test_pack_records_the_run_a_fine_tuned_network_started_from(tmp_path: Path) 
     assert third["training"]["yolo"]["run_config"]["task"]["epochs"] == 5
     b_yolo = shipped("b", manifest).record["networks"]["yolo"]
     assert third["networks"]["yolo"]["state_sha256"] == b_yolo["state_sha256"]
+    # repacking an entry's own file into that entry keeps its record without pointing at itself
+    before = shipped("a", manifest).record["training"]["yolo"]
+    assert main([*pack, "--yolo", str(packed), "--out", str(tmp_path / "a2.pt"), "--victim", "a"]) == 0
+    assert shipped("a", manifest).record["training"]["yolo"] == before and "recorded_in" not in before

@@ -50,19 +50,23 @@ def network_sha256(state_dict: dict[str, Any]) -> str:
 
 
 def _known_record(earlier: list[dict[str, Any]], network: str, *, state_sha: str | None = None,
-                  file_sha: str | None = None) -> dict[str, Any] | None:
+                  file_sha: str | None = None, victim: str | None = None) -> dict[str, Any] | None:
     """The training record of ``network`` in the earlier manifest entry holding these weights
-    (by network hash, or — for entries written before network hashes — by file hash)."""
+    (by network hash, or — for entries written before network hashes — by file hash), with the
+    entry it came from as ``recorded_in`` unless that is ``victim``'s own entry for this very file."""
     for e in earlier:
         net = e.get("networks", {}).get(network, {})
-        if (state_sha and net.get("state_sha256") == state_sha) or (file_sha and e.get("sha256") == file_sha):
-            return {**e.get("training", {}).get(network, {}),
-                    "recorded_in": {"victim": e["victim"], "file": e["file"], "sha256": e["sha256"]}}
+        same_file = bool(file_sha) and e.get("sha256") == file_sha
+        if (state_sha and net.get("state_sha256") == state_sha) or same_file:
+            record = dict(e.get("training", {}).get(network, {}))
+            if not (same_file and e.get("victim") == victim) and "recorded_in" not in record:
+                record["recorded_in"] = {"victim": e["victim"], "file": e["file"], "sha256": e["sha256"]}
+            return record
     return None
 
 
 def _training_record(model_file: Path, network: str, state_sha: str, earlier: list[dict[str, Any]],
-                     depth: int = 0) -> dict[str, Any]:
+                     victim: str | None = None, depth: int = 0) -> dict[str, Any]:
     """How ``network`` (weights hash ``state_sha``, from ``model_file``) was trained: the record of
     an earlier manifest entry with the same weights, else the run configuration and last
     validation of the trainer directory holding ``model_file``. A fine-tuning run (``init``) also
@@ -74,7 +78,7 @@ def _training_record(model_file: Path, network: str, state_sha: str, earlier: li
     from robustbench3d.fileio import sha256_file
     from robustbench3d.victims.training import CHECKPOINT, LOG
 
-    known = _known_record(earlier, network, state_sha=state_sha, file_sha=sha256_file(model_file))
+    known = _known_record(earlier, network, state_sha=state_sha, file_sha=sha256_file(model_file), victim=victim)
     if known is not None:
         return known
     run_dir = model_file.parent
@@ -95,7 +99,8 @@ def _training_record(model_file: Path, network: str, state_sha: str, earlier: li
         source = _known_record(earlier, network, file_sha=init_sha)
         if source is None and Path(init).is_file() and sha256_file(Path(init)) == init_sha:
             part = _load_part(Path(init), network)
-            source = _training_record(Path(init), network, network_sha256(part["state_dict"]), earlier, depth + 1)
+            source = _training_record(Path(init), network, network_sha256(part["state_dict"]), earlier,
+                                      depth=depth + 1)
         record["init"] = {"file": init, "sha256": init_sha,
                           **(source if source is not None else {"note": "its training record was not found"})}
     return record
@@ -152,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
     training: dict[str, Any] = {}
     if args.manifest is not None:  # read before --out is written: it may replace one of the sources
         earlier = read_manifest(args.manifest)["weights"]
-        training = {name: _training_record(path, name, networks[name]["state_sha256"], earlier)
+        training = {name: _training_record(path, name, networks[name]["state_sha256"], earlier, args.victim)
                     for name, path in sources.items()}
     cascade.save(args.out)
     sha = sha256_file(args.out)
