@@ -11,6 +11,7 @@ import pytest
 from robustbench3d.kitti.dataset import Frame, KittiDataset
 from robustbench3d.kitti.labels import Labels
 from robustbench3d.victims import create_victim
+from robustbench3d.victims.fpointnet.box_coding import NUM_HEADING_BIN
 from robustbench3d.victims.fpointnet.frustum import box_mask, project_scan
 from robustbench3d.victims.fpointnet.model import TorchFrustumStages
 from robustbench3d.victims.onnx.divergence import (
@@ -137,3 +138,28 @@ def test_box_parity_passes_a_differing_frame_only_when_traced_to_a_tie(frame):
     assert not box_parity([frame], "gt", [rows], [other], tol, real).ok
     passed = box_parity([frame], "gt", [rows], [other], tol, tie)
     assert passed.ok and passed.near_tie_frames == 1 and passed.identical_frames == 0
+
+
+def test_a_heading_bin_flip_is_found_with_the_torch_gap(victim, frame):
+    stages_t = TorchFrustumStages(victim.fpn)
+    gaps: list[float] = []
+
+    class Swapped:
+        """Torch stages, but the first frustum's two best heading bins trade places."""
+
+        segmentation = staticmethod(stages_t.segmentation)
+        center_delta = staticmethod(stages_t.center_delta)
+
+        def box_output(self, object_points, one_hot):
+            out = stages_t.box_output(object_points, one_hot).copy()
+            if not gaps:
+                scores = out[0, 3:3 + NUM_HEADING_BIN]
+                first, second = np.argsort(-scores, kind="stable")[:2]
+                gaps.append(float(scores[first] - scores[second]))
+                scores[first], scores[second] = scores[second], scores[first]
+            return out
+
+    result = trace(victim, frame, "gt", stages_o=Swapped())
+    assert [f.decision for f in result.flips] == ["heading-bin"] and result.flips[0].where.startswith("proposal 0 ")
+    assert result.flips[0].margin == pytest.approx(gaps[0], rel=1e-6)
+    assert result.explained == (gaps[0] <= TIE)

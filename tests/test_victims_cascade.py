@@ -124,3 +124,54 @@ def test_weights_round_trip(victim, frames, tmp_path):
 
     with pytest.raises(RobustBenchError, match="sha256"):
         FPointNetCascade.load(path, sha256="0" * 64)
+
+
+def _tta(victim) -> FPointNetCascade:
+    tta = FPointNetCascade(victim.yolo.__class__(victim.yolo.net), victim.fpn, victim.settings)
+    tta.yolo.cfg = replace(victim.yolo.cfg, flip_tta=True, nms_merge=True)
+    return tta
+
+
+def test_flip_tta_pools_both_views_and_is_mirror_equivariant(victim, frames):
+    from robustbench3d.victims.yolo.postprocess import image_priors
+
+    tta = _tta(victim)
+    image = frames[3].image
+    w = image.shape[1]
+    mirrored = np.ascontiguousarray(image[:, ::-1])
+    (b, o, _, geo), = image_priors([image], tta.yolo.run_heads, tta.yolo.cfg)
+    (b1, o1, _, _), = image_priors([image], victim.yolo.run_heads, victim.yolo.cfg)
+    (bm, om, _, _), = image_priors([mirrored], victim.yolo.run_heads, victim.yolo.cfg)
+    p = len(o1)
+    assert len(o) == 2 * p and np.array_equal(o[:p], o1) and np.array_equal(o[p:], om)
+    assert np.array_equal(b[:p], b1)
+    # the mirrored view's priors, mapped to the original image, are the mirror images of its boxes
+    left = geo.to_image(np.stack([b[p:, 0] - b[p:, 2] / 2, b[p:, 1], b[p:, 0] + b[p:, 2] / 2, b[p:, 1]], 1))[:, 0]
+    right_m = geo.to_image(np.stack([bm[:, 0] + bm[:, 2] / 2, bm[:, 1], bm[:, 0] + bm[:, 2] / 2, bm[:, 1]], 1))[:, 0]
+    assert np.allclose(left, w - right_m, atol=1e-3)
+    # detections of the mirrored image are the mirrored detections (both views are seen either way)
+    d, dm = tta.yolo.detect([image])[0], tta.yolo.detect([mirrored])[0]
+    assert len(d.boxes) == len(dm.boxes) > 0
+    order, order_m = np.argsort(-d.scores, kind="stable"), np.argsort(-dm.scores, kind="stable")
+    assert np.allclose(d.scores[order], dm.scores[order_m], rtol=0, atol=1e-7)
+    flipped = np.stack([w - dm.boxes[:, 2], dm.boxes[:, 1], w - dm.boxes[:, 0], dm.boxes[:, 3]], axis=1)
+    assert np.allclose(np.clip(flipped[order_m], 0, w - 1), d.boxes[order], atol=2e-3)
+
+
+def test_objectness_with_flip_tta_covers_both_views(victim, frames):
+    tta = _tta(victim)
+    frame = frames[3]
+    car = frame.labels.select(frame.labels.type == "Car").bbox[:1]
+    w = frame.image.shape[1]
+    image = image_to_tensor(frame.image).requires_grad_(True)
+    plain = victim.objectness(image, [car])
+    mirror_car = np.stack([w - car[:, 2], car[:, 1], w - car[:, 0], car[:, 3]], axis=1)
+    seen_mirrored = victim.objectness(torch.flip(image, dims=[-1]), [mirror_car])
+    both = tta.objectness(image, [car])
+    n = len(plain.objectness_logit)
+    assert len(both.objectness_logit) == n + len(seen_mirrored.objectness_logit)
+    assert torch.equal(both.objectness_logit[n:], seen_mirrored.objectness_logit)
+    back = seen_mirrored.boxes
+    assert torch.allclose(both.boxes[n:], torch.stack([w - back[:, 2], back[:, 1], w - back[:, 0], back[:, 3]], 1))
+    both.objectness_logit.sum().backward()
+    assert torch.isfinite(image.grad).all() and image.grad.abs().sum() > 0

@@ -29,6 +29,32 @@ def test_pack_round_trip(tmp_path: Path, capsys) -> None:
         assert all(torch.equal(want[k], got[k]) for k in want)
 
 
+def test_pack_sets_inference_options_of_the_detector(tmp_path: Path) -> None:
+    import pytest
+
+    from robustbench3d.errors import RobustBenchError
+    from robustbench3d.victims.pack_command import network_sha256
+
+    torch.set_num_threads(1)
+    state = FPointNetCascade.untrained("lite", "mini", seed=3).state()
+    torch.save(state["yolo"], tmp_path / "yolo.pt")
+    torch.save(state["fpointnet"], tmp_path / "fpn.pt")
+    base = ["victims", "pack", "--yolo", str(tmp_path / "yolo.pt"), "--fpointnet", str(tmp_path / "fpn.pt")]
+    out = tmp_path / "tta.pt"
+    assert main([*base, "--out", str(out), "--yolo-option", "flip_tta=true", "--yolo-option", "nms_threshold=0.5"]) == 0
+    cfg = FPointNetCascade.load(out).yolo.cfg
+    assert cfg.flip_tta and cfg.nms_threshold == 0.5 and not cfg.nms_merge
+    assert network_sha256(FPointNetCascade.load(out).state()["yolo"]["state_dict"]) == network_sha256(
+        state["yolo"]["state_dict"])  # the weights are untouched
+    for bad, why in (("anchors=[]", "KEY one of"), ("flip_tta=1", "takes a bool"), ("nms_threshold=x", "not JSON"),
+                     ("max_detections=2.5", "takes a int")):
+        with pytest.raises(RobustBenchError, match=why):
+            from robustbench3d.victims import pack_command
+
+            pack_command.run(pack_command_args([*base, "--out", str(tmp_path / "x.pt"), "--yolo-option", bad]))
+    assert not (tmp_path / "x.pt").exists()
+
+
 def _summary(path: Path, weights_sha: str) -> None:
     """A minimal run summary: one clean detector cell that ran with ``weights_sha``."""
     import json

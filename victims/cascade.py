@@ -124,17 +124,25 @@ class FPointNetCascade:
         """Objectness / Car logits of the priors around each target box (see base protocol)."""
         if len(targets) != images.shape[0]:
             raise ValueError(f"{len(targets)} target sets for {images.shape[0]} images")
-        pred, geo = self.yolo.predictions(images)
         parts: dict[str, list[torch.Tensor]] = {k: [] for k in ("obj", "cls", "boxes", "iou", "image", "target")}
-        for b, tgt in enumerate(targets):
-            c = candidates_for_targets(pred, geo, torch.as_tensor(np.asarray(tgt, dtype=np.float64)),
-                                       iou_threshold, b)
-            parts["obj"].append(pred.obj_logit[b, c["prior"]])
-            parts["cls"].append(pred.cls_logit[b, c["prior"], self.car_class])
-            parts["boxes"].append(c["boxes"].float())
-            parts["iou"].append(c["iou"].float())
-            parts["image"].append(torch.full_like(c["prior"], b))
-            parts["target"].append(c["target"])
+        width = images.shape[-1]
+        views = (False, True) if self.yolo.cfg.flip_tta else (False,)
+        for mirrored in views:  # with flip TTA the detector also sees the mirrored image: its priors count too
+            pred, geo = self.yolo.predictions(torch.flip(images, dims=[-1]) if mirrored else images)
+            for b, tgt in enumerate(targets):
+                t = np.asarray(tgt, dtype=np.float64).reshape(-1, 4)
+                if mirrored:
+                    t = np.stack([width - t[:, 2], t[:, 1], width - t[:, 0], t[:, 3]], axis=1)
+                c = candidates_for_targets(pred, geo, torch.as_tensor(t), iou_threshold, b)
+                boxes = c["boxes"].float()
+                if mirrored:  # back to the original image's pixels
+                    boxes = torch.stack([width - boxes[:, 2], boxes[:, 1], width - boxes[:, 0], boxes[:, 3]], dim=1)
+                parts["obj"].append(pred.obj_logit[b, c["prior"]])
+                parts["cls"].append(pred.cls_logit[b, c["prior"], self.car_class])
+                parts["boxes"].append(boxes)
+                parts["iou"].append(c["iou"].float())
+                parts["image"].append(torch.full_like(c["prior"], b))
+                parts["target"].append(c["target"])
         return ObjectnessCandidates(
             objectness_logit=torch.cat(parts["obj"]), class_logit=torch.cat(parts["cls"]),
             boxes=torch.cat(parts["boxes"]).reshape(-1, 4), iou=torch.cat(parts["iou"]),

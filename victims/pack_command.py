@@ -30,8 +30,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--summary", metavar="FILE", type=Path,
                         help="summary.json of a `run` that used --out as weights: its clean cells become the "
                              "entry's measured accuracy")
+    parser.add_argument("--yolo-option", action="append", default=[], metavar="KEY=VALUE",
+                        help="set an inference field of the YOLO config (conf_threshold, nms_threshold, nms_merge, "
+                             "flip_tta, max_detections; VALUE is JSON); repeatable")
     parser.add_argument("--reproduce", metavar="FILE", type=Path,
                         help="the script that reproduces the weights (recorded with its commands)")
+
+
+def yolo_options(items: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` inference options of the YOLO config, values parsed as JSON."""
+    import json
+
+    from robustbench3d.errors import RobustBenchError
+    from robustbench3d.victims.yolo.config import INFERENCE_FIELDS, YoloConfig
+
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in INFERENCE_FIELDS:
+            raise RobustBenchError(f"--yolo-option {item!r}: expected KEY=VALUE with KEY one of "
+                                   f"{', '.join(INFERENCE_FIELDS)}")
+        try:
+            parsed = json.loads(value)
+        except json.JSONDecodeError as exc:
+            raise RobustBenchError(f"--yolo-option {item!r}: VALUE is not JSON ({exc.msg})") from None
+        kind = type(getattr(YoloConfig(), key))
+        allowed = (int, float) if kind is float else kind
+        if isinstance(parsed, bool) != (kind is bool) or not isinstance(parsed, allowed):
+            raise RobustBenchError(f"--yolo-option {item!r}: {key} takes a {kind.__name__}")
+        out[key] = parsed
+    return out
 
 
 def network_sha256(state_dict: dict[str, Any]) -> str:
@@ -151,6 +179,7 @@ def run(args: argparse.Namespace) -> int:
 
     sources = {"yolo": Path(args.yolo), "fpointnet": Path(args.fpointnet)}
     parts = {name: _load_part(path, name) for name, path in sources.items()}
+    parts["yolo"] = {**parts["yolo"], "config": {**parts["yolo"]["config"], **yolo_options(args.yolo_option)}}
     cascade = FPointNetCascade.from_parts(parts["yolo"], parts["fpointnet"])
     networks = {name: {"config": part["config"], "state_sha256": network_sha256(part["state_dict"])}
                 for name, part in parts.items()}

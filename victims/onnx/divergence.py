@@ -8,9 +8,13 @@ tolerance of its boundary can go either way on another backend, and everything d
 then differs (a flipped mask point moves the centroid; a flipped frustum point changes the
 resampling), so "identical boxes on every frame" is not a property any two float backends have.
 
-:func:`trace_frame` re-runs one frame with both backends in lockstep: each stage gets the same
-inputs on both (the torch path's), each decision is taken on both outputs, and every comparison
-whose outcome differs is a :class:`Flip` with the torch quantity's distance to the boundary. A
+:func:`trace_frame` re-runs one frame with both backends: the 2D stage gets the same image on
+both; the frustum stages then follow each backend's own path from its own 2D boxes (so the tiny
+shift of a frustum's rotation angle and the centroid and T-Net differences accumulate before the
+heading and size argmax as in a real run), unless a LiDAR point changed frustum, in which case
+both continue from the torch boxes so that their points stay comparable. Each decision is taken
+on both outputs, and every comparison whose outcome differs is a :class:`Flip` with the torch
+quantity's distance to the boundary. A
 frame is *explained* when at least one decision flipped and every flip lies within the tie
 tolerance (``tie_atol`` for logit, score and IoU margins; ``tie_px`` for pixel margins); a frame
 that differs without an explaining flip is a real disagreement.
@@ -24,9 +28,9 @@ import numpy as np
 
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.victims.base import Proposals
-from robustbench3d.victims.fpointnet.box_coding import NUM_HEADING_BIN, NUM_SIZE_CLUSTER, ONE_HOT_CLASSES
+from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
 from robustbench3d.victims.fpointnet.frustum import box_mask, project_scan
-from robustbench3d.victims.fpointnet.glue import FrustumStages, gather_points, mask_centroid, object_point_indices
+from robustbench3d.victims.fpointnet.glue import FrustumStages, run_frustum_stages
 from robustbench3d.victims.fpointnet.pipeline import CascadeSettings, FrustumInput, frustum_inputs
 from robustbench3d.victims.yolo.config import YoloConfig
 from robustbench3d.victims.yolo.postprocess import (
@@ -34,11 +38,10 @@ from robustbench3d.victims.yolo.postprocess import (
     Detections2D,
     HeadsFn,
     box_iou,
-    decode_heads,
+    image_priors,
     prior_scores,
     select_detections,
 )
-from robustbench3d.victims.yolo.preprocess import letterbox_image
 
 #: Decisions whose margin is in pixels (judged by ``tie_px``); the others are logit / score / IoU.
 PIXEL_DECISIONS = ("frustum-membership", "min-box-height")
@@ -99,11 +102,10 @@ def _order_flips(decision: str, values_t: np.ndarray, values_o: np.ndarray, name
 def _flips_2d(image: np.ndarray, cfg: YoloConfig, heads_t: HeadsFn, heads_o: HeadsFn,
               car_class: int) -> tuple[list[Flip], Detections2D, Detections2D]:
     """Threshold, ranking and NMS flips of the 2D stage on one letterboxed image."""
-    boxed, geo = letterbox_image(image, cfg.input_size, cfg.fill)
-    decoded = [decode_heads(fn(boxed[None]), cfg) for fn in (heads_t, heads_o)]
-    (bt, ot, ct), (bo, oo, co) = decoded
-    st, cls_t = prior_scores(ot[0], ct[0])
-    so, _ = prior_scores(oo[0], co[0])
+    decoded = [image_priors([image], fn, cfg)[0] for fn in (heads_t, heads_o)]
+    (bt, ot, ct, geo), (bo, oo, co, _) = decoded
+    st, cls_t = prior_scores(ot, ct)
+    so, _ = prior_scores(oo, co)
     thr = float(np.float32(cfg.conf_threshold))
     priors = np.arange(len(st))
     flips = _pair_flips("2d-threshold", st.astype(np.float64), so.astype(np.float64), thr, priors, strict=False)
@@ -116,11 +118,11 @@ def _flips_2d(image: np.ndarray, cfg: YoloConfig, heads_t: HeadsFn, heads_o: Hea
         return np.concatenate([b[cand, 0:2] - half, b[cand, 0:2] + half], axis=1).astype(np.float64)
 
     same = cls_t[cand][:, None] == cls_t[cand][None, :]
-    iou_t, iou_o = box_iou(xyxy(bt[0]), xyxy(bt[0])), box_iou(xyxy(bo[0]), xyxy(bo[0]))
+    iou_t, iou_o = box_iou(xyxy(bt), xyxy(bt)), box_iou(xyxy(bo), xyxy(bo))
     iu, ju = np.nonzero(np.triu(same, 1))
     flips += _pair_flips("2d-nms", iou_t[iu, ju], iou_o[iu, ju], cfg.nms_threshold,
                          np.array([f"{cand[a]} vs {cand[b]}" for a, b in zip(iu, ju, strict=True)], dtype=object))
-    dets = [select_detections(b[0], o[0], c[0], geo, cfg) for b, o, c in decoded]
+    dets = [select_detections(b, o, c, geo, cfg) for b, o, c, _ in decoded]
     cars = [Detections2D(d.boxes[d.classes == car_class], d.scores[d.classes == car_class],
                          d.classes[d.classes == car_class]) for d in dets]
     return flips, cars[0], cars[1]
@@ -148,38 +150,33 @@ def _argmax_flips(decision: str, scores_t: np.ndarray, scores_o: np.ndarray, nam
             for r in np.flatnonzero(at != ao)]
 
 
-def _frustum_flips(jobs: list[FrustumInput], stages_t: FrustumStages, stages_o: FrustumStages,
-                   settings: CascadeSettings, num_object_points: int) -> list[Flip]:
-    """Mask, gather-order, heading and size flips, each stage fed the torch path's inputs."""
+def _frustum_flips(jobs_t: list[FrustumInput], jobs_o: list[FrustumInput], stages_t: FrustumStages,
+                   stages_o: FrustumStages, settings: CascadeSettings, num_object_points: int) -> list[Flip]:
+    """Mask, gather-order, heading and size flips of each backend's own frustum path
+    (:func:`~robustbench3d.victims.fpointnet.glue.run_frustum_stages` on its own inputs, batched as
+    the victims batch them); ``jobs_t[k]`` and ``jobs_o[k]`` are the same proposal."""
     flips: list[Flip] = []
-    for start in range(0, len(jobs), settings.batch_size):
-        chunk = jobs[start:start + settings.batch_size]
-        names = [f"proposal {start + r}" for r in range(len(chunk))]
-        points = np.stack([j.points for j in chunk])
-        one_hot = np.zeros((len(chunk), len(ONE_HOT_CLASSES)), dtype=np.float32)
+    for start in range(0, len(jobs_t), settings.batch_size):
+        names = [f"proposal {k}" for k in range(start, min(start + settings.batch_size, len(jobs_t)))]
+        one_hot = np.zeros((len(names), len(ONE_HOT_CLASSES)), dtype=np.float32)
         one_hot[:, 0] = 1.0
-        lt = np.asarray(stages_t.segmentation(points, one_hot), dtype=np.float32)
-        lo = np.asarray(stages_o.segmentation(points, one_hot), dtype=np.float32)
-        mt, mo = lt[..., 1] - lt[..., 0], lo[..., 1] - lo[..., 0]
-        for r in range(len(chunk)):
+        out_t, out_o = (run_frustum_stages(stages, np.stack([j.points for j in chunk]), one_hot, num_object_points,
+                                           settings.gather, [j.rng for j in chunk])
+                        for stages, chunk in ((stages_t, jobs_t[start:start + len(names)]),
+                                              (stages_o, jobs_o[start:start + len(names)])))
+        mt = out_t.seg_logits[..., 1] - out_t.seg_logits[..., 0]
+        mo = out_o.seg_logits[..., 1] - out_o.seg_logits[..., 0]
+        for r in range(len(names)):
             flips += _pair_flips("segmentation-mask", mt[r].astype(np.float64), mo[r].astype(np.float64), 0.0,
                                  np.array([f"{names[r]} point {p}" for p in range(mt.shape[1])], dtype=object))
             if settings.gather == "topk":
                 fg = np.flatnonzero((mt[r] > 0) & (mo[r] > 0))
                 flips += _order_flips("gather-order", mt[r, fg].astype(np.float64), mo[r, fg].astype(np.float64),
                                       np.array([f"{names[r]} point {p}" for p in fg], dtype=object))
-        xyz = points[..., :3].astype(np.float64)
-        mask, _, centroid = mask_centroid(lt, xyz)
-        idx = object_point_indices(mask, mt, num_object_points, settings.gather, [j.rng for j in chunk])
-        object_points = gather_points(xyz - centroid[:, None, :], idx)
-        delta = np.asarray(stages_t.center_delta(object_points.astype(np.float32), one_hot), dtype=np.float64)
-        box_in = (object_points - delta[:, None, :]).astype(np.float32)
-        out_t = np.asarray(stages_t.box_output(box_in, one_hot), dtype=np.float64)
-        out_o = np.asarray(stages_o.box_output(box_in, one_hot), dtype=np.float64)
-        nh, ns = NUM_HEADING_BIN, NUM_SIZE_CLUSTER
-        flips += _argmax_flips("heading-bin", out_t[:, 3:3 + nh], out_o[:, 3:3 + nh], names)
-        flips += _argmax_flips("size-cluster", out_t[:, 3 + 2 * nh:3 + 2 * nh + ns],
-                               out_o[:, 3 + 2 * nh:3 + 2 * nh + ns], names)
+        flips += _argmax_flips("heading-bin", out_t.heading_scores.astype(np.float64),
+                               out_o.heading_scores.astype(np.float64), names)
+        flips += _argmax_flips("size-cluster", out_t.size_scores.astype(np.float64),
+                               out_o.size_scores.astype(np.float64), names)
     return flips
 
 
@@ -191,19 +188,23 @@ def trace_frame(frame: Frame, source: str, *, yolo_cfg: YoloConfig, car_class: i
     if source == "detector":
         flips, cars_t, cars_o = _flips_2d(frame.image, yolo_cfg, heads_t, heads_o, car_class)
         result.flips += flips
+        props = props_o = Proposals(cars_t.boxes, cars_t.scores)
         if len(cars_t.boxes) != len(cars_o.boxes):
             result.note = "2D detections differ in number; later stages not compared"
         else:
-            result.flips += _membership_flips(frame, cars_t.boxes, cars_o.boxes, settings)
-        props = Proposals(cars_t.boxes, cars_t.scores)
+            membership = _membership_flips(frame, cars_t.boxes, cars_o.boxes, settings)
+            result.flips += membership
+            if not membership:  # same frustum points: the ONNX path continues from its own boxes
+                props_o = Proposals(cars_o.boxes, cars_o.scores)
         min_points = settings.min_points_detector
     else:
         assert frame.labels is not None
         sel = np.isin(frame.labels.type.astype(str), list(settings.gt_types))
-        props = Proposals(frame.labels.bbox[sel], np.ones(int(sel.sum())))
+        props = props_o = Proposals(frame.labels.bbox[sel], np.ones(int(sel.sum())))
         min_points = settings.min_points_gt
-    jobs = frustum_inputs([frame], [props], settings, num_points, min_points)
-    result.flips += _frustum_flips(jobs, stages_t, stages_o, settings, num_object_points)
+    jobs_t = frustum_inputs([frame], [props], settings, num_points, min_points)
+    jobs_o = frustum_inputs([frame], [props_o], settings, num_points, min_points)  # fresh generators
+    result.flips += _frustum_flips(jobs_t, jobs_o, stages_t, stages_o, settings, num_object_points)
     result.explained = bool(result.flips) and all(
         f.margin <= (tie_px if f.decision in PIXEL_DECISIONS else tie_atol) for f in result.flips)
     return result

@@ -142,6 +142,8 @@ class YoloConfig:
         nms_threshold: IoU above which NMS suppresses a lower-scored box of the same class.
         nms_merge: replace each kept box by the score-weighted mean of itself and the boxes it
             suppresses (the 2019 PyTorch-YOLOv3 port's NMS; the score is the kept box's).
+        flip_tta: test-time augmentation: the network also sees the mirrored image, whose priors
+            are mirrored back and pooled with the others before NMS (best with ``nms_merge``).
         max_detections: cap per image after NMS.
         fill: letterbox padding value (in [0, 1]).
     """
@@ -160,6 +162,7 @@ class YoloConfig:
     conf_threshold: float = 0.05
     nms_threshold: float = 0.4
     nms_merge: bool = False
+    flip_tta: bool = False
     max_detections: int = 100
     fill: float = 0.5
 
@@ -181,6 +184,10 @@ class YoloConfig:
         d["anchors"] = tuple(tuple(float(v) for v in a) for a in d["anchors"])
         return cls(**d)
 
+
+#: Fields that change only how detections are read off the network (not its weights or training):
+#: ``victims pack --yolo-option`` may set them on a trained detector.
+INFERENCE_FIELDS = ("conf_threshold", "nms_threshold", "nms_merge", "flip_tta", "max_detections")
 
 MINI = YoloConfig()
 TINY = replace(MINI, layout="tiny", input_size=(416, 416), anchors=TINY_ANCHORS, ignore_thresh=0.7)

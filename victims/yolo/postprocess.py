@@ -187,14 +187,29 @@ def select_detections(boxes: np.ndarray, obj_logit: np.ndarray, cls_logit: np.nd
     return Detections2D(img_boxes, score64[kept], cls[keep][kept].astype(np.int64))
 
 
+def image_priors(images: Sequence[np.ndarray], run_heads: HeadsFn,
+                 cfg: YoloConfig) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, Letterbox]]:
+    """Per (H, W, 3) uint8 image (each letterboxed on its own, all through ``run_heads`` at once):
+    its priors (boxes (P, 4) cx, cy, w, h input px; objectness logits (P,); class logits (P, C))
+    and letterbox. With ``cfg.flip_tta`` the mirrored images' priors, mirrored back, follow."""
+    boxed = [letterbox_image(im, cfg.input_size, cfg.fill) for im in images]
+    boxes, obj, cls = decode_heads(run_heads(np.stack([x for x, _ in boxed])), cfg)
+    if cfg.flip_tta:
+        fb, fo, fc = decode_heads(run_heads(np.stack([letterbox_image(np.ascontiguousarray(im[:, ::-1]),
+                                                                      cfg.input_size, cfg.fill)[0]
+                                                      for im in images])), cfg)
+        for b, (_, geo) in enumerate(boxed):
+            fb[b, :, 0] = geo.mirror_x(fb[b, :, 0])
+        boxes, obj, cls = (np.concatenate(pair, axis=1) for pair in ((boxes, fb), (obj, fo), (cls, fc)))
+    return [(boxes[b], obj[b], cls[b], geo) for b, (_, geo) in enumerate(boxed)]
+
+
 def detect_images(images: Sequence[np.ndarray], run_heads: HeadsFn, cfg: YoloConfig,
                   batch_size: int = 1) -> list[Detections2D]:
     """Detections for (H, W, 3) uint8 images: each is letterboxed on its own, ``batch_size`` of
-    them go through ``run_heads`` at a time."""
+    them go through ``run_heads`` at a time (:func:`image_priors`, then :func:`select_detections`)."""
     out: list[Detections2D] = []
     for start in range(0, len(images), batch_size):
-        boxed = [letterbox_image(im, cfg.input_size, cfg.fill) for im in images[start:start + batch_size]]
-        heads = run_heads(np.stack([x for x, _ in boxed]))
-        boxes, obj, cls = decode_heads(heads, cfg)
-        out.extend(select_detections(boxes[b], obj[b], cls[b], geo, cfg) for b, (_, geo) in enumerate(boxed))
+        out.extend(select_detections(b, o, c, geo, cfg)
+                   for b, o, c, geo in image_priors(images[start:start + batch_size], run_heads, cfg))
     return out

@@ -52,6 +52,12 @@ class Letterbox:
         return (np.asarray(boxes, dtype=np.float64) - np.array(off)) / np.array(scale)
 
 
+    def mirror_x(self, x: Any) -> Any:
+        """Input-pixel x of the mirrored image's letterbox -> x in this letterbox (the original image
+        mirrored about its vertical centre line, x_img -> W - x_img; numpy or torch)."""
+        return (self.resized[0] + 2 * self.pad[0]) - x
+
+
 def _is_tensor(x: Any) -> bool:
     """True for torch tensors, detected without importing torch."""
     return not isinstance(x, np.ndarray) and hasattr(x, "new_tensor")
