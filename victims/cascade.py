@@ -17,6 +17,7 @@ dropout). Proposal filters follow §1.3: 2D height >= 25 px, and at least ``min_
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -125,21 +126,17 @@ class FPointNetCascade:
         if len(targets) != images.shape[0]:
             raise ValueError(f"{len(targets)} target sets for {images.shape[0]} images")
         parts: dict[str, list[torch.Tensor]] = {k: [] for k in ("obj", "cls", "boxes", "iou", "image", "target")}
-        width = images.shape[-1]
         views = (False, True) if self.yolo.cfg.flip_tta else (False,)
         for mirrored in views:  # with flip TTA the detector also sees the mirrored image: its priors count too
             pred, geo = self.yolo.predictions(torch.flip(images, dims=[-1]) if mirrored else images)
+            if mirrored:  # its priors mirrored back into this image's letterbox, as the numpy glue does
+                pred = replace(pred, boxes=torch.cat([geo.mirror_x(pred.boxes[..., :1]), pred.boxes[..., 1:]], -1))
             for b, tgt in enumerate(targets):
-                t = np.asarray(tgt, dtype=np.float64).reshape(-1, 4)
-                if mirrored:
-                    t = np.stack([width - t[:, 2], t[:, 1], width - t[:, 0], t[:, 3]], axis=1)
-                c = candidates_for_targets(pred, geo, torch.as_tensor(t), iou_threshold, b)
-                boxes = c["boxes"].float()
-                if mirrored:  # back to the original image's pixels
-                    boxes = torch.stack([width - boxes[:, 2], boxes[:, 1], width - boxes[:, 0], boxes[:, 3]], dim=1)
+                c = candidates_for_targets(pred, geo, torch.as_tensor(np.asarray(tgt, dtype=np.float64)),
+                                           iou_threshold, b)
                 parts["obj"].append(pred.obj_logit[b, c["prior"]])
                 parts["cls"].append(pred.cls_logit[b, c["prior"], self.car_class])
-                parts["boxes"].append(boxes)
+                parts["boxes"].append(c["boxes"].float())
                 parts["iou"].append(c["iou"].float())
                 parts["image"].append(torch.full_like(c["prior"], b))
                 parts["target"].append(c["target"])

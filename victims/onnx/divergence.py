@@ -156,14 +156,15 @@ def _frustum_flips(jobs_t: list[FrustumInput], jobs_o: list[FrustumInput], stage
     (:func:`~robustbench3d.victims.fpointnet.glue.run_frustum_stages` on its own inputs, batched as
     the victims batch them); ``jobs_t[k]`` and ``jobs_o[k]`` are the same proposal."""
     flips: list[Flip] = []
-    for start in range(0, len(jobs_t), settings.batch_size):
-        names = [f"proposal {k}" for k in range(start, min(start + settings.batch_size, len(jobs_t)))]
-        one_hot = np.zeros((len(names), len(ONE_HOT_CLASSES)), dtype=np.float32)
+    bs = settings.batch_size
+    for start in range(0, len(jobs_t), bs):
+        chunk_t, chunk_o = jobs_t[start:start + bs], jobs_o[start:start + bs]
+        names = [f"proposal {start + r}" for r in range(len(chunk_t))]
+        one_hot = np.zeros((len(chunk_t), len(ONE_HOT_CLASSES)), dtype=np.float32)
         one_hot[:, 0] = 1.0
         out_t, out_o = (run_frustum_stages(stages, np.stack([j.points for j in chunk]), one_hot, num_object_points,
                                            settings.gather, [j.rng for j in chunk])
-                        for stages, chunk in ((stages_t, jobs_t[start:start + len(names)]),
-                                              (stages_o, jobs_o[start:start + len(names)])))
+                        for stages, chunk in ((stages_t, chunk_t), (stages_o, chunk_o)))
         mt = out_t.seg_logits[..., 1] - out_t.seg_logits[..., 0]
         mo = out_o.seg_logits[..., 1] - out_o.seg_logits[..., 0]
         for r in range(len(names)):

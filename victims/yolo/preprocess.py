@@ -51,7 +51,6 @@ class Letterbox:
             return (boxes - boxes.new_tensor(off)) / boxes.new_tensor(scale)
         return (np.asarray(boxes, dtype=np.float64) - np.array(off)) / np.array(scale)
 
-
     def mirror_x(self, x: Any) -> Any:
         """Input-pixel x of the mirrored image's letterbox -> x in this letterbox (the original image
         mirrored about its vertical centre line, x_img -> W - x_img; numpy or torch)."""
