@@ -51,10 +51,12 @@ def test_numpy_letterbox_matches_the_differentiable_one(kitti_samples):
         letterbox_image(images[0].astype(np.float32), (640, 192))
 
 
-def test_head_decoding_matches_flatten():
-    net = build_yolo("mini", seed=2).eval()
+@pytest.mark.parametrize("layout", ["mini", "mini3"])
+def test_head_decoding_matches_flatten(layout):
+    net = build_yolo(layout, seed=2).eval()
+    w, h = net.cfg.input_size
     with torch.no_grad():
-        heads = [h * 4 for h in net(torch.rand(2, 3, 192, 640, generator=torch.Generator().manual_seed(0)))]
+        heads = [h * 4 for h in net(torch.rand(2, 3, h, w, generator=torch.Generator().manual_seed(0)))]
     pred = flatten(heads, net)
     boxes, obj, cls = decode_heads([h.numpy() for h in heads], net.cfg)
     assert head_masks(net.cfg) == net.head_masks

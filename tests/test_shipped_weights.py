@@ -48,16 +48,25 @@ def test_manifest_records_how_the_weights_were_made_and_measured():
     script = (weights_dir() / entry["reproduce"]["script"]).read_text(encoding="utf-8")
     commands = [ln for ln in script.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     assert entry["reproduce"]["commands"] == commands
-    train_lines = {shlex.split(c)[2]: shlex.split(c) for c in commands if c.startswith("robustbench3d train ")}
-    assert set(train_lines) == {"yolo", "fpointnet"}
-    for net in ("yolo", "fpointnet"):
+    runs: dict[str, list[list[str]]] = {}
+    for c in commands:
+        if c.startswith("robustbench3d train "):
+            argv = shlex.split(c)
+            runs.setdefault(argv[2], []).append(argv)
+    assert set(runs) == {"yolo", "fpointnet"}
+    for net, argvs in runs.items():
+        # the last run of a network made the shipped weights; each earlier one is the --init of the next
         record = entry["training"][net]
-        argv = train_lines[net]
-        assert record["run_config"]["loop"]["seed"] == int(argv[argv.index("--seed") + 1])
-        assert record["run_config"]["loop"]["batch_size"] == int(argv[argv.index("--batch-size") + 1])
-        assert record["epochs"] == int(argv[argv.index("--epochs") + 1])
+        for argv in reversed(argvs):
+            assert record["run_config"]["loop"]["seed"] == int(argv[argv.index("--seed") + 1])
+            assert record["run_config"]["loop"]["batch_size"] == int(argv[argv.index("--batch-size") + 1])
+            assert record["epochs"] == int(argv[argv.index("--epochs") + 1])
+            layout = argv[argv.index("--layout") + 1] if "--layout" in argv else None
+            assert layout is None or record["run_config"]["task"]["layout"] == layout
+            record = record.get("init")
+        assert record is None
     assert entry["networks"]["fpointnet"]["config"]["name"] == "lite"
-    assert entry["networks"]["yolo"]["config"]["layout"] == "mini"
+    assert entry["networks"]["yolo"]["config"]["layout"] == "mini3"
     acc = entry["accuracy"]
     assert set(acc["cells"]) == {"detector", "gt"}
     assert acc["dataset"]["embedded"]["seed"] == 0 and acc["dataset"]["split"] == "val"

@@ -33,10 +33,11 @@ from robustbench3d.victims.fpointnet.training import FPointNetTask, FPointNetTra
 from robustbench3d.victims.fpointnet.training import train as train_fpn
 from robustbench3d.victims.training import LoopOptions
 from robustbench3d.victims.yolo.anchors import wh_iou_np
-from robustbench3d.victims.yolo.config import MINI
+from robustbench3d.victims.yolo.config import MINI, MINI3, YoloConfig
 from robustbench3d.victims.yolo.data import build_image_set
 from robustbench3d.victims.yolo.letterbox import letterbox_geometry
-from robustbench3d.victims.yolo.training import YoloTask, YoloTrainConfig, average_precision
+from robustbench3d.victims.yolo.model import build_model as build_yolo
+from robustbench3d.victims.yolo.training import YoloTask, YoloTrainConfig, average_precision, init_anchors
 from robustbench3d.victims.yolo.training import train as train_yolo
 
 torch.set_num_threads(1)
@@ -195,16 +196,53 @@ def test_yolo_fine_tune_starts_from_the_init_weights_at_a_new_input_size(tiny_da
     train_yolo(tiny_data, tmp_path / "ft", cfg, opts)
     ft = torch.load(tmp_path / "ft" / "model.pt", weights_only=True)
     assert tuple(ft["config"]["input_size"]) == (320, 96)
-    assert [list(a) for a in ft["config"]["anchors"]] == [list(a) for a in base["config"]["anchors"]]
+    # anchors are in input pixels: halving the input halves them
+    assert [list(a) for a in ft["config"]["anchors"]] == [[round(w / 2, 2), round(h / 2, 2)]
+                                                         for w, h in base["config"]["anchors"]]
     weights = [k for k in base["state_dict"] if not k.endswith(("running_mean", "running_var", "num_batches_tracked"))]
     assert weights and all(torch.equal(base["state_dict"][k], ft["state_dict"][k]) for k in weights)
     assert ft["train_config"]["init_sha256"] == sha256_file(tmp_path / "base" / "model.pt")
     with pytest.raises(RobustBenchError, match="largest stride 16"):
         train_yolo(tiny_data, tmp_path / "bad", YoloTrainConfig(input_size=(330, 96)), opts)
-    with pytest.raises(RobustBenchError, match="does not match --layout 'tiny'"):
+    with pytest.raises(RobustBenchError, match="is not the start of --layout 'tiny'"):
         train_yolo(tiny_data, tmp_path / "bad", YoloTrainConfig(layout="tiny", init=cfg.init), opts)
     with pytest.raises(RobustBenchError, match="no such YOLO weights file"):
         train_yolo(tiny_data, tmp_path / "bad", YoloTrainConfig(init=str(tmp_path / "missing.pt")), opts)
+
+
+def test_yolo_mini3_starts_from_trained_mini_weights_with_a_fresh_stride_32_head(tiny_data, tmp_path):
+    opts = LoopOptions(epochs=1, batch_size=2, seed=0, progress=False)
+    train_yolo(tiny_data, tmp_path / "base", YoloTrainConfig(warmup_steps=1), opts)
+    base = torch.load(tmp_path / "base" / "model.pt", weights_only=True)
+    cfg = YoloTrainConfig(layout="mini3", warmup_steps=1, lr=0.0, init=str(tmp_path / "base" / "model.pt"),
+                          input_size=(640, 192), anchors="config")
+    train_yolo(tiny_data, tmp_path / "ft", cfg, opts)
+    ft = torch.load(tmp_path / "ft" / "model.pt", weights_only=True)
+    fresh = build_yolo(YoloConfig.from_dict(ft["config"]), seed=0).state_dict()
+    frozen = ("running_mean", "running_var", "num_batches_tracked")
+    inherited = [k for k in ft["state_dict"] if k in base["state_dict"]]
+    new = [k for k in ft["state_dict"] if k not in base["state_dict"] and not k.endswith(frozen)]
+    assert len(inherited) == len(base["state_dict"]) and new  # every mini tensor, plus the new head's
+    assert all(int(k.split(".")[1]) > 19 for k in new)
+    assert all(torch.equal(base["state_dict"][k], ft["state_dict"][k]) for k in inherited if not k.endswith(frozen))
+    assert all(torch.equal(fresh[k], ft["state_dict"][k]) for k in new)  # the seeded initialisation
+    anchors = ft["config"]["anchors"]
+    assert [list(a) for a in anchors[:6]] == [list(a) for a in base["config"]["anchors"]]  # same input size
+    assert [tuple(a) for a in anchors[6:]] == list(MINI3.anchors[6:])  # --anchors config: the layout's
+    with pytest.raises(RobustBenchError, match="is not the start of --layout 'mini'"):
+        train_yolo(tiny_data, tmp_path / "bad", YoloTrainConfig(init=str(tmp_path / "ft" / "model.pt")), opts)
+
+
+def test_init_anchors_scale_with_the_input_and_add_the_largest_clusters():
+    rng = np.random.default_rng(0)
+    sizes = [(10, 8), (20, 15), (40, 25), (60, 80), (90, 50), (150, 90), (260, 150), (380, 200), (520, 260)]
+    wh = np.concatenate([np.asarray(s) * rng.uniform(0.97, 1.03, (30, 2)) for s in sizes])
+    boxes = np.concatenate([np.zeros_like(wh), wh], axis=1)
+    anchors = init_anchors(MINI, MINI3, boxes, seed=0)
+    assert anchors[:6] == tuple((round(w * 1.5, 2), round(h * 1.5, 2)) for w, h in MINI.anchors)  # 640 → 960
+    for got, want in zip(anchors[6:], sizes[6:], strict=True):  # the three largest of the nine clusters
+        assert got == pytest.approx(want, rel=0.02)
+    assert init_anchors(MINI, MINI3, None, seed=0)[6:] == MINI3.anchors[6:]
 
 
 def test_fpointnet_overfits_a_few_frustums(tiny_data):

@@ -12,7 +12,7 @@ import torch
 
 from robustbench3d.victims.yolo.anchors import kmeans_anchors
 from robustbench3d.victims.yolo.boxes import batched_nms, box_iou, nms
-from robustbench3d.victims.yolo.config import MINI, TINY, V3
+from robustbench3d.victims.yolo.config import MINI, MINI3, TINY, V3
 from robustbench3d.victims.yolo.detector import YoloDetector, candidates_for_targets
 from robustbench3d.victims.yolo.letterbox import letterbox, letterbox_geometry
 from robustbench3d.victims.yolo.loss import build_targets, yolo_loss
@@ -29,6 +29,17 @@ def test_mini_layout_heads_and_size():
     assert [tuple(h.shape) for h in heads] == [(1, 18, 12, 40), (1, 18, 24, 80)]  # 3·(5+1) channels
     n = sum(p.numel() for p in net.parameters())
     assert 0.6e6 <= n <= 1.2e6  # §2.3 budget
+
+
+def test_mini3_is_mini_plus_a_stride_32_head():
+    mini, mini3 = build_model("mini", seed=4), build_model("mini3", seed=4).eval()
+    assert MINI3.input_size == (960, 288) and mini3.head_strides == [16, 8, 32]
+    assert mini3.specs[: len(mini.specs)] == mini.specs
+    assert all(torch.equal(v, mini3.state_dict()[k]) for k, v in mini.state_dict().items())  # same seeded init
+    with torch.no_grad():
+        heads = mini3(torch.zeros(1, 3, 288, 960))
+    assert [tuple(h.shape) for h in heads] == [(1, 18, 18, 60), (1, 18, 36, 120), (1, 18, 9, 30)]
+    assert sorted(a for m in mini3.head_masks for a in m) == list(range(9))
 
 
 def test_tiny_and_v3_layouts_build_and_run():

@@ -11,7 +11,7 @@ from robustbench3d.victims.train_common import add_common_arguments, loop_option
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_common_arguments(parser, epochs=100, batch_size=16)
-    parser.add_argument("--layout", choices=("mini", "tiny", "v3"), default="mini", help="network layout")
+    parser.add_argument("--layout", choices=("mini", "mini3", "tiny", "v3"), default="mini", help="network layout")
     parser.add_argument("--loss", choices=("iou", "v3"), default="iou",
                         help="iou: multi-prior assignment, GIoU, IoU objectness (default); v3: the 2019 loss")
     parser.add_argument("--lr-schedule", choices=("step", "cosine"), default="step",
@@ -27,7 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--input-size", type=_size, default=None, metavar="WxH",
                         help="network input size in px, multiples of the largest stride (default: the layout's)")
     parser.add_argument("--init", default=None, metavar="MODEL",
-                        help="start from this trained model.pt or cascade weights file (its weights and anchors)")
+                        help="start from this trained model.pt or cascade weights file (its weights and "
+                        "anchors, scaled to the input size; its layout may be a prefix of --layout)")
 
 
 def _size(text: str) -> tuple[int, int]:

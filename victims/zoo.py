@@ -46,7 +46,7 @@ def _cascade(name: str, fpn_config: str, weights: str | Path | None, yolo_weight
 
 
 @register_victim("fpointnet-v1", capabilities=CASCADE_CAPABILITIES, weights_sha256=shipped_sha256("fpointnet-v1"),
-                 summary="mini-YOLO 640x192 -> Frustum-PointNet v1 (1024 pts), KITTI Car")
+                 summary="YOLO 2D stage -> Frustum-PointNet v1 (1024 pts), KITTI Car")
 def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
                  fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,
                  seed: int = 0, gather: str = "random") -> Any:
@@ -56,7 +56,7 @@ def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path 
 
 @register_victim("fpointnet-v1-lite", capabilities=CASCADE_CAPABILITIES,
                  weights_sha256=shipped_sha256("fpointnet-v1-lite"),
-                 summary="mini-YOLO 640x192 -> Frustum-PointNet v1 lite (512 pts, CPU config)")
+                 summary="mini3-YOLO 960x288 -> Frustum-PointNet v1 lite (512 pts, CPU config)")
 def fpointnet_v1_lite(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
                       fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,
                       seed: int = 0, gather: str = "random") -> Any:

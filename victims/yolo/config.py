@@ -1,8 +1,9 @@
 """YOLO layouts as darknet-style layer lists, and the detector configuration.
 
-Three layouts (reference §2): ``"mini"`` — the CPU-sized KITTI car detector of §2.3 (input
-640x192, tiny-style backbone, heads at stride 16 and 8) and the default; ``"tiny"`` — yolov3-tiny
-(13 conv layers, strides 32 and 16); ``"v3"`` — YOLOv3 with Darknet-53 (75 conv layers,
+Four layouts (reference §2): ``"mini"`` — the CPU-sized KITTI car detector of §2.3 (input
+640x192, tiny-style backbone, heads at stride 16 and 8) and the default; ``"mini3"`` — ``mini``
+plus a stride-32 head, at 960x288 (the shipped detector, fine-tuned from ``mini``); ``"tiny"`` —
+yolov3-tiny (13 conv layers, strides 32 and 16); ``"v3"`` — YOLOv3 with Darknet-53 (75 conv layers,
 strides 32, 16, 8). Layer semantics follow darknet cfgs: ``Route`` indices are relative when
 negative, absolute otherwise; a ``HeadConv`` is the linear 1x1 conv producing A·(5 + C)
 channels for the ``Yolo`` layer that follows it; a ``Yolo`` layer passes its input through.
@@ -69,6 +70,18 @@ def mini_layers() -> list[Layer]:
     ]
 
 
+def mini3_layers() -> list[Layer]:
+    """``mini`` (its 20 layers unchanged, so trained ``mini`` weights initialise it) plus a third
+    head at stride 32 branching off the stride-16 features (layer 8): max-pool, conv256-128(1x1)-
+    256-128(1x1)-256. Its receptive field is ~286 px (the ``mini`` heads' ~110 px cannot see the
+    edges of large, near cars)."""
+    return [
+        *mini_layers(),
+        Route((8,)), MaxPool(),                      # 21: stride 32
+        Conv(256), Conv(128, 1), Conv(256), Conv(128, 1), Conv(256), HeadConv(), Yolo((6, 7, 8)),
+    ]
+
+
 def tiny_layers() -> list[Layer]:
     """yolov3-tiny.cfg (§2.2)."""
     return [
@@ -108,11 +121,12 @@ def v3_layers() -> list[Layer]:
     return layers
 
 
-LAYOUTS = {"mini": mini_layers, "tiny": tiny_layers, "v3": v3_layers}
+LAYOUTS = {"mini": mini_layers, "mini3": mini3_layers, "tiny": tiny_layers, "v3": v3_layers}
 
 #: Anchors (w, h) px at 640x192 for KITTI cars, sorted by area; replace by k-means on the
 #: training boxes (:func:`robustbench3d.victims.yolo.anchors.kmeans_anchors`) before training.
 MINI_ANCHORS = ((14.0, 10.0), (24.0, 16.0), (38.0, 26.0), (60.0, 40.0), (96.0, 62.0), (160.0, 100.0))
+MINI3_ANCHORS = (*((w * 1.5, h * 1.5) for w, h in MINI_ANCHORS), (200.0, 130.0), (300.0, 170.0), (450.0, 230.0))
 TINY_ANCHORS = ((10.0, 14.0), (23.0, 27.0), (37.0, 58.0), (81.0, 82.0), (135.0, 169.0), (344.0, 319.0))
 V3_ANCHORS = ((10.0, 13.0), (16.0, 30.0), (33.0, 23.0), (30.0, 61.0), (62.0, 45.0), (59.0, 119.0),
               (116.0, 90.0), (156.0, 198.0), (373.0, 326.0))
@@ -190,9 +204,10 @@ class YoloConfig:
 INFERENCE_FIELDS = ("conf_threshold", "nms_threshold", "nms_merge", "flip_tta", "max_detections")
 
 MINI = YoloConfig()
+MINI3 = replace(MINI, layout="mini3", input_size=(960, 288), anchors=MINI3_ANCHORS)
 TINY = replace(MINI, layout="tiny", input_size=(416, 416), anchors=TINY_ANCHORS, ignore_thresh=0.7)
 V3 = replace(MINI, layout="v3", input_size=(416, 416), anchors=V3_ANCHORS, ignore_thresh=0.7)
-CONFIGS: dict[str, YoloConfig] = {"mini": MINI, "tiny": TINY, "v3": V3}
+CONFIGS: dict[str, YoloConfig] = {"mini": MINI, "mini3": MINI3, "tiny": TINY, "v3": V3}
 
 #: Loss variants (reference §2.1): ``"v3"`` — the 2019 PyTorch-YOLOv3 loss (one prior per GT,
 #: MSE coordinates, binary objectness); ``"iou"`` — several priors per GT, GIoU box loss and IoU

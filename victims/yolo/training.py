@@ -9,7 +9,8 @@ float32): about 2x faster on CPUs with AVX512-BF16, bit-reproducible on the same
 Augmentation: horizontal flips (p = 0.5) and, with ``scale_jitter`` = j, a zoom by U(1 − j, 1 + j)
 with a random shift. Anchors by k-means (IoU distance) on the training Car boxes unless
 ``anchors="config"``. Fine-tuning: ``init`` names a trained ``model.pt`` (or a cascade weights
-file) whose network weights and anchors start the run (its layout must match); ``input_size``
+file) whose network weights and anchors (scaled to the input size) start the run; its layout is
+the same or a prefix (``mini`` → ``mini3``, whose extra head starts fresh); ``input_size``
 overrides the layout's input (e.g. 960x288 to resolve small cars at stride 8).
 Validation: loss, and Car AP at IoU 0.5 / 0.7 (all-point interpolated, every GT counted,
 DontCare / Van detections not excused — a training monitor, not the KITTI metric).
@@ -30,7 +31,7 @@ from robustbench3d.kitti.dataset import KittiDataset
 from robustbench3d.victims import training as loop
 from robustbench3d.victims.yolo.anchors import kmeans_anchors
 from robustbench3d.victims.yolo.boxes import box_iou_np
-from robustbench3d.victims.yolo.config import CONFIGS, LOSSES, YoloConfig
+from robustbench3d.victims.yolo.config import CONFIGS, LAYOUTS, LOSSES, YoloConfig
 from robustbench3d.victims.yolo.data import YoloImageSet, build_image_set, make_batch
 from robustbench3d.victims.yolo.detector import YoloDetector
 from robustbench3d.victims.yolo.letterbox import letterbox_geometry
@@ -100,7 +101,7 @@ class YoloTask:
             raise RobustBenchError(f"input size {net_cfg.input_size} is not a multiple of the {net_cfg.layout} "
                                    f"layout's largest stride {stride}")
         if init_state is not None:
-            self.model.load_state_dict(init_state)
+            load_prefix(self.model, init_state)
         # channels-last convolutions are ~1.6x faster on these CPUs; the weights' values are unchanged
         self.model = self.model.to(memory_format=torch.channels_last)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -168,18 +169,22 @@ def train(data_dir: str | Path, out_dir: str | Path, cfg: YoloTrainConfig, optio
     data, out = Path(data_dir), Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     net_cfg = replace(CONFIGS[cfg.layout], **LOSSES[cfg.loss])
-    init_state = None
+    init_cfg, init_state = None, None
     if cfg.init is not None:
         init_cfg, init_state, digest = load_init(cfg.init, cfg.layout)
-        net_cfg = replace(net_cfg, anchors=init_cfg.anchors, input_size=init_cfg.input_size)
         cfg = replace(cfg, init_sha256=digest)
+        if init_cfg.layout == cfg.layout:
+            net_cfg = replace(net_cfg, input_size=init_cfg.input_size)
     if cfg.input_size is not None:
         net_cfg = replace(net_cfg, input_size=tuple(cfg.input_size))
     train_set = build_image_set(KittiDataset(data, split=cfg.train_split), net_cfg.input_size, net_cfg.fill,
                                 out / f"images_{cfg.train_split}")
     val_set = build_image_set(KittiDataset(data, split=cfg.val_split), net_cfg.input_size, net_cfg.fill,
                               out / f"images_{cfg.val_split}")
-    if cfg.anchors == "kmeans" and init_state is None:
+    if init_cfg is not None:
+        net_cfg = replace(net_cfg, anchors=init_anchors(
+            init_cfg, net_cfg, train_set.boxes if cfg.anchors == "kmeans" else None, options.seed))
+    elif cfg.anchors == "kmeans":
         wh = train_set.boxes[:, 2:] - train_set.boxes[:, :2]
         anchors, _ = kmeans_anchors(wh, len(net_cfg.anchors), np.random.default_rng([options.seed, 3]))
         net_cfg = replace(net_cfg, anchors=tuple((round(float(w), 2), round(float(h), 2)) for w, h in anchors))
@@ -188,9 +193,29 @@ def train(data_dir: str | Path, out_dir: str | Path, cfg: YoloTrainConfig, optio
     return loop.run(task, out, options, resume)
 
 
+def init_anchors(init_cfg: YoloConfig, net_cfg: YoloConfig, boxes: np.ndarray | None,
+                 seed: int) -> tuple[tuple[float, float], ...]:
+    """Anchors of a fine-tuned network: the initialising network's, scaled from its input size to
+    ``net_cfg.input_size`` (anchors are in input pixels). For the anchors it lacks (a layout with
+    more heads): the largest clusters of a k-means (k = all anchors) on the training boxes
+    ``(N, 4)`` x1 y1 x2 y2, or ``net_cfg``'s own when ``boxes`` is None."""
+    sx = net_cfg.input_size[0] / init_cfg.input_size[0]
+    sy = net_cfg.input_size[1] / init_cfg.input_size[1]
+    anchors = [(round(w * sx, 2), round(h * sy, 2)) for w, h in init_cfg.anchors]
+    extra = len(net_cfg.anchors) - len(anchors)
+    if extra > 0 and boxes is None:
+        anchors += list(net_cfg.anchors[len(anchors):])
+    elif extra > 0:
+        clusters, _ = kmeans_anchors(boxes[:, 2:] - boxes[:, :2], len(net_cfg.anchors),
+                                     np.random.default_rng([seed, 3]))
+        anchors += [(round(float(w), 2), round(float(h), 2)) for w, h in clusters[-extra:]]
+    return tuple(anchors[: len(net_cfg.anchors)])
+
+
 def load_init(path: str | Path, layout: str) -> tuple[YoloConfig, dict[str, torch.Tensor], str]:
     """Configuration, state dict and sha256 of the YOLO in ``path`` (a trainer ``model.pt`` or a
-    cascade weights file); its layout must be ``layout``."""
+    cascade weights file); its layout must be ``layout`` or one whose layers begin ``layout``'s
+    (``mini`` for ``mini3``: the layers it lacks keep their seeded initialisation)."""
     path = Path(path)
     if not path.is_file():
         raise RobustBenchError(f"{path}: no such YOLO weights file (--init)")
@@ -199,6 +224,19 @@ def load_init(path: str | Path, layout: str) -> tuple[YoloConfig, dict[str, torc
     if not isinstance(data, dict) or "config" not in data or "state_dict" not in data:
         raise RobustBenchError(f"{path}: not a YOLO model.pt or cascade weights file (no 'config'/'state_dict')")
     init_cfg = YoloConfig.from_dict(data["config"])
-    if init_cfg.layout != layout:
-        raise RobustBenchError(f"{path}: layout {init_cfg.layout!r} does not match --layout {layout!r}")
+    init_layers = LAYOUTS[init_cfg.layout]()
+    if LAYOUTS[layout]()[: len(init_layers)] != init_layers:
+        raise RobustBenchError(f"{path}: layout {init_cfg.layout!r} is not the start of --layout {layout!r}")
     return init_cfg, data["state_dict"], sha256_file(path)
+
+
+def load_prefix(model: torch.nn.Module, state: dict[str, torch.Tensor]) -> None:
+    """Load ``state``, the weights of a network whose layers are ``model``'s first layers: every
+    tensor in it must fit ``model``; the blocks it lacks must all come after its last block."""
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if unexpected:
+        raise RobustBenchError(f"initialising weights have tensors the network lacks: {unexpected[:3]}")
+    last = max(int(k.split(".")[1]) for k in state)
+    early = [k for k in missing if int(k.split(".")[1]) <= last]
+    if early:
+        raise RobustBenchError(f"initialising weights lack tensors of their own layers: {early[:3]}")
