@@ -163,3 +163,44 @@ def test_a_heading_bin_flip_is_found_with_the_torch_gap(victim, frame):
     assert [f.decision for f in result.flips] == ["heading-bin"] and result.flips[0].where.startswith("proposal 0 ")
     assert result.flips[0].margin == pytest.approx(gaps[0], rel=1e-6)
     assert result.explained == (gaps[0] <= TIE)
+
+
+@pytest.mark.parametrize("disagrees_on_same_points", [False, True])
+def test_after_a_mask_flip_heading_is_compared_on_the_torch_object_points(victim, frame, disagrees_on_same_points):
+    """A flipped mask point changes the resampled object points, so the own-path box nets see
+    different inputs; the tracer compares heading and size on the torch object points instead and
+    reports a heading flip only when the box nets disagree there too."""
+    stages_t = TorchFrustumStages(victim.fpn)
+    calls: list[int] = []
+    seg_calls: list[int] = []
+
+    class FlippedMask:
+        """Torch stages; the first frustum's point nearest the mask boundary changes side, and the
+        box net swaps proposal 0's two best heading bins on its own path (first call) — and on
+        the lockstep call too when ``disagrees_on_same_points``."""
+
+        center_delta = staticmethod(stages_t.center_delta)
+
+        def segmentation(self, points, one_hot):
+            logits = stages_t.segmentation(points, one_hot).copy()
+            seg_calls.append(len(logits))
+            if len(seg_calls) == 1:  # the first chunk's first row only
+                margin = logits[0, :, 1] - logits[0, :, 0]
+                p = int(np.argmin(np.abs(margin)))
+                logits[0, p, 1] -= 2 * margin[p]
+            return logits
+
+        def box_output(self, object_points, one_hot):
+            out = stages_t.box_output(object_points, one_hot).copy()
+            calls.append(len(out))
+            if len(calls) == 1 or (len(calls) == 2 and disagrees_on_same_points):  # own path, lockstep
+                scores = out[0, 3:3 + NUM_HEADING_BIN]
+                first, second = np.argsort(-scores, kind="stable")[:2]
+                scores[first], scores[second] = scores[second], scores[first]
+            return out
+
+    result = trace(victim, frame, "gt", stages_o=FlippedMask())
+    assert calls[1] == 1  # one lockstep call, for the one proposal whose mask flipped
+    decisions = [(f.decision, f.where.split(" point ")[0].split(" bins ")[0]) for f in result.flips]
+    expected = [("segmentation-mask", "proposal 0")] + [("heading-bin", "proposal 0")] * disagrees_on_same_points
+    assert decisions == expected

@@ -12,7 +12,10 @@ resampling), so "identical boxes on every frame" is not a property any two float
 both; the frustum stages then follow each backend's own path from its own 2D boxes (so the tiny
 shift of a frustum's rotation angle and the centroid and T-Net differences accumulate before the
 heading and size argmax as in a real run), unless a LiDAR point changed frustum, in which case
-both continue from the torch boxes so that their points stay comparable. Each decision is taken
+both continue from the torch boxes so that their points stay comparable. A proposal whose mask
+(or top-k gather order) flipped has its heading and size compared on the torch object points
+(both T-Nets and box nets on the same input): the resampling after a flipped mask point is the
+flip's consequence, not a decision of its own. Each decision is taken
 on both outputs, and every comparison whose outcome differs is a :class:`Flip` with the torch
 quantity's distance to the boundary. A
 frame is *explained* when at least one decision flipped and every flip lies within the tie
@@ -28,9 +31,9 @@ import numpy as np
 
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.victims.base import Proposals
-from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
+from robustbench3d.victims.fpointnet.box_coding import NUM_HEADING_BIN, NUM_SIZE_CLUSTER, ONE_HOT_CLASSES
 from robustbench3d.victims.fpointnet.frustum import box_mask, project_scan
-from robustbench3d.victims.fpointnet.glue import FrustumStages, run_frustum_stages
+from robustbench3d.victims.fpointnet.glue import FrustumStages, gather_points, run_frustum_stages
 from robustbench3d.victims.fpointnet.pipeline import CascadeSettings, FrustumInput, frustum_inputs
 from robustbench3d.victims.yolo.config import YoloConfig
 from robustbench3d.victims.yolo.postprocess import (
@@ -167,18 +170,40 @@ def _frustum_flips(jobs_t: list[FrustumInput], jobs_o: list[FrustumInput], stage
                         for stages, chunk in ((stages_t, chunk_t), (stages_o, chunk_o)))
         mt = out_t.seg_logits[..., 1] - out_t.seg_logits[..., 0]
         mo = out_o.seg_logits[..., 1] - out_o.seg_logits[..., 0]
+        upstream: list[int] = []  # rows whose object points differ by a flipped mask / gather decision
         for r in range(len(names)):
-            flips += _pair_flips("segmentation-mask", mt[r].astype(np.float64), mo[r].astype(np.float64), 0.0,
-                                 np.array([f"{names[r]} point {p}" for p in range(mt.shape[1])], dtype=object))
+            row = _pair_flips("segmentation-mask", mt[r].astype(np.float64), mo[r].astype(np.float64), 0.0,
+                              np.array([f"{names[r]} point {p}" for p in range(mt.shape[1])], dtype=object))
             if settings.gather == "topk":
                 fg = np.flatnonzero((mt[r] > 0) & (mo[r] > 0))
-                flips += _order_flips("gather-order", mt[r, fg].astype(np.float64), mo[r, fg].astype(np.float64),
-                                      np.array([f"{names[r]} point {p}" for p in fg], dtype=object))
-        flips += _argmax_flips("heading-bin", out_t.heading_scores.astype(np.float64),
-                               out_o.heading_scores.astype(np.float64), names)
-        flips += _argmax_flips("size-cluster", out_t.size_scores.astype(np.float64),
-                               out_o.size_scores.astype(np.float64), names)
+                row += _order_flips("gather-order", mt[r, fg].astype(np.float64), mo[r, fg].astype(np.float64),
+                                    np.array([f"{names[r]} point {p}" for p in fg], dtype=object))
+            flips += row
+            if row:
+                upstream.append(r)
+        heading_o, size_o = out_o.heading_scores.copy(), out_o.size_scores.copy()
+        if upstream:  # their T-Net and box net are compared on the torch object points (lockstep)
+            xyz = np.stack([j.points for j in chunk_t])[upstream, :, :3].astype(np.float64)
+            heading_o[upstream], size_o[upstream] = _box_scores_on(
+                stages_o, gather_points(xyz - out_t.mask_centroid[upstream, None, :], out_t.object_indices[upstream]),
+                one_hot[upstream])
+        flips += _argmax_flips("heading-bin", out_t.heading_scores.astype(np.float64), heading_o.astype(np.float64),
+                               names)
+        flips += _argmax_flips("size-cluster", out_t.size_scores.astype(np.float64), size_o.astype(np.float64),
+                               names)
     return flips
+
+
+def _box_scores_on(stages: FrustumStages, object_points: np.ndarray,
+                   one_hot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Heading and size scores of ``stages``' T-Net and box net on given (B, M, 3) object points
+    (mask-centroid frame), composed as :func:`~robustbench3d.victims.fpointnet.glue.run_frustum_stages`
+    composes them."""
+    delta = np.asarray(stages.center_delta(object_points.astype(np.float32), one_hot), dtype=np.float32)
+    box_in = (object_points - delta.astype(np.float64)[:, None, :]).astype(np.float32)
+    out = np.asarray(stages.box_output(box_in, one_hot), dtype=np.float32)
+    nh, ns = NUM_HEADING_BIN, NUM_SIZE_CLUSTER  # §1.6 e: centre (3), heading scores, residuals, size scores
+    return out[:, 3:3 + nh], out[:, 3 + 2 * nh:3 + 2 * nh + ns]
 
 
 def trace_frame(frame: Frame, source: str, *, yolo_cfg: YoloConfig, car_class: int, heads_t: HeadsFn,
