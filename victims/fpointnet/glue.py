@@ -30,6 +30,9 @@ GatherMode = Literal["random", "topk"]
 #: Box-net output size: centre (3) + heading scores and residuals (2·12) + size scores (8) and
 #: residuals (3·8).
 NUM_BOX_OUTPUTS = 3 + 2 * NUM_HEADING_BIN + 4 * NUM_SIZE_CLUSTER
+#: Columns of the heading-bin scores and of the size-cluster scores in the box-net output.
+HEADING_SCORES = slice(3, 3 + NUM_HEADING_BIN)
+SIZE_SCORES = slice(3 + 2 * NUM_HEADING_BIN, 3 + 2 * NUM_HEADING_BIN + NUM_SIZE_CLUSTER)
 
 
 class FrustumStages(Protocol):
@@ -132,12 +135,18 @@ def run_frustum_stages(stages: FrustumStages, points: np.ndarray, one_hot: np.nd
     xyz = points[..., :3].astype(np.float64)
     mask, count, centroid = mask_centroid(logits, xyz)
     idx = object_point_indices(mask, logits[..., 1] - logits[..., 0], num_object_points, gather, rng)
-    object_points = gather_points(xyz - centroid[:, None, :], idx)
+    delta, out = run_box_stages(stages, gather_points(xyz - centroid[:, None, :], idx), one_hot)
+    return parse_box_output(out, logits, mask, count, centroid, idx, delta, centroid + delta)
+
+
+def run_box_stages(stages: FrustumStages, object_points: np.ndarray,
+                   one_hot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """T-Net, then the box net on the object points shifted by its delta: (B, M, 3) float64 object
+    points (mask-centroid frame, m), (B, 3) one-hot -> (centre delta (B, 3), box output (B, 59)),
+    both float32."""
     delta = np.asarray(stages.center_delta(object_points.astype(np.float32), one_hot), dtype=np.float32)
-    stage1 = centroid + delta
     box_in = (object_points - delta.astype(np.float64)[:, None, :]).astype(np.float32)
-    out = np.asarray(stages.box_output(box_in, one_hot), dtype=np.float32)
-    return parse_box_output(out, logits, mask, count, centroid, idx, delta, stage1)
+    return delta, np.asarray(stages.box_output(box_in, one_hot), dtype=np.float32)
 
 
 def parse_box_output(out: np.ndarray, seg_logits: np.ndarray, mask: np.ndarray, count: np.ndarray,
@@ -152,7 +161,7 @@ def parse_box_output(out: np.ndarray, seg_logits: np.ndarray, mask: np.ndarray, 
     return FrustumOutputs(
         seg_logits=seg_logits, mask=mask, mask_count=count, mask_centroid=centroid, object_indices=indices,
         center_delta=delta, stage1_center=stage1_center, center=out64[:, :3] + stage1_center,
-        heading_scores=out[:, 3:3 + nh], heading_residuals=out64[:, 3 + nh:3 + 2 * nh] * (np.pi / nh),
-        size_scores=out[:, 3 + 2 * nh:3 + 2 * nh + ns],
+        heading_scores=out[:, HEADING_SCORES], heading_residuals=out64[:, 3 + nh:3 + 2 * nh] * (np.pi / nh),
+        size_scores=out[:, SIZE_SCORES],
         size_residuals=out64[:, 3 + 2 * nh + ns:].reshape(-1, ns, 3) * MEAN_SIZES[None],
     )

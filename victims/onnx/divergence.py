@@ -31,9 +31,16 @@ import numpy as np
 
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.victims.base import Proposals
-from robustbench3d.victims.fpointnet.box_coding import NUM_HEADING_BIN, NUM_SIZE_CLUSTER, ONE_HOT_CLASSES
+from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
 from robustbench3d.victims.fpointnet.frustum import box_mask, project_scan
-from robustbench3d.victims.fpointnet.glue import FrustumStages, gather_points, run_frustum_stages
+from robustbench3d.victims.fpointnet.glue import (
+    HEADING_SCORES,
+    SIZE_SCORES,
+    FrustumStages,
+    gather_points,
+    run_box_stages,
+    run_frustum_stages,
+)
 from robustbench3d.victims.fpointnet.pipeline import CascadeSettings, FrustumInput, frustum_inputs
 from robustbench3d.victims.yolo.config import YoloConfig
 from robustbench3d.victims.yolo.postprocess import (
@@ -184,26 +191,14 @@ def _frustum_flips(jobs_t: list[FrustumInput], jobs_o: list[FrustumInput], stage
         heading_o, size_o = out_o.heading_scores.copy(), out_o.size_scores.copy()
         if upstream:  # their T-Net and box net are compared on the torch object points (lockstep)
             xyz = np.stack([j.points for j in chunk_t])[upstream, :, :3].astype(np.float64)
-            heading_o[upstream], size_o[upstream] = _box_scores_on(
-                stages_o, gather_points(xyz - out_t.mask_centroid[upstream, None, :], out_t.object_indices[upstream]),
-                one_hot[upstream])
+            _, box = run_box_stages(stages_o, gather_points(xyz - out_t.mask_centroid[upstream, None, :],
+                                                            out_t.object_indices[upstream]), one_hot[upstream])
+            heading_o[upstream], size_o[upstream] = box[:, HEADING_SCORES], box[:, SIZE_SCORES]
         flips += _argmax_flips("heading-bin", out_t.heading_scores.astype(np.float64), heading_o.astype(np.float64),
                                names)
         flips += _argmax_flips("size-cluster", out_t.size_scores.astype(np.float64), size_o.astype(np.float64),
                                names)
     return flips
-
-
-def _box_scores_on(stages: FrustumStages, object_points: np.ndarray,
-                   one_hot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Heading and size scores of ``stages``' T-Net and box net on given (B, M, 3) object points
-    (mask-centroid frame), composed as :func:`~robustbench3d.victims.fpointnet.glue.run_frustum_stages`
-    composes them."""
-    delta = np.asarray(stages.center_delta(object_points.astype(np.float32), one_hot), dtype=np.float32)
-    box_in = (object_points - delta.astype(np.float64)[:, None, :]).astype(np.float32)
-    out = np.asarray(stages.box_output(box_in, one_hot), dtype=np.float32)
-    nh, ns = NUM_HEADING_BIN, NUM_SIZE_CLUSTER  # §1.6 e: centre (3), heading scores, residuals, size scores
-    return out[:, 3:3 + nh], out[:, 3 + 2 * nh:3 + 2 * nh + ns]
 
 
 def trace_frame(frame: Frame, source: str, *, yolo_cfg: YoloConfig, car_class: int, heads_t: HeadsFn,

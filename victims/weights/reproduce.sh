@@ -2,7 +2,7 @@
 # Reproduces the shipped weights fpointnet-v1-lite.pt (mini3-YOLO 960x288 + Frustum-PointNet v1 lite)
 # from scratch on the embedded dataset, on the CPU. The mini-YOLO (640x192) and F-PN trainers run side
 # by side, one thread each (about 115 minutes on a 2-core machine); then the mini3 layout (mini plus a
-# stride-32 head) is fine-tuned from the mini-YOLO at 960x288 on two threads (about 38 minutes).
+# stride-32 head) is fine-tuned from the mini-YOLO at 960x288 on two threads (about 40 minutes).
 # The same CPU type and thread counts give the same bytes.
 # Usage: bash victims/weights/reproduce.sh [OUT_DIR]   (default runs/weights)
 set -euo pipefail

@@ -185,9 +185,7 @@ def train(data_dir: str | Path, out_dir: str | Path, cfg: YoloTrainConfig, optio
         net_cfg = replace(net_cfg, anchors=init_anchors(
             init_cfg, net_cfg, train_set.boxes if cfg.anchors == "kmeans" else None, options.seed))
     elif cfg.anchors == "kmeans":
-        wh = train_set.boxes[:, 2:] - train_set.boxes[:, :2]
-        anchors, _ = kmeans_anchors(wh, len(net_cfg.anchors), np.random.default_rng([options.seed, 3]))
-        net_cfg = replace(net_cfg, anchors=tuple((round(float(w), 2), round(float(h), 2)) for w, h in anchors))
+        net_cfg = replace(net_cfg, anchors=fit_anchors(train_set.boxes, len(net_cfg.anchors), options.seed))
     steps = len(loop.epoch_batches(len(train_set), options.batch_size, options.seed, 0))
     task = YoloTask(train_set, val_set, net_cfg, cfg, options.seed, options.epochs, steps, init_state)
     return loop.run(task, out, options, resume)
@@ -206,10 +204,15 @@ def init_anchors(init_cfg: YoloConfig, net_cfg: YoloConfig, boxes: np.ndarray | 
     if extra > 0 and boxes is None:
         anchors += list(net_cfg.anchors[len(anchors):])
     elif extra > 0:
-        clusters, _ = kmeans_anchors(boxes[:, 2:] - boxes[:, :2], len(net_cfg.anchors),
-                                     np.random.default_rng([seed, 3]))
-        anchors += [(round(float(w), 2), round(float(h), 2)) for w, h in clusters[-extra:]]
+        anchors += fit_anchors(boxes, len(net_cfg.anchors), seed)[-extra:]
     return tuple(anchors[: len(net_cfg.anchors)])
+
+
+def fit_anchors(boxes: np.ndarray, k: int, seed: int) -> tuple[tuple[float, float], ...]:
+    """``k`` anchors (w, h px, sorted by area, rounded to 0.01) by k-means on the training boxes
+    ``(N, 4)`` x1 y1 x2 y2, seeded by ``seed``."""
+    anchors, _ = kmeans_anchors(boxes[:, 2:] - boxes[:, :2], k, np.random.default_rng([seed, 3]))
+    return tuple((round(float(w), 2), round(float(h), 2)) for w, h in anchors)
 
 
 def load_init(path: str | Path, layout: str) -> tuple[YoloConfig, dict[str, torch.Tensor], str]:
