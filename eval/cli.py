@@ -30,7 +30,10 @@ def _split_list(text: str | None) -> list[str] | None:
 def run(args: argparse.Namespace) -> int:
     from robustbench3d.errors import RobustBenchError
     from robustbench3d.eval.rules import normalise_names
+    from robustbench3d.fileio import check_output_file
 
+    if args.json:
+        check_output_file(args.json, "--json")
     classes = _split_list(args.classes)
     try:
         if classes is not None:

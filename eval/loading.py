@@ -6,9 +6,9 @@ detections. Result files of frames outside the set are ignored and counted (the 
 them). A result directory laid out like the devkit's (``<dir>/data/*.txt``) is accepted too.
 
 Parsing takes a vectorised fast path; whenever anything in it looks wrong (column count,
-unknown type, non-number, non-finite value, non-integer occlusion...) every file is re-read
-with :func:`robustbench3d.kitti.read_labels`, which raises the precise ``file:line: field``
-error, so both paths accept exactly the same files.
+unknown type, non-number, non-finite value, non-integer occlusion, a ground-truth value no
+object has...) every file is re-read with :func:`robustbench3d.kitti.read_labels`, which raises
+the precise ``file:line: field`` error, so both paths accept exactly the same files.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 
 from robustbench3d.errors import DataFormatError
 from robustbench3d.eval.table import TYPE_CODE, ObjectTable
-from robustbench3d.kitti.labels import Labels, read_labels
+from robustbench3d.kitti.labels import Labels, impossible_rows, read_labels
 from robustbench3d.kitti.splits import read_split
 
 
@@ -110,7 +110,8 @@ def read_table(paths: list[Path | None], scored: bool) -> ObjectTable:
         return _slow_table(paths, scored)
     occ = numeric[:, 1]
     if ((codes < 0).any() or not np.isfinite(numeric).all()
-            or (occ != np.trunc(occ)).any() or (occ < -1).any() or (occ > 3).any()):
+            or (occ != np.trunc(occ)).any() or (occ < -1).any() or (occ > 3).any()
+            or (not scored and impossible_rows(numeric).any())):
         return _slow_table(paths, scored)
     frame = np.repeat(np.arange(len(paths), dtype=np.int64), rows_per_frame)
     return ObjectTable.from_columns(frame, codes, numeric, len(paths), scored)

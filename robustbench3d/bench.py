@@ -101,7 +101,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from robustbench3d.errors import RobustBenchError
+    from robustbench3d.fileio import check_output_file
 
+    if args.json:
+        check_output_file(args.json, "--json")
     names = args.names or list(BENCHMARKS)
     unknown = [n for n in names if n not in BENCHMARKS]
     if unknown:

@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "show": ("robustbench3d.show", "draw a frame: image with 3D boxes and a bird's-eye view of the scan"),
     "victims list": ("robustbench3d.victims.list_command", "list registered victims and their capabilities"),
     "victims add-onnx": ("robustbench3d.victims.onnx.add_command", "register an ONNX victim directory under a name"),
+    "victims remove": ("robustbench3d.victims.onnx.remove_command", "remove a victim added with victims add-onnx"),
     "victims pack": ("robustbench3d.victims.pack_command", "join trained YOLO and F-PN weights into one cascade file"),
     "train yolo": ("robustbench3d.victims.train_yolo", "train the YOLO 2D detector on a KITTI-layout dataset"),
     "train fpointnet": ("robustbench3d.victims.train_fpointnet", "train Frustum-PointNet v1 on GT-box frustums"),

@@ -16,6 +16,7 @@ def dataset_statistics(root: str, max_frames: int | None = None, split: str | No
     """Statistics over the first ``max_frames`` frames of a KITTI-layout dataset (velodyne frame, m)."""
     import numpy as np
 
+    from robustbench3d.errors import DataFormatError
     from robustbench3d.geometry import points_in_boxes
     from robustbench3d.kitti import KittiDataset
     from robustbench3d.scan_stats import azimuth_step_deg, fit_ring_cones, ground_height
@@ -27,6 +28,8 @@ def dataset_statistics(root: str, max_frames: int | None = None, split: str | No
     car_points: dict[float, list[int]] = {c: [] for c, _ in CAR_DISTANCE_BINS}
     for fid in ids:
         scan = ds.scan(fid)
+        if not len(scan):
+            raise DataFormatError(ds.path("scan", fid), "empty scan (0 points); LiDAR statistics need points")
         rid = ring_ids_from_azimuth_wrap(scan)
         fit = fit_ring_cones(scan, rid)
         points.append(len(scan))
@@ -110,6 +113,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
+    from robustbench3d.fileio import check_output_file
+
+    if args.json:
+        check_output_file(args.json, "--json")
     stats = [dataset_statistics(r, args.frames or None) for r in args.roots]
     print(format_comparison(stats))
     if args.json:

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import DataFormatError, RobustBenchError
+from robustbench3d.fileio import read_data_bytes
 from robustbench3d.kitti.dataset import KittiDataset
 from robustbench3d.kitti.labels import Labels, parse_labels
 from robustbench3d.kitti.splits import read_split
@@ -164,11 +165,7 @@ def load_ground_truth(dataset: ResolvedDataset, max_frames: int | None = None) -
     labels: list[Labels] = []
     for i, fid in enumerate(ids):
         path = kitti.path("labels", fid)
-        try:
-            data = path.read_bytes()
-        except FileNotFoundError:
-            raise DataFormatError(path, f"ground-truth label file not found (frame listed in {dataset.split_file})"
-                                  ) from None
+        data = read_data_bytes(path, f"ground-truth label file not found (frame listed in {dataset.split_file})")
         digest.update(fid, data)
         try:
             text = data.decode("utf-8")

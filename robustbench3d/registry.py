@@ -10,8 +10,12 @@ A :class:`Registry` maps names to targets of one type ``T``. Targets arrive thre
 Rules: re-registering a name with the *same* target is a no-op, with a different target it raises
 :class:`RegistryError`; an unknown name raises :class:`UnknownNameError` with close matches ("did
 you mean"); a distribution found twice on ``sys.path`` (the classic duplicate ``dist-info`` /
-``egg-info`` of an editable install) contributes its entry points once; setting the environment
-variable ``ROBUSTBENCH3D_NO_PLUGINS=1`` disables entry-point discovery altogether.
+``egg-info`` of an editable install) contributes its entry points once; an entry point whose name
+is not a valid registry name is rejected with a message naming its distribution
+(:meth:`Registry.rejected`, and the error of a lookup of that name); a plugin that fails to import
+raises :class:`PluginImportError` naming the distribution, the entry point and the exception;
+setting the environment variable ``ROBUSTBENCH3D_NO_PLUGINS=1`` disables entry-point discovery
+altogether.
 
 Entries also carry metadata for listings and result provenance (:class:`EntryInfo`): the
 capabilities of the target (:class:`Capabilities`) and the sha256 of its weights. This module
@@ -47,6 +51,10 @@ _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
 class RegistryError(RobustBenchError, ValueError):
     """Invalid registration (bad name, collision) or a target that fails to load or validate."""
+
+
+class PluginImportError(RegistryError):
+    """An installed plugin's entry point failed to import (the plugin is broken, not the call)."""
 
 
 class UnknownNameError(RobustBenchError, LookupError):
@@ -134,9 +142,10 @@ class Entry(Generic[T]):
 
     name: str
     target: Any  # T, a "module:attr" str, or an importlib.metadata.EntryPoint
-    origin: str  # "in-tree", "lazy module:attr", or "plugin <dist> <version>"
+    origin: str  # "in-tree", "lazy module:attr", "plugin <dist> <version>", or the registrant's own
     loaded: bool = False
     conflict: str | None = None  # set when two plugins claim the name; raised on get()
+    dist: str | None = None  # the distribution of a plugin entry
 
     @property
     def pending(self) -> str | None:
@@ -186,39 +195,45 @@ class Registry(Generic[T]):
         key: identity of a loaded target for the same-target check (default: the object itself;
             :class:`Spec` targets compare by factory).
         modules: in-tree modules imported on the first lookup (their decorators register).
+        loaders: ``"module:function"`` references called (no arguments) on the first lookup, after
+            ``modules``: registrations read from files happen on first use, not at import.
     """
 
     def __init__(self, kind: str, *, group: str | None = None, base: type | None = None,
-                 key: Callable[[Any], Any] | None = None, modules: tuple[str, ...] = ()):
+                 key: Callable[[Any], Any] | None = None, modules: tuple[str, ...] = (),
+                 loaders: tuple[str, ...] = ()):
         self.kind = kind
         self.group = group
         self.base = base
         self._key = key
         self._modules = modules
+        self._loaders = loaders
         self._entries: dict[str, Entry[T]] = {}
+        self._rejected: dict[str, str] = {}  # invalid entry-point name -> why it was rejected
         self._lock = threading.RLock()
         self._discovered = False
         self._frozen = False
 
     # ---- registration ------------------------------------------------------------------
     @overload
-    def register(self, name: str, target: None = None) -> Callable[[T], T]: ...
+    def register(self, name: str, target: None = None, *, origin: str | None = None) -> Callable[[T], T]: ...
     @overload
-    def register(self, name: str, target: T | str) -> T | str: ...
+    def register(self, name: str, target: T | str, *, origin: str | None = None) -> T | str: ...
 
-    def register(self, name: str, target: Any = None) -> Any:
+    def register(self, name: str, target: Any = None, *, origin: str | None = None) -> Any:
         """Register ``target`` (an object or a lazy ``"module:attr"`` string) under ``name``.
 
         Without ``target`` returns a decorator that registers the decorated object and returns it
-        unchanged. Raises :class:`RegistryError` on a bad name, on a frozen registry, or when the
-        name is taken by a different target.
+        unchanged. ``origin`` overrides the listed origin ("in-tree" or "lazy module:attr").
+        Raises :class:`RegistryError` on a bad name, on a frozen registry, or when the name is
+        taken by a different target.
         """
         if target is None:
             def decorator(obj: T) -> T:
-                self.register(name, obj)
+                self.register(name, obj, origin=origin)
                 return obj
             return decorator
-        origin = f"lazy {target}" if isinstance(target, str) else "in-tree"
+        origin = origin or (f"lazy {target}" if isinstance(target, str) else "in-tree")
         if isinstance(target, str):
             _split_reference(target)
         else:
@@ -251,6 +266,14 @@ class Registry(Generic[T]):
             return self._key(obj)
         return id(obj)
 
+    def unregister(self, name: str) -> None:
+        """Remove ``name`` (e.g. a user registration that was deleted); unknown names raise."""
+        with self._lock:
+            if self._frozen:
+                raise RegistryError(f"{self.kind} registry is frozen; cannot unregister {name!r}")
+            self.entry(name)
+            del self._entries[name]
+
     def freeze(self) -> None:
         """Make the registry read-only (after discovery)."""
         with self._lock:
@@ -264,7 +287,7 @@ class Registry(Generic[T]):
         with self._lock:
             entry = self._entries.get(name)
             if entry is None:
-                raise UnknownNameError(self.kind, name, sorted(self._entries))
+                raise self._unknown(name)
             if entry.conflict is not None:
                 raise RegistryError(entry.conflict)
             return self._load(entry)
@@ -277,8 +300,14 @@ class Registry(Generic[T]):
         self._discover()
         with self._lock:
             if name not in self._entries:
-                raise UnknownNameError(self.kind, name, sorted(self._entries))
+                raise self._unknown(name)
             return self._entries[name]
+
+    def rejected(self) -> list[str]:
+        """Why each installed entry point with an invalid name was ignored (one message each)."""
+        self._discover()
+        with self._lock:
+            return [self._rejected[k] for k in sorted(self._rejected)]
 
     def names(self, pattern: str = "*") -> list[str]:
         """Sorted registered names matching a glob pattern (nothing is imported)."""
@@ -303,6 +332,14 @@ class Registry(Generic[T]):
         return iter(self.names())
 
     # ---- internals ---------------------------------------------------------------------
+    def _unknown(self, name: str) -> RegistryError | UnknownNameError:
+        """The error for a name that is not registered: a rejected entry point's reason, if the
+        name is (the lowercase of) one, else :class:`UnknownNameError` with suggestions."""
+        for raw, why in self._rejected.items():
+            if name in (raw, raw.lower()):
+                return RegistryError(why)
+        return UnknownNameError(self.kind, name, sorted(self._entries))
+
     def _load(self, entry: Entry[T]) -> T:
         with self._lock:
             if entry.loaded:
@@ -313,6 +350,12 @@ class Registry(Generic[T]):
             except RegistryError:
                 raise
             except Exception as exc:
+                if entry.dist is not None:
+                    raise PluginImportError(
+                        f"{self.kind} {entry.origin} failed to import: its entry point "
+                        f"'{entry.name} = {entry.pending}' ({self.group}) raised {exc.__class__.__name__}: {exc}; "
+                        f"reinstall or fix the plugin package {entry.dist!r}, or uninstall it (or set "
+                        f"{NO_PLUGINS_ENV}=1 to disable plugins)") from exc
                 raise RegistryError(
                     f"cannot load {self.kind} {entry.name!r} from {entry.pending} ({entry.origin}): "
                     f"{exc.__class__.__name__}: {exc}") from exc
@@ -337,6 +380,8 @@ class Registry(Generic[T]):
             self._discovered = True  # set first: imported modules may call register()
             for module in self._modules:
                 importlib.import_module(module)
+            for loader in self._loaders:
+                import_reference(loader)()
             if self.group is not None and not plugins_disabled():
                 self._discover_entry_points()
 
@@ -350,9 +395,10 @@ class Registry(Generic[T]):
             if (dist_name, ep.name) in seen:
                 continue
             seen.add((dist_name, ep.name))
-            entry: Entry[T] = Entry(name=ep.name, target=ep, origin=f"plugin {dist_name} {version}")
-            if not _NAME.match(ep.name):
-                continue  # not addressable; ignore rather than break every lookup
+            entry: Entry[T] = Entry(name=ep.name, target=ep, origin=f"plugin {dist_name} {version}", dist=dist_name)
+            if not _NAME.match(ep.name):  # not addressable: reject it, naming who ships it
+                self._rejected[ep.name] = self._rejection(ep.name, ep.value, dist_name, version)
+                continue
             old = self._entries.get(ep.name)
             if old is None:
                 self._entries[ep.name] = entry
@@ -362,8 +408,15 @@ class Registry(Generic[T]):
                     f"and {entry.origin} ({entry.pending}); uninstall one, or set {NO_PLUGINS_ENV}=1 to "
                     "disable plugins")
 
+    def _rejection(self, name: str, value: str, dist_name: str, version: str) -> str:
+        fixed = re.sub(r"[^a-z0-9._-]+", "-", name.lower()).strip("-._")
+        hint = f" (e.g. {fixed!r})" if _NAME.match(fixed) else ""
+        return (f"plugin {dist_name!r} {version}: entry point {name!r} (= {value}) of group {self.group} is not a "
+                f"valid {self.kind} name (lowercase letters, digits, '.', '_', '-', starting with a letter or "
+                f"digit), so it is ignored; the plugin must rename it{hint}")
+
 
 __all__ = [
-    "BACKENDS", "MODALITIES", "NO_PLUGINS_ENV", "Capabilities", "Entry", "EntryInfo", "Registry",
-    "RegistryError", "Spec", "UnknownNameError", "import_reference", "plugins_disabled",
+    "BACKENDS", "MODALITIES", "NO_PLUGINS_ENV", "Capabilities", "Entry", "EntryInfo", "PluginImportError",
+    "Registry", "RegistryError", "Spec", "UnknownNameError", "import_reference", "plugins_disabled",
 ]

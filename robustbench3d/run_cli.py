@@ -67,8 +67,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
+    from robustbench3d.fileio import check_output_dir, remove_created_dir
     from robustbench3d.runner import RunConfig, format_table, run_benchmark
     from robustbench3d.victims.onnx.registration import resolve_victim_references
+
+    out = check_output_dir(args.out, "--out")
+    created = not out.exists()
 
     victims, victim_args = resolve_victim_references(_names(args.victims),
                                                      parse_factory_args(args.victim_arg, "--victim-arg"))
@@ -80,9 +84,17 @@ def run(args: argparse.Namespace) -> int:
         attack_args=parse_factory_args(args.attack_arg, "--attack-arg"),
         workers=args.workers, progress=not args.no_progress,
     )
-    report = run_benchmark(config)
-    print(format_table(report.cells))
+    try:
+        report = run_benchmark(config)
+    except BaseException:
+        if created:  # a run that failed before writing any result leaves no directory behind
+            remove_created_dir(out)
+        raise
+    print(format_table(report.summary))
     print(f"results: {report.out / 'summary.json'}, {report.out / 'results.csv'}")
+    if report.earlier or report.left_out:
+        print(f"{len(report.earlier)} of these cells come from earlier runs into {report.out}; "
+              f"{len(report.left_out)} cell(s) there are left out (not comparable with this run, listed above)")
     if report.failed:
         print(f"robustbench3d: {len(report.failed)} of {len(report.outcomes)} cells failed", file=sys.stderr)
         return 1

@@ -104,9 +104,11 @@ def _clip_segment(a, b, near: float):
 
 
 def run(args: argparse.Namespace) -> int:
+    from robustbench3d.fileio import check_output_file
     from robustbench3d.kitti import KittiDataset, read_labels
     from robustbench3d.kitti.image import write_image
 
+    check_output_file(args.out, "--out")
     ds = KittiDataset(args.root, split=None)
     frame = ds.frame(args.frame)
     dets = None

@@ -102,7 +102,7 @@ def test_a_broken_registry_file_does_not_break_other_victims(cache):
 
 def test_victim_references_resolve_names_and_directories(onnx_dir, tmp_path):
     assert resolve_victim_reference("fpointnet-v1") == "fpointnet-v1"
-    assert sanitise_name("My_Export.v1") == "my_export.v1" and sanitise_name("  //") == "onnx-victim"
+    assert sanitise_name("My_Export.v1") == "my_export.v1" and sanitise_name("  //") == ""
     name = resolve_victim_reference(str(onnx_dir))
     assert name == "my_export.v1" and resolve_victim_reference(str(onnx_dir) + os.sep) == name  # idempotent
     with pytest.raises(DataFormatError, match="not an ONNX victim directory"):

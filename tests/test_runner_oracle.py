@@ -1,6 +1,7 @@
 """A test-only oracle victim (ground-truth boxes as detections) through the whole runner path
-must score AP 100, as the evaluator does for GT against GT; in "detector" mode the victim must
-not see the labels."""
+must score AP 100, as the evaluator does for GT against GT. The harness never hands a victim
+labels (see tests/test_trust_integrity.py), so the oracle is given the label directory by the
+test, openly, as a factory argument."""
 
 from __future__ import annotations
 
@@ -69,20 +70,25 @@ def toy_dataset(tmp_path_factory) -> Path:
 
 
 class OracleFromLabels:
-    """TEST ONLY: with proposals="gt" returns the frame's ground-truth Cars as detections; with
-    "detector" it has nothing to go on and returns none (and fails if it was handed labels)."""
+    """TEST ONLY: with proposals="gt" returns the ground-truth Cars read from ``labels_dir`` (given
+    by the test) as detections; with "detector" it returns none. Fails if the harness hands it labels."""
 
     supported_proposals = ("detector", "gt")
 
+    def __init__(self, labels_dir: str | None = None):
+        self.labels_dir = labels_dir
+
     def detect(self, frames, proposals="detector"):
         out = []
-        for frame in frames:
-            if proposals == "detector":
-                if frame.labels is not None:
-                    raise RuntimeError(f"labels of frame {frame.frame_id} leaked to the victim in detector mode")
+        for i, frame in enumerate(frames):
+            if frame.labels is not None:
+                raise RuntimeError(f"labels of frame {frame.frame_id} leaked to the victim")
+            if isinstance(proposals, str):
                 out.append(Labels.empty(with_score=True))
             else:
-                cars = frame.labels.select(frame.labels.type == "Car")
+                assert proposals[i].source == "gt"
+                labels = read_labels(Path(self.labels_dir) / f"{frame.frame_id}.txt")
+                cars = labels.select(labels.type == "Car")
                 out.append(dataclasses.replace(cars, score=np.linspace(0.99, 0.5, len(cars))))
         return out
 
@@ -105,9 +111,11 @@ def test_ground_truth_against_itself_is_100(toy_dataset):
 
 
 def test_oracle_victim_scores_100_through_the_runner(toy_dataset, tmp_path):
+    answers = {"labels_dir": str(toy_dataset / "training" / "label_2")}
     report = run_benchmark(RunConfig(victims=("test-oracle-from-labels",), attacks=("none",),
                                      proposals=("detector", "gt"), out=tmp_path / "run", data=toy_dataset,
-                                     batch_size=4, progress=False), lambda line: None)
+                                     batch_size=4, progress=False, victim_args={"test-oracle-from-labels": answers}),
+                           lambda line: None)
     detector, gt = read_summary(tmp_path / "run" / "summary.json")
     assert report.cells == [detector, gt]
     assert detector["status"] == "ok" and gt["status"] == "ok"

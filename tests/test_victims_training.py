@@ -233,6 +233,15 @@ def test_yolo_mini3_starts_from_trained_mini_weights_with_a_fresh_stride_32_head
         train_yolo(tiny_data, tmp_path / "bad", YoloTrainConfig(init=str(tmp_path / "ft" / "model.pt")), opts)
 
 
+def test_kmeans_anchors_need_as_many_training_boxes_as_anchors():
+    from robustbench3d.victims.yolo.training import fit_anchors
+
+    boxes = np.array([[0.0, 0, 10, 8], [0, 0, 20, 15], [0, 0, 40, 25]])
+    assert len(fit_anchors(boxes, 3, seed=0)) == 3
+    with pytest.raises(RobustBenchError, match=r"need at least 6 boxes .* got 3 in the training split; use --anchors"):
+        fit_anchors(boxes, 6, seed=0)
+
+
 def test_init_anchors_scale_with_the_input_and_add_the_largest_clusters():
     rng = np.random.default_rng(0)
     sizes = [(10, 8), (20, 15), (40, 25), (60, 80), (90, 50), (150, 90), (260, 150), (380, 200), (520, 260)]

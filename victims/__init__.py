@@ -26,7 +26,8 @@ ENTRY_POINT_GROUP = "robustbench3d.victims"
 
 VICTIMS: Registry[VictimSpec] = Registry(
     "victim", group=ENTRY_POINT_GROUP, base=VictimSpec, key=lambda spec: spec.key,
-    modules=("robustbench3d.victims.zoo", "robustbench3d.victims.onnx.registration"),
+    modules=("robustbench3d.victims.zoo",),
+    loaders=("robustbench3d.victims.onnx.registration:register_user_victims",),
 )
 
 

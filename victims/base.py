@@ -17,13 +17,29 @@ implements the protocols that make sense for it and declares its :class:`Capabil
 Victims are registered in :data:`robustbench3d.victims.VICTIMS` as :class:`VictimSpec` objects
 (a factory plus :class:`~robustbench3d.registry.EntryInfo` metadata).
 
+What the harness hands ``detect`` (:func:`victim_inputs`), per proposal mode of a cell:
+
+* every mode: frames with ``labels=None`` (image, scan, calibration and frame id only; the scene
+  may have been modified by the cell's attack). A victim never sees a 3D label, a label file or
+  the dataset's location.
+* ``detector``: ``proposals="detector"``; the victim finds its own objects.
+* ``gt``: a list with one :class:`Proposals` per frame, built by :func:`gt_proposals` from that
+  frame's labels: every ground-truth 2D box except DontCare, in label order, with
+  ``source="gt"``, its KITTI ``types`` and scores of 1 -- nothing 3D. The victim chooses which
+  types it uses (the F-PN cascade keeps ``settings.gt_types``, default Car).
+
+A list of ``source="external"`` (or ``"detector"``) proposals is for direct calls, e.g. an attack
+study feeding chosen boxes. Calling ``detect(frames, "gt")`` on labelled frames is a convenience of
+the shipped cascades outside the harness (same result as ``gt_proposals`` of each frame's labels);
+the harness never does it and plugins need not accept it.
+
 This module imports torch only for type checking.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
@@ -38,38 +54,96 @@ if TYPE_CHECKING:
 
     from robustbench3d.kitti.calib import Calibration
 
-#: Where 2D proposals come from: the victim's own 2D detector, or the frame's ground-truth boxes.
+#: A cell's proposal mode: the victim's own 2D detector, or the frame's ground-truth 2D boxes.
 ProposalSource = Literal["detector", "gt"]
+#: Where the boxes of one :class:`Proposals` come from.
+ProposalOrigin = Literal["detector", "gt", "external"]
+PROPOSAL_ORIGINS: tuple[str, ...] = ("detector", "gt", "external")
 
 
 @dataclass(frozen=True)
 class Proposals:
-    """Externally supplied 2D proposals of one frame (e.g. a GT box enlarged over a roof object).
+    """2D proposals of one frame.
 
     Attributes:
         boxes: (K, 4) left, top, right, bottom in image-2 pixels.
-        scores: (K,) scores written to the result rows.
+        scores: (K,) 2D scores (1 for ground-truth boxes).
+        source: "gt" for ground-truth boxes (:func:`gt_proposals`), "detector" for a 2D detector's,
+            "external" for anything else (e.g. a GT box enlarged over a roof object).
+        types: (K,) KITTI type of each box (str); required for "gt", else optional (None).
     """
 
     boxes: np.ndarray
     scores: np.ndarray
+    source: ProposalOrigin = "external"
+    types: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         boxes = np.asarray(self.boxes, dtype=np.float64).reshape(-1, 4)
         scores = np.asarray(self.scores, dtype=np.float64).reshape(-1)
         if len(boxes) != len(scores):
             raise ValueError(f"Proposals: {len(boxes)} boxes but {len(scores)} scores")
+        if self.source not in PROPOSAL_ORIGINS:
+            raise ValueError(f"Proposals: source must be one of {PROPOSAL_ORIGINS}, got {self.source!r}")
+        if self.types is None and self.source == "gt":
+            raise ValueError("Proposals: source 'gt' needs the type of each box")
+        if self.types is not None:
+            types = np.asarray(self.types, dtype=str).reshape(-1)
+            if len(types) != len(boxes):
+                raise ValueError(f"Proposals: {len(boxes)} boxes but {len(types)} types")
+            object.__setattr__(self, "types", types)
         object.__setattr__(self, "boxes", boxes)
         object.__setattr__(self, "scores", scores)
 
+    def select(self, keep: np.ndarray) -> Proposals:
+        """The proposals where the (K,) boolean ``keep`` is set, in order."""
+        keep = np.asarray(keep, dtype=bool).reshape(-1)
+        return Proposals(self.boxes[keep], self.scores[keep], self.source,
+                         None if self.types is None else self.types[keep])
 
+    def of_types(self, types: Sequence[str]) -> Proposals:
+        """The boxes whose type is in ``types`` (in order); raises ValueError without types."""
+        if self.types is None:
+            raise ValueError(f"Proposals from {self.source!r} carry no box types")
+        return self.select(np.isin(self.types, list(types)))
+
+
+#: A ``detect`` call's proposals: a mode name or one :class:`Proposals` per frame.
 ProposalsArg = ProposalSource | Sequence[Proposals]
+
+
+def gt_proposals(labels: Labels) -> Proposals:
+    """The ground-truth proposals of a frame: every 2D box but DontCare, in label order, with its
+    type and score 1. The only thing a victim ever receives that is derived from labels."""
+    types = labels.type.astype(str)
+    keep = types != "DontCare"
+    return Proposals(labels.bbox[keep], np.ones(int(keep.sum())), source="gt", types=types[keep])
+
+
+def victim_inputs(frames: Sequence[Frame], labels: Sequence[Labels | None],
+                  source: str) -> tuple[list[Frame], ProposalsArg]:
+    """What the harness passes to ``detect`` for proposal mode ``source``: the frames with
+    ``labels=None``, and ``"detector"`` or one :func:`gt_proposals` per frame (from ``labels``)."""
+    bare = [replace(f, labels=None) for f in frames]
+    if source == "detector":
+        return bare, "detector"
+    if source != "gt":
+        raise ValueError(f"proposal mode must be 'detector' or 'gt', got {source!r}")
+    if len(labels) != len(frames):
+        raise ValueError(f"{len(labels)} label sets for {len(frames)} frames")
+    props = []
+    for frame, lab in zip(frames, labels, strict=True):
+        if lab is None:
+            raise ValueError(f"frame {frame.frame_id} has no labels; proposals 'gt' need them")
+        props.append(gt_proposals(lab))
+    return bare, props
 
 
 @runtime_checkable
 class Detector(Protocol):
-    """Every victim. ``supported_proposals`` lists the :data:`ProposalSource` values it accepts
-    (a LiDAR-only detector accepts only ``"detector"``)."""
+    """Every victim. ``supported_proposals`` lists the :data:`ProposalSource` modes it accepts
+    (a LiDAR-only detector accepts only ``"detector"``; ``"gt"`` means it takes a list of
+    :class:`Proposals`, see the module docstring)."""
 
     supported_proposals: tuple[str, ...]
 
@@ -77,7 +151,8 @@ class Detector(Protocol):
         """One scored :class:`Labels` per frame: KITTI rows in the rect frame (bottom-centre
         location, m; rotation_y, rad), 2D boxes in image-2 pixels, ``score`` set.
 
-        ``proposals`` is a source name or, for cascades, one :class:`Proposals` per frame.
+        ``proposals`` is ``"detector"`` or one :class:`Proposals` per frame; frames given by the
+        harness have ``labels=None`` (see the module docstring).
         """
         ...
 
@@ -207,7 +282,7 @@ def empty_detections() -> Labels:
 
 
 __all__ = [
-    "Capabilities", "Detector", "EntryInfo", "FrustumLogits", "FrustumSegmentationOracle",
-    "ImageObjectnessOracle", "ObjectnessCandidates", "ProposalSource", "Proposals", "ProposalsArg",
-    "VictimSpec", "check_victim", "empty_detections",
+    "PROPOSAL_ORIGINS", "Capabilities", "Detector", "EntryInfo", "FrustumLogits", "FrustumSegmentationOracle",
+    "ImageObjectnessOracle", "ObjectnessCandidates", "ProposalOrigin", "ProposalSource",
+    "Proposals", "ProposalsArg", "VictimSpec", "check_victim", "empty_detections", "gt_proposals", "victim_inputs",
 ]

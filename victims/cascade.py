@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from robustbench3d.errors import RobustBenchError
+from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import atomic_open, sha256_file
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.kitti.dataset import Frame
@@ -40,12 +40,16 @@ from robustbench3d.victims.fpointnet.model import (
     rotate_to_frustum_torch,
 )
 from robustbench3d.victims.fpointnet.pipeline import CascadeSettings, detect_frames, frame_key, make_proposals
+from robustbench3d.victims.torchfile import (
+    CASCADE_FORMAT,
+    build_network,
+    load_network_part,
+    load_torch_data,
+    network_part,
+)
 from robustbench3d.victims.yolo.config import YoloConfig
 from robustbench3d.victims.yolo.detector import YoloDetector, candidates_for_targets
 from robustbench3d.victims.yolo.model import Darknet
-
-#: ``format`` of a cascade weights file (both networks, :meth:`FPointNetCascade.save`).
-CASCADE_FORMAT = "robustbench3d.fpointnet_cascade/1"
 
 
 class FPointNetCascade:
@@ -83,38 +87,44 @@ class FPointNetCascade:
     @classmethod
     def load(cls, path: str | Path, settings: CascadeSettings | None = None,
              sha256: str | None = None) -> FPointNetCascade:
-        """From :meth:`save`'s file; with ``sha256`` the file's hash is checked first."""
+        """From :meth:`save`'s file (read as data only); with ``sha256`` the file's hash is checked first."""
         path = Path(path)
-        if sha256 is not None and sha256_file(path) != sha256:
+        if sha256 is not None and path.is_file() and sha256_file(path) != sha256:
             raise RobustBenchError(f"{path}: sha256 does not match the registered weights ({sha256})")
-        data = torch.load(path, map_location="cpu", weights_only=True)
-        return cls.from_parts(data["yolo"], data["fpointnet"], settings)
+        what = "cascade weights file"
+        data = load_torch_data(path, what)
+        if not isinstance(data, dict) or data.get("format") != CASCADE_FORMAT:
+            raise DataFormatError(path, f"not a {what}: expected format {CASCADE_FORMAT!r} (written by "
+                                        "`robustbench3d victims pack`)", field="format")
+        yolo, fpn = (network_part(data.get(name), path, what) for name in ("yolo", "fpointnet"))
+        return cls.from_parts(yolo, fpn, settings, origins=(path, path))
 
     @classmethod
     def from_parts(cls, yolo: dict[str, Any] | str | Path, fpointnet: dict[str, Any] | str | Path,
-                   settings: CascadeSettings | None = None) -> FPointNetCascade:
-        """From the two trainers' ``model.pt`` files (or their loaded dicts); a cascade weights file
-        (:meth:`save`) given for a part contributes that network."""
+                   settings: CascadeSettings | None = None,
+                   origins: tuple[str | Path, str | Path] | None = None) -> FPointNetCascade:
+        """From the two trainers' ``model.pt`` files (read as data only) or their loaded dicts; a
+        cascade weights file (:meth:`save`) given for a part contributes that network. ``origins``
+        name the files loaded dicts came from, for errors."""
+        def part(source: dict[str, Any] | str | Path, name: str, i: int) -> tuple[dict[str, Any], str | Path]:
+            if isinstance(source, dict):
+                return source, origins[i] if origins else f"<{name} part>"
+            return load_network_part(source, name), source
 
-        def part(source: dict[str, Any] | str | Path, name: str) -> dict[str, Any]:
-            data = source if isinstance(source, dict) else torch.load(Path(source), map_location="cpu",
-                                                                      weights_only=True)
-            return data[name] if data.get("format") == CASCADE_FORMAT else data
-
-        y, p = part(yolo, "yolo"), part(fpointnet, "fpointnet")
-        net = Darknet(YoloConfig.from_dict(y["config"]))
-        net.load_state_dict(y["state_dict"])
-        fpn = FrustumPointNetV1(FPointNetConfig.from_dict(p["config"]))
-        fpn.load_state_dict(p["state_dict"])
+        (y, y_origin), (p, p_origin) = part(yolo, "yolo", 0), part(fpointnet, "fpointnet", 1)
+        net = build_network(lambda c: Darknet(YoloConfig.from_dict(c)), y, y_origin, "yolo")
+        fpn = build_network(lambda c: FrustumPointNetV1(FPointNetConfig.from_dict(c)), p, p_origin, "fpointnet")
         return cls(YoloDetector(net), fpn, settings)
 
     # ---- Detector ----------------------------------------------------------------------
     def proposals(self, frames: Sequence[Frame], source: ProposalsArg) -> list[Proposals]:
-        """2D proposals per frame: YOLO Car detections, GT boxes of ``gt_types``, or as given."""
+        """2D proposals per frame: YOLO Car detections for ``"detector"``, else the given list with
+        ground-truth sets (``source="gt"``) reduced to ``settings.gt_types``."""
         return make_proposals(frames, source, self.yolo.detect, self.car_class, self.settings.gt_types)
 
     def detect(self, frames: Sequence[Frame], proposals: ProposalsArg = "detector") -> list[Labels]:
-        """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes)."""
+        """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes,
+        i.e. proposals with ``source="gt"``)."""
         return detect_frames(frames, proposals, detect_2d=self.yolo.detect, car_class=self.car_class,
                              stages=TorchFrustumStages(self.fpn), settings=self.settings,
                              num_points=self.num_points, num_object_points=self.fpn.cfg.num_object_points)

@@ -1,9 +1,15 @@
-"""``robustbench3d victims list``: registered victims with their capabilities (table or JSON)."""
+"""``robustbench3d victims list``: registered victims with their capabilities (table or JSON).
+
+The origin column says where each came from: ``in-tree``, ``plugin <dist> <version>``, ``onnx
+shipped`` or ``onnx user registry`` (``victims add-onnx``). Installed entry points that were
+rejected (invalid names) are reported as warnings on stderr.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from typing import Any
 
 
@@ -47,6 +53,10 @@ def format_table(items: list[dict[str, Any]]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from robustbench3d.victims import VICTIMS
+
     items = rows(args.pattern)
+    for why in VICTIMS.rejected():
+        print(f"robustbench3d: warning: {why}", file=sys.stderr)
     print(json.dumps(items, indent=2) if args.json else format_table(items))
     return 1 if any(r["error"] for r in items) else 0

@@ -8,7 +8,8 @@ configuration and parameter count, each training run's configuration and last va
 (read from the trainers' output directories; a fine-tuning run also records the run it started
 from), the reproduction script, the environment, and —
 with ``--summary`` — the accuracy measured by a ``robustbench3d run`` that used this very file
-(checked through the run's recorded weight hashes).
+(checked through the run's recorded weight hashes). Every torch file (weights, ``last.pt``, the
+files ``init`` names) is read as data only (:mod:`robustbench3d.victims.torchfile`).
 """
 
 from __future__ import annotations
@@ -101,10 +102,9 @@ def _training_record(model_file: Path, network: str, state_sha: str, earlier: li
     records the run it started from, as ``"init"`` (looked up the same way)."""
     import json
 
-    import torch
-
     from robustbench3d.fileio import sha256_file
-    from robustbench3d.victims.training import CHECKPOINT, LOG
+    from robustbench3d.victims.torchfile import load_network_part
+    from robustbench3d.victims.training import CHECKPOINT, LOG, read_checkpoint
 
     known = _known_record(earlier, network, state_sha=state_sha, file_sha=sha256_file(model_file), victim=victim)
     if known is not None:
@@ -113,7 +113,7 @@ def _training_record(model_file: Path, network: str, state_sha: str, earlier: li
     record: dict[str, Any] = {"model_file": model_file.name}
     ckpt = run_dir / CHECKPOINT
     if ckpt.is_file():
-        data = torch.load(ckpt, map_location="cpu", weights_only=False)
+        data = read_checkpoint(ckpt)
         record["run_config"] = data["run_config"]
         record["steps"] = data["state"]["step"]
     log = run_dir / LOG
@@ -126,22 +126,12 @@ def _training_record(model_file: Path, network: str, state_sha: str, earlier: li
     if init and depth < 8:
         source = _known_record(earlier, network, file_sha=init_sha)
         if source is None and Path(init).is_file() and sha256_file(Path(init)) == init_sha:
-            part = _load_part(Path(init), network)
+            part = load_network_part(Path(init), network)
             source = _training_record(Path(init), network, network_sha256(part["state_dict"]), earlier,
                                       depth=depth + 1)
         record["init"] = {"file": init, "sha256": init_sha,
                           **(source if source is not None else {"note": "its training record was not found"})}
     return record
-
-
-def _load_part(path: Path, network: str) -> dict[str, Any]:
-    """``{"config", "state_dict"}`` of ``network`` from a trainer ``model.pt`` or a cascade file."""
-    import torch
-
-    from robustbench3d.victims.cascade import CASCADE_FORMAT
-
-    data = torch.load(path, map_location="cpu", weights_only=True)
-    return data[network] if data.get("format") == CASCADE_FORMAT else data
 
 
 def _accuracy(summary_file: Path, victim_name: str, weights_sha: str) -> dict[str, Any]:
@@ -169,18 +159,23 @@ def _accuracy(summary_file: Path, victim_name: str, weights_sha: str) -> dict[st
 
 def run(args: argparse.Namespace) -> int:
     from robustbench3d.errors import RobustBenchError
-    from robustbench3d.fileio import sha256_file
+    from robustbench3d.fileio import check_output_file, sha256_file
     from robustbench3d.victims.cascade import FPointNetCascade
+    from robustbench3d.victims.torchfile import load_network_part
 
     if args.manifest is not None and not args.victim:
         raise RobustBenchError("--manifest needs --victim NAME")
+    check_output_file(args.out, "--out")
+    if args.manifest is not None:
+        check_output_file(args.manifest, "--manifest")
     from robustbench3d.victims.fpointnet.model import count_parameters
     from robustbench3d.victims.shipped import read_manifest, upsert_entry
 
     sources = {"yolo": Path(args.yolo), "fpointnet": Path(args.fpointnet)}
-    parts = {name: _load_part(path, name) for name, path in sources.items()}
+    parts = {name: load_network_part(path, name) for name, path in sources.items()}
     parts["yolo"] = {**parts["yolo"], "config": {**parts["yolo"]["config"], **yolo_options(args.yolo_option)}}
-    cascade = FPointNetCascade.from_parts(parts["yolo"], parts["fpointnet"])
+    cascade = FPointNetCascade.from_parts(parts["yolo"], parts["fpointnet"], origins=(sources["yolo"],
+                                                                                      sources["fpointnet"]))
     networks = {name: {"config": part["config"], "state_sha256": network_sha256(part["state_dict"])}
                 for name, part in parts.items()}
     training: dict[str, Any] = {}

@@ -28,8 +28,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from robustbench3d.fileio import check_output_dir
     from robustbench3d.victims.fpointnet.training import FPointNetTrainConfig, train
 
+    check_output_dir(args.out, "--out")
     cfg = FPointNetTrainConfig(model=args.model, types=tuple(t for t in args.types.split(",") if t),
                                augment_x=args.augment_x, lr_schedule=args.lr_schedule, bn_decay_step=args.bn_decay_step,
                                flip=not args.no_flip, shift=args.shift,

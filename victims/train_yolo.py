@@ -42,8 +42,10 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from robustbench3d.fileio import check_output_dir
     from robustbench3d.victims.yolo.training import YoloTrainConfig, train
 
+    check_output_dir(args.out, "--out")
     cfg = YoloTrainConfig(layout=args.layout, loss=args.loss, lr_schedule=args.lr_schedule, precision=args.precision,
                           scale_jitter=args.scale_jitter, val_limit=args.val_limit, anchors=args.anchors,
                           flip=not args.no_flip, input_size=args.input_size, init=args.init,

@@ -7,7 +7,10 @@ a run resumed from a checkpoint (model, optimizer, progress counters) continues 
 uninterrupted run would (same thread count assumed).
 
 Outputs in ``out_dir``: ``last.pt`` (checkpoint, written atomically every ``checkpoint_every``
-steps and at each epoch end), ``model.pt`` (``{"config", "state_dict"}`` after the last epoch),
+steps and at each epoch end: model and optimizer state dicts, progress counters, history and run
+configuration — tensors and plain containers only, read back with ``torch.load(weights_only=True)``
+through :func:`~robustbench3d.victims.torchfile.load_torch_data`, so a crafted file runs nothing),
+``model.pt`` (``{"config", "state_dict"}`` after the last epoch),
 ``log.jsonl`` (one JSON line per finished epoch: losses and validation metrics).
 """
 
@@ -24,8 +27,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from robustbench3d.errors import RobustBenchError
+from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import atomic_open, atomic_write_text
+from robustbench3d.victims.torchfile import load_torch_data, one_line
 
 CHECKPOINT = "last.pt"
 MODEL = "model.pt"
@@ -83,6 +87,35 @@ def epoch_batches(n: int, batch_size: int, seed: int, epoch: int) -> list[np.nda
     return [b for b in batches if len(b) >= 2]
 
 
+_FRESH_START = "; delete it (or use another --out) to train from scratch"
+_STATE_FIELDS = {"epoch": int, "batch": int, "step": int, "samples": int, "history": list, "finished": bool}
+
+
+def read_checkpoint(path: str | Path, resumable: bool = False) -> dict[str, Any]:
+    """A ``last.pt`` of :func:`run`, read as data only (tensors and plain containers; nothing in it
+    runs) and checked: ``run_config`` and ``state`` always, ``model`` and ``optimizer`` state dicts
+    and every progress counter too when ``resumable``."""
+    path = Path(path)
+    what = "training checkpoint (last.pt of `robustbench3d train`)"
+    hint = _FRESH_START if resumable else ""
+    ckpt = load_torch_data(path, what)
+    need = {"run_config": dict, "state": dict, **({"model": dict, "optimizer": dict} if resumable else {})}
+    missing = [key for key, kind in need.items() if not isinstance(ckpt, dict) or not isinstance(ckpt.get(key), kind)]
+    if missing:
+        raise DataFormatError(path, f"not a {what}: no {' / '.join(map(repr, missing))} dict{hint}")
+    for key in ("run_config", "state"):
+        try:
+            json.dumps(ckpt[key])
+        except (TypeError, ValueError) as exc:
+            raise DataFormatError(path, f"not plain JSON-like data ({exc}){hint}", field=key) from None
+    fields = {**_STATE_FIELDS, "running": dict} if resumable else {"step": int}
+    for key, kind in fields.items():
+        value = ckpt["state"].get(key, {} if key == "running" else None)
+        if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+            raise DataFormatError(path, f"expected {kind.__name__} {key!r}{hint}", field="state")
+    return ckpt
+
+
 def _save(path: Path, payload: dict[str, Any]) -> None:
     with atomic_open(path, "wb") as f:
         torch.save(payload, f)
@@ -99,12 +132,16 @@ def run(task: TrainingTask, out_dir: str | Path, options: LoopOptions, resume: b
     run_config = {"task": task.config_dict(), "loop": {k: v for k, v in asdict(options).items()
                                                         if k in ("batch_size", "seed")}}
     if resume and ckpt_path.exists():
-        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        ckpt = read_checkpoint(ckpt_path, resumable=True)
         if ckpt["run_config"] != run_config:
             raise RobustBenchError(f"{ckpt_path}: checkpoint was written with a different configuration; "
                                    "use another --out or drop --resume")
-        task.model.load_state_dict(ckpt["model"])
-        task.optimizer.load_state_dict(ckpt["optimizer"])
+        try:
+            task.model.load_state_dict(ckpt["model"])
+            task.optimizer.load_state_dict(ckpt["optimizer"])
+        except (RuntimeError, ValueError, KeyError, TypeError) as exc:
+            raise DataFormatError(ckpt_path, f"its model or optimizer state does not fit this run ({one_line(exc)})"
+                                  f"{_FRESH_START}") from None
         state = ckpt["state"]
     elif resume:
         print(f"no checkpoint at {ckpt_path}; starting from scratch", file=sys.stderr)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from robustbench3d.errors import DataFormatError
-from robustbench3d.fileio import atomic_write_text
+from robustbench3d.fileio import atomic_write_text, read_data_text
 
 #: Matrices of an object calib file, in file order, with their shapes.
 CALIB_KEYS: dict[str, tuple[int, int]] = {
@@ -179,11 +179,7 @@ def _is_float(token: str) -> bool:
 
 def read_calibration(path: str | Path) -> Calibration:
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise DataFormatError(path, "file not found") from None
-    return parse_calibration(text, path)
+    return parse_calibration(read_data_text(path), path)
 
 
 def write_calibration(path: str | Path, calib: Calibration) -> None:

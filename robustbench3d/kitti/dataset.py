@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -14,7 +15,7 @@ import numpy as np
 
 from robustbench3d.errors import DataFormatError
 from robustbench3d.kitti.calib import Calibration, read_calibration
-from robustbench3d.kitti.image import read_image
+from robustbench3d.kitti.image import check_image_fits_calibration, read_image
 from robustbench3d.kitti.labels import Labels, read_labels
 from robustbench3d.kitti.splits import read_split
 from robustbench3d.kitti.velodyne import read_scan
@@ -77,7 +78,17 @@ class KittiDataset:
         return self.dir / sub / f"{frame_id}{ext}"
 
     def image(self, frame_id: str) -> np.ndarray:
-        return read_image(self.path("image", frame_id))
+        """The frame's image, refused when its size does not fit the frame's calibration
+        (see :func:`~robustbench3d.kitti.image.check_image_fits_calibration`)."""
+        return self._image(frame_id)[0]
+
+    def _image(self, frame_id: str) -> tuple[np.ndarray, Calibration]:
+        """The frame's image, checked against its calibration, and the calibration."""
+        path = self.path("image", frame_id)
+        image = read_image(path)
+        calib = self.calib(frame_id)
+        check_image_fits_calibration((image.shape[1], image.shape[0]), calib, path, self.path("calib", frame_id))
+        return image, calib
 
     def scan(self, frame_id: str) -> np.ndarray:
         return read_scan(self.path("scan", frame_id))
@@ -86,12 +97,20 @@ class KittiDataset:
         return read_calibration(self.path("calib", frame_id))
 
     def labels(self, frame_id: str) -> Labels | None:
+        """The frame's ground truth; None only when there is no label file (a symlink loop, a
+        directory or an unreadable file is an error, not a frame without labels)."""
         path = self.path("labels", frame_id)
-        return read_labels(path, scored=False) if path.exists() else None
+        try:
+            os.lstat(path)
+        except FileNotFoundError:
+            return None
+        except OSError:
+            pass  # read_labels reports it, naming the file
+        return read_labels(path, scored=False)
 
     def frame(self, frame_id: str) -> Frame:
-        return Frame(frame_id, self.image(frame_id), self.scan(frame_id), self.calib(frame_id),
-                     self.labels(frame_id))
+        image, calib = self._image(frame_id)
+        return Frame(frame_id, image, self.scan(frame_id), calib, self.labels(frame_id))
 
     def __getitem__(self, index: int) -> Frame:
         return self.frame(self.frame_ids[index])

@@ -1,29 +1,94 @@
-"""Camera images (``image_2/*.png``): 8-bit RGB, (H, W, 3) uint8 arrays."""
+"""Camera images (``image_2/*.png``): 8-bit RGB, (H, W, 3) uint8 arrays.
+
+Other pixel formats are converted only where the conversion is exact:
+
+* 16-bit samples keep their high byte, ``v >> 8`` (= floor(v / 256)). Pillow decodes 16-bit
+  colour PNGs this way, and grey and colour follow one rule; an 8-bit image widened to 16 bits
+  the usual way (``v * 257``) comes back unchanged.
+* grey (1-bit, 8-bit, 16-bit) becomes RGB by repeating the channel; a palette is looked up.
+* an alpha channel (RGBA, LA, PA, a palette or grey transparency) is dropped when every pixel is
+  opaque; a camera image with transparent pixels has no defined colour there and is refused.
+
+Anything else (CMYK, YCbCr, LAB, HSV, float, 32-bit integer beyond 16 bits) is refused with a
+:class:`~robustbench3d.errors.DataFormatError` naming the file.
+"""
 
 from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from robustbench3d.errors import DataFormatError
-from robustbench3d.fileio import atomic_write_bytes
+from robustbench3d.fileio import atomic_write_bytes, read_data_bytes
+
+if TYPE_CHECKING:
+    from PIL.Image import Image as PILImage
+
+    from robustbench3d.kitti.calib import Calibration
+
+#: Modes whose pixels are exact 8-bit RGB after Pillow's own conversion (repeat grey, look up palette).
+_DIRECT = ("RGB", "L", "1", "P")
+#: Modes with an alpha channel: converted as their colour part once every pixel is opaque.
+_ALPHA = ("RGBA", "LA", "PA", "La", "RGBa")
 
 
 def read_image(path: str | Path) -> np.ndarray:
-    """Read an image file as (H, W, 3) uint8 RGB."""
+    """Read an image file as (H, W, 3) uint8 RGB (conversions as in the module doc)."""
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
-    if not path.is_file():
-        raise DataFormatError(path, "file not found")
+    data = read_data_bytes(path)
     try:
-        with Image.open(path) as im:
-            im.load()
-            return np.asarray(im.convert("RGB"))
+        im = Image.open(io.BytesIO(data))
+        im.load()
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise DataFormatError(path, f"unreadable image ({exc.__class__.__name__}: {exc})") from None
+    with im:
+        return _to_rgb(im, path)
+
+
+def _to_rgb(im: PILImage, path: Path) -> np.ndarray:
+    mode = im.mode
+    if mode.startswith("I"):  # I;16, I;16B, I;16L, I;16N (16-bit grey) and I (32-bit signed)
+        values = np.asarray(im)
+        if mode == "I" and values.size and (values.min() < 0 or values.max() > 65535):
+            raise DataFormatError(path, f"32-bit integer pixels outside 0..65535 ({values.min()}..{values.max()}) "
+                                  "have no exact 8-bit value")
+        grey = (values.astype(np.uint32) >> 8).astype(np.uint8)
+        return np.repeat(grey[:, :, None], 3, axis=2)
+    if mode in ("RGB", "L", "P") and "transparency" in im.info:  # a transparent colour key or palette entries
+        im = im.convert("RGBA")
+    if im.mode in _ALPHA:
+        alpha = np.asarray(im.getchannel("A"))
+        if (alpha != 255).any():
+            v, u = np.argwhere(alpha != 255)[0]
+            raise DataFormatError(path, f"mode {mode} image has transparent pixels (first at x={u}, y={v}, "
+                                  f"alpha {alpha[v, u]}); a camera image must be opaque")
+        return np.asarray(im.convert("RGB"))
+    if mode in _DIRECT:
+        return np.asarray(im if mode == "RGB" else im.convert("RGB"))
+    raise DataFormatError(path, f"pixel mode {mode} has no exact 8-bit RGB equivalent; save the image as 8-bit RGB")
+
+
+def check_image_fits_calibration(size: tuple[int, int], calib: Calibration, path: str | Path,
+                                 calib_path: str | Path | None = None) -> None:
+    """Refuse an image that cannot belong to ``calib``: P2's principal point (c_u, c_v) must lie in
+    the middle half of the (width, height) ``size`` (W/4 <= c_u <= 3W/4, H/4 <= c_v <= 3H/4).
+
+    KITTI's images differ slightly in size (1224x370 ... 1242x375) with c_u/W and c_v/H near 0.47;
+    a scaled, heavily cropped or foreign image (or a wrong calib file) lands outside the band.
+    """
+    w, h = size
+    _, _, cu, cv = calib.intrinsics
+    if not (w / 4 <= cu <= 3 * w / 4 and h / 4 <= cv <= 3 * h / 4):
+        which = f" ({Path(calib_path).name})" if calib_path is not None else ""
+        raise DataFormatError(path, f"image {w}x{h} does not match its calibration{which}: the principal point "
+                              f"(c_u, c_v) = ({cu:.1f}, {cv:.1f}) of P2 must lie in the middle half of the image "
+                              f"(c_u in [{w / 4:.1f}, {3 * w / 4:.1f}], c_v in [{h / 4:.1f}, {3 * h / 4:.1f}]); "
+                              "wrong image size or wrong calibration file", field="size")
 
 
 def image_size(path: str | Path) -> tuple[int, int]:

@@ -5,6 +5,11 @@ bottom; image-2 pixels), dimensions (height, width, length; m), location (x, y, 
 bottom centre in the rectified camera-0 frame; m), rotation_y (rad, about rect y), and in result
 files a 16th column, score. Blank lines and trailing white space are tolerated; anything else
 that deviates raises :class:`~robustbench3d.errors.DataFormatError` naming file, line and field.
+
+Ground-truth rows (15 columns) must also describe a possible object (:func:`impossible_rows`):
+truncated in 0..1 (or -1, unknown), bbox right >= left and bottom >= top, and dimensions >= 0,
+or exactly -1 -1 -1, KITTI's "no 3D box" placeholder (DontCare rows). Result rows (16 columns)
+are a detector's output and are not held to this: a bad prediction is scored, not refused.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from robustbench3d.errors import DataFormatError
-from robustbench3d.fileio import atomic_write_text
+from robustbench3d.fileio import atomic_write_text, read_data_text
 
 KITTI_TYPES: tuple[str, ...] = (
     "Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc", "DontCare",
@@ -133,6 +138,43 @@ def _parse_float(token: str, path: Path, lineno: int, field: str) -> float:
     return value
 
 
+def _value_checks(numeric: np.ndarray) -> list[tuple[str, np.ndarray, str]]:
+    """(field, (N,) True where a row breaks the rule, rule) of the ground-truth value rules over
+    the numeric columns (truncated first, as in :func:`parse_labels`)."""
+    t, bbox, dims = numeric[:, 0], numeric[:, 3:7], numeric[:, 7:10]
+    placeholder = (dims == -1).all(axis=1)
+    return [
+        ("truncated", ~(((t >= 0) & (t <= 1)) | (t == -1)), "expected a fraction in 0..1 (or -1 for unknown)"),
+        ("bbox", (bbox[:, 2] < bbox[:, 0]) | (bbox[:, 3] < bbox[:, 1]),
+         "expected left <= right and top <= bottom"),
+        ("dimensions", (dims < 0).any(axis=1) & ~placeholder,
+         "height, width, length must be >= 0 (or -1 -1 -1 for no 3D box)"),
+    ]
+
+
+def impossible_rows(numeric: np.ndarray) -> np.ndarray:
+    """(N,) True where a ground-truth row's numeric columns (as parsed, type excluded) describe
+    no possible object (the rules of the module doc)."""
+    bad = np.zeros(len(numeric), dtype=bool)
+    for _, mask, _ in _value_checks(numeric):
+        bad |= mask
+    return bad
+
+
+def _check_values(numeric: np.ndarray, rows: list[list[str]], linenos: list[int], path: Path) -> None:
+    """Raise for the first ground-truth row (then first field) that breaks a value rule."""
+    first = None
+    for field, mask, rule in _value_checks(numeric):
+        hit = np.flatnonzero(mask)
+        if len(hit) and (first is None or hit[0] < first[0]):
+            first = (int(hit[0]), field, rule)
+    if first is None:
+        return
+    r, field, rule = first
+    cols = {"truncated": slice(1, 2), "bbox": slice(4, 8), "dimensions": slice(8, 11)}[field]
+    raise DataFormatError(path, f"{rule}, got {' '.join(rows[r][cols])}", linenos[r], field)
+
+
 def parse_labels(text: str, path: str | Path = "<string>", scored: bool | None = None) -> Labels:
     """Parse label text.
 
@@ -175,6 +217,8 @@ def parse_labels(text: str, path: str | Path = "<string>", scored: bool | None =
         occ = numeric[r, 1]
         if occ != int(occ) or not -1 <= occ <= 3:
             raise DataFormatError(path, f"expected an integer in -1..3, got {toks[2]!r}", lineno, "occluded")
+    if not has_score:
+        _check_values(numeric, rows, linenos, path)
     return Labels(
         type=types,
         truncated=numeric[:, 0].copy(),
@@ -191,13 +235,7 @@ def parse_labels(text: str, path: str | Path = "<string>", scored: bool | None =
 def read_labels(path: str | Path, scored: bool | None = None) -> Labels:
     """Read a KITTI label or result file (see :func:`parse_labels`)."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise DataFormatError(path, "file not found") from None
-    except UnicodeDecodeError as exc:
-        raise DataFormatError(path, f"not UTF-8 text ({exc.reason})") from None
-    return parse_labels(text, path, scored)
+    return parse_labels(read_data_text(path), path, scored)
 
 
 def write_labels(path: str | Path, labels: Labels, precision: int = 2) -> None:

@@ -6,7 +6,7 @@ import re
 from pathlib import Path
 
 from robustbench3d.errors import DataFormatError
-from robustbench3d.fileio import atomic_write_text
+from robustbench3d.fileio import atomic_write_text, read_data_text
 
 _ID = re.compile(r"^\d{6}$")
 
@@ -16,10 +16,7 @@ def read_split(path: str | Path) -> list[str]:
     path = Path(path)
     ids: list[str] = []
     seen: set[str] = set()
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise DataFormatError(path, "file not found") from None
+    text = read_data_text(path)
     for lineno, raw in enumerate(text.split("\n"), start=1):
         tok = raw.strip()
         if not tok:

@@ -7,19 +7,16 @@ from pathlib import Path
 import numpy as np
 
 from robustbench3d.errors import DataFormatError
-from robustbench3d.fileio import atomic_write_bytes
+from robustbench3d.fileio import atomic_write_bytes, read_data_bytes
 
 
 def read_scan(path: str | Path) -> np.ndarray:
     """Read a scan as an (N, 4) float32 array, in file (ring) order."""
     path = Path(path)
-    try:
-        size = path.stat().st_size
-    except FileNotFoundError:
-        raise DataFormatError(path, "file not found") from None
-    if size % 16:
-        raise DataFormatError(path, f"size {size} bytes is not a multiple of 16 (4 float32 per point)")
-    scan = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+    data = read_data_bytes(path)
+    if len(data) % 16:
+        raise DataFormatError(path, f"size {len(data)} bytes is not a multiple of 16 (4 float32 per point)")
+    scan = np.frombuffer(data, dtype="<f4").reshape(-1, 4).copy()
     if not np.all(np.isfinite(scan)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(scan), axis=1))[0])
         raise DataFormatError(path, f"point {bad} has a non-finite value")

@@ -2,15 +2,16 @@
 
 Frames are read one batch at a time (labels come from the :class:`GroundTruth` read up front).
 Each frame is attacked with a generator seeded from (run seed, frame id) only, then handed to the
-victim with its ground-truth labels for ``proposals="gt"`` and *without* them for ``"detector"``
-(a victim cannot peek at the answers). Detections are written as KITTI result files into
-``data.partial/`` (one file per frame, empty for no detection), parsed back and evaluated: the
-metrics are those of the files on disk. ``data.partial/`` becomes ``data/`` once the cell is done.
+victim *without* labels in every mode (:func:`~robustbench3d.victims.base.victim_inputs`): for
+``proposals="gt"`` the victim gets the ground-truth 2D boxes (and their types) as
+:class:`~robustbench3d.victims.base.Proposals` and nothing 3D, so it cannot peek at the answers.
+Detections are written as KITTI result files into ``data.partial/`` (one file per frame, empty
+for no detection), parsed back and evaluated: the metrics are those of the files on disk.
+``data.partial/`` becomes ``data/`` once the cell is done.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import shutil
 import sys
 from collections.abc import Iterator, Sequence
@@ -27,6 +28,7 @@ from robustbench3d.fileio import atomic_write_text
 from robustbench3d.kitti.dataset import Frame, KittiDataset
 from robustbench3d.kitti.labels import Labels, parse_labels
 from robustbench3d.runner.config import RESULT_PRECISION
+from robustbench3d.victims.base import victim_inputs
 
 #: Third entropy word of the attack generators (separates them from other uses of the seed).
 ATTACK_STREAM = 0x41545443  # "ATTC"
@@ -72,10 +74,11 @@ def _attacked(attack: Attack, name: str, frame: Frame, gt: Labels, seed: int) ->
     return out
 
 
-def _detect(victim: Any, name: str, frames: Sequence[Frame], proposals: str) -> list[Labels]:
+def _detect(victim: Any, name: str, frames: Sequence[Frame], labels: Sequence[Labels], proposals: str) -> list[Labels]:
     ids = f"{frames[0].frame_id}..{frames[-1].frame_id}"
+    bare, given = victim_inputs(frames, labels, proposals)
     try:
-        out = victim.detect(list(frames), proposals)
+        out = victim.detect(bare, given)
     except Exception as exc:
         raise CellFailure(f"victim {name!r} failed on frames {ids}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(out, list | tuple) or len(out) != len(frames):
@@ -88,12 +91,24 @@ def _detect(victim: Any, name: str, frames: Sequence[Frame], proposals: str) -> 
 
 
 def _as_result_file(det: Labels, path: Path, victim_name: str) -> tuple[str, Labels]:
-    """Result-file text of a frame's detections and the detections parsed back from it."""
+    """Result-file text of a frame's detections and the detections parsed back from it.
+
+    A rejected result is described by detection (row) and field, not by ``path``: its file is
+    never written, and the cell's result directory is removed with the error.
+    """
+    where = f"victim {victim_name!r} returned an invalid result for frame {path.stem}"
+    text = ""
     try:
         text = det.to_text(RESULT_PRECISION)
         return text, parse_labels(text, path, scored=True)
-    except (DataFormatError, ValueError, TypeError) as exc:
-        raise CellFailure(f"victim {victim_name!r} returned an invalid result for frame {path.stem}: {exc}") from exc
+    except DataFormatError as exc:
+        rows = text.split("\n")
+        row = f" {rows[exc.line - 1].strip()!r}" if exc.line is not None and exc.line <= len(rows) else ""
+        field = f", field '{exc.field}'" if exc.field is not None else ""
+        at = f"detection {exc.line}{row}{field}: " if exc.line is not None else ""
+        raise CellFailure(f"{where}: {at}{exc.problem}") from exc
+    except (ValueError, TypeError) as exc:
+        raise CellFailure(f"{where}: {exc}") from exc
 
 
 def run_cell(victim: Any, victim_name: str, attack: Attack, attack_name: str, proposals: str,
@@ -121,9 +136,9 @@ def run_cell(victim: Any, victim_name: str, attack: Attack, attack_name: str, pr
             frames = []
             for fid, gt in batch:
                 clean = Frame(fid, kitti.image(fid), kitti.scan(fid), kitti.calib(fid), gt)
-                attacked = _attacked(attack, attack_name, clean, gt, seed)
-                frames.append(dataclasses.replace(attacked, labels=gt if proposals == "gt" else None))
-            for frame, det in zip(frames, _detect(victim, victim_name, frames, proposals), strict=True):
+                frames.append(_attacked(attack, attack_name, clean, gt, seed))
+            labels = [gt for _, gt in batch]
+            for frame, det in zip(frames, _detect(victim, victim_name, frames, labels, proposals), strict=True):
                 path = partial / f"{frame.frame_id}.txt"
                 text, parsed = _as_result_file(det, path, victim_name)
                 atomic_write_text(path, text)

@@ -4,13 +4,18 @@ Output layout::
 
     OUT/cells/<victim>+<attack>+<proposals>/cell.json     one summary cell (schema-valid)
     OUT/cells/<victim>+<attack>+<proposals>/data/*.txt    KITTI result files, one per frame
-    OUT/summary.json                                      list of every cell, grid order
+    OUT/summary.json                                      list of cells: this run's (grid order), then
+                                                          earlier runs' comparable ones (directory order)
     OUT/results.csv                                       long format, one row per AP value
 
 A cell is finished when its ``cell.json`` exists (written atomically, last). A rerun reuses a
 finished ``ok`` or ``skipped`` cell whose configuration fingerprint is unchanged (and whose result
 files are all there); anything else is (re)computed. ``error`` cells are always retried.
 A victim that cannot be created (e.g. missing weights) or fails makes error cells; the run goes on.
+
+The summary and the CSV cover every finished cell of ``OUT`` run on the same dataset, evaluation
+and seed (:mod:`robustbench3d.runner.collect`), so runs of different victims or attacks into one
+directory add up; finished cells that are not comparable are left out and listed.
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ from robustbench3d.attacks import ATTACKS
 from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.provenance import determinism_flags, host_provenance, library_versions, utc_now
-from robustbench3d.registry import Capabilities
+from robustbench3d.registry import Capabilities, PluginImportError
 from robustbench3d.results import SCHEMA_VERSION, read_json, validate_summary, write_long_csv, write_validated
 from robustbench3d.runner.cell import (
     ATTACK_STREAM,
@@ -38,6 +43,7 @@ from robustbench3d.runner.cell import (
     results_complete,
     run_cell,
 )
+from robustbench3d.runner.collect import earlier_cells
 from robustbench3d.runner.config import CellKey, RunConfig, fingerprint, grid
 from robustbench3d.runner.records import (
     attack_record,
@@ -69,10 +75,20 @@ class RunReport:
     out: Path
     dataset: dict[str, Any]
     outcomes: list[CellOutcome] = field(default_factory=list)
+    #: Finished, comparable cells of earlier runs in ``out`` (in the summary after this run's).
+    earlier: list[dict[str, Any]] = field(default_factory=list)
+    #: ``"<cell dir>: <reason>"`` for each cell directory of ``out`` the summary leaves out.
+    left_out: list[str] = field(default_factory=list)
 
     @property
     def cells(self) -> list[dict[str, Any]]:
+        """This run's cells, grid order."""
         return [o.cell for o in self.outcomes]
+
+    @property
+    def summary(self) -> list[dict[str, Any]]:
+        """The cells of ``summary.json``: this run's, then :attr:`earlier`."""
+        return self.cells + self.earlier
 
     @property
     def failed(self) -> list[CellOutcome]:
@@ -107,9 +123,12 @@ class _VictimSlot:
         if self._victim is None and self._error is None:
             try:
                 self._victim = create_victim(self.name, **self.kwargs)
+            except DataFormatError:
+                raise  # a bad file the user pointed at (e.g. weights=): bad input, the command exits 2
             except Exception as exc:
                 hint = (f" (factory arguments are given with --victim-arg {self.name}:KEY=VALUE)"
-                        if isinstance(exc, RobustBenchError | TypeError) else "")
+                        if isinstance(exc, RobustBenchError | TypeError) and not isinstance(exc, PluginImportError)
+                        else "")
                 self._error = CellFailure(f"victim {self.name!r} could not be created: {type(exc).__name__}: "
                                           f"{exc}{hint}")
                 self._error.__cause__ = exc
@@ -188,7 +207,14 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
                                log)
             log(f"[{i}/{len(cells)}] {key}: {_describe(outcome)}")
             report.outcomes.append(outcome)
-        summary = write_validated(out / SUMMARY_FILE, report.cells)
+        found = earlier_cells(out / "cells", {key.dirname for key in cells}, identity, evaluation, config.seed,
+                              gt.frame_ids, CELL_FILE)
+        report.earlier, report.left_out = found.included, found.left_out
+        if report.earlier:
+            log(f"the summary also lists {len(report.earlier)} finished cell(s) of earlier runs in {out}")
+        for line in report.left_out:
+            log(f"left out of the summary: {line}")
+        summary = write_validated(out / SUMMARY_FILE, report.summary)
         write_long_csv(out / CSV_FILE, summary)
     return report
 

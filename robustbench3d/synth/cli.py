@@ -29,10 +29,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from robustbench3d.fileio import check_output_dir
     from robustbench3d.paths import dataset_dir
     from robustbench3d.synth.writer import generate_dataset
 
-    out = args.out if args.out else dataset_dir("synth")
+    out = check_output_dir(args.out if args.out else dataset_dir("synth"), "--out")
     report = generate_dataset(out, args.frames, args.seed, args.val_fraction, args.workers,
                               progress=not args.no_progress)
     rate = report.generated / report.seconds if report.generated and report.seconds > 0 else 0.0

@@ -24,7 +24,7 @@ import numpy as np
 
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
-from robustbench3d.victims.base import Proposals, ProposalsArg, empty_detections
+from robustbench3d.victims.base import Proposals, ProposalsArg, empty_detections, victim_inputs
 from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
 from robustbench3d.victims.fpointnet.frustum import (
     Frustum,
@@ -81,56 +81,63 @@ def frame_key(frame_id: str) -> int:
 
 def make_proposals(frames: Sequence[Frame], source: ProposalsArg, detect_2d: Detect2DFn, car_class: int,
                    gt_types: Sequence[str]) -> list[Proposals]:
-    """2D proposals per frame: the detector's ``car_class`` detections, GT boxes of ``gt_types``,
-    or the given list (one :class:`Proposals` per frame)."""
-    if not isinstance(source, str):
-        if len(source) != len(frames):
-            raise ValueError(f"{len(source)} proposal sets for {len(frames)} frames")
-        return list(source)
-    if source == "detector":
-        dets = detect_2d([f.image for f in frames])
-        return [Proposals(d.boxes[d.classes == car_class], d.scores[d.classes == car_class]) for d in dets]
-    if source == "gt":
-        out = []
-        for f in frames:
-            if f.labels is None:
-                raise ValueError(f"frame {f.frame_id} has no labels; proposals='gt' needs them")
-            sel = np.isin(f.labels.type.astype(str), list(gt_types))
-            out.append(Proposals(f.labels.bbox[sel], np.ones(int(sel.sum()))))
-        return out
-    raise ValueError(f"proposals must be 'detector', 'gt' or a list of Proposals, got {source!r}")
+    """2D proposals per frame: the detector's ``car_class`` detections for ``"detector"``, else the
+    given list (one :class:`Proposals` per frame) with ground-truth sets reduced to ``gt_types``.
+
+    ``"gt"`` (outside the harness only) takes :func:`~robustbench3d.victims.base.gt_proposals` of
+    each frame's labels.
+    """
+    if isinstance(source, str):
+        if source == "detector":
+            dets = detect_2d([f.image for f in frames])
+            return [Proposals(d.boxes[d.classes == car_class], d.scores[d.classes == car_class], "detector")
+                    for d in dets]
+        if source != "gt":
+            raise ValueError(f"proposals must be 'detector', 'gt' or a list of Proposals, got {source!r}")
+        source = victim_inputs(frames, [f.labels for f in frames], "gt")[1]
+    if len(source) != len(frames):
+        raise ValueError(f"{len(source)} proposal sets for {len(frames)} frames")
+    return [p.of_types(gt_types) if p.source == "gt" else p for p in source]
 
 
 @dataclass(frozen=True)
 class FrustumInput:
-    """One usable proposal: its frame, frustum, 2D score, generator and the (N, 4) float32
-    network input (frustum-frame xyz in m, reflectance)."""
+    """One usable proposal: its frame, frustum, 2D score, generator, the (N, 4) float32 network
+    input (frustum-frame xyz in m, reflectance) and whether it is a ground-truth box."""
 
     frame_index: int
     frustum: Frustum
     score: float
     rng: np.random.Generator
     points: np.ndarray
+    ground_truth: bool = False
 
 
 def frustum_inputs(frames: Sequence[Frame], proposals: Sequence[Proposals], settings: CascadeSettings,
-                   num_points: int, min_points: int) -> list[FrustumInput]:
-    """Frustums of every proposal that passes the filters, resampled to ``num_points`` points."""
+                   num_points: int, min_points: int | None = None) -> list[FrustumInput]:
+    """Frustums of every proposal that passes the filters, resampled to ``num_points`` points.
+
+    ``min_points`` defaults to ``settings.min_points_gt`` for ground-truth proposal sets and
+    ``settings.min_points_detector`` for the others.
+    """
     out: list[FrustumInput] = []
     for fi, (frame, prop) in enumerate(zip(frames, proposals, strict=True)):
         if len(prop.boxes) == 0:
             continue
+        gt = prop.source == "gt"
+        least = min_points if min_points is not None else (
+            settings.min_points_gt if gt else settings.min_points_detector)
         projected = project_scan(frame.scan, frame.calib, frame.image_size)
         for k, (box, score) in enumerate(zip(prop.boxes, prop.scores, strict=True)):
             if box[3] - box[1] < settings.min_box_height:
                 continue
             fr = extract_frustum(projected, box, frame.calib)
-            if len(fr) < max(min_points, 1):
+            if len(fr) < max(least, 1):
                 continue
             rng = np.random.default_rng([settings.seed, frame_key(frame.frame_id), k])
             idx = resample_indices(len(fr), num_points, rng)
             pts = rotate_to_frustum(fr.points[idx], fr.rot_angle).astype(np.float32)
-            out.append(FrustumInput(fi, fr, float(score), rng, pts))
+            out.append(FrustumInput(fi, fr, float(score), rng, pts, gt))
     return out
 
 
@@ -142,9 +149,7 @@ def detect_frames(frames: Sequence[Frame], proposals: ProposalsArg, *, detect_2d
     ``settings.batch_size`` frustums go through ``stages`` at a time.
     """
     props = make_proposals(frames, proposals, detect_2d, car_class, settings.gt_types)
-    use_3d_score = isinstance(proposals, str) and proposals == "gt"
-    min_points = settings.min_points_gt if use_3d_score else settings.min_points_detector
-    inputs = frustum_inputs(frames, props, settings, num_points, min_points)
+    inputs = frustum_inputs(frames, props, settings, num_points)
     per_frame: list[list[Labels]] = [[] for _ in frames]
     bs = settings.batch_size
     for start in range(0, len(inputs), bs):
@@ -154,7 +159,7 @@ def detect_frames(frames: Sequence[Frame], proposals: ProposalsArg, *, detect_2d
         out = run_frustum_stages(stages, np.stack([j.points for j in chunk]), one_hot, num_object_points,
                                  settings.gather, [j.rng for j in chunk])
         boxes = decode(out)
-        scores = boxes.score_3d if use_3d_score else np.array([j.score for j in chunk])
+        scores = np.where([j.ground_truth for j in chunk], boxes.score_3d, [j.score for j in chunk])
         rows = to_labels(boxes, np.array([j.frustum.rot_angle for j in chunk]),
                          np.stack([j.frustum.box2d for j in chunk]), scores)
         for r, job in enumerate(chunk):

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from robustbench3d.kitti.dataset import Frame
-from robustbench3d.victims.base import Proposals
+from robustbench3d.victims.base import Proposals, gt_proposals
 from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
 from robustbench3d.victims.fpointnet.frustum import box_mask, project_scan
 from robustbench3d.victims.fpointnet.glue import (
@@ -209,19 +209,19 @@ def trace_frame(frame: Frame, source: str, *, yolo_cfg: YoloConfig, car_class: i
     if source == "detector":
         flips, cars_t, cars_o = _flips_2d(frame.image, yolo_cfg, heads_t, heads_o, car_class)
         result.flips += flips
-        props = props_o = Proposals(cars_t.boxes, cars_t.scores)
+        props = props_o = Proposals(cars_t.boxes, cars_t.scores, "detector")
         if len(cars_t.boxes) != len(cars_o.boxes):
             result.note = "2D detections differ in number; later stages not compared"
         else:
             membership = _membership_flips(frame, cars_t.boxes, cars_o.boxes, settings)
             result.flips += membership
             if not membership:  # same frustum points: the ONNX path continues from its own boxes
-                props_o = Proposals(cars_o.boxes, cars_o.scores)
+                props_o = Proposals(cars_o.boxes, cars_o.scores, "detector")
         min_points = settings.min_points_detector
     else:
-        assert frame.labels is not None
-        sel = np.isin(frame.labels.type.astype(str), list(settings.gt_types))
-        props = props_o = Proposals(frame.labels.bbox[sel], np.ones(int(sel.sum())))
+        if frame.labels is None:  # diagnostics read the labels; the victims get only these boxes
+            raise ValueError(f"frame {frame.frame_id} has no labels; tracing proposals 'gt' needs them")
+        props = props_o = gt_proposals(frame.labels).of_types(settings.gt_types)
         min_points = settings.min_points_gt
     jobs_t = frustum_inputs([frame], [props], settings, num_points, min_points)
     jobs_o = frustum_inputs([frame], [props_o], settings, num_points, min_points)  # fresh generators

@@ -81,8 +81,10 @@ def create_cascade(name: str, kwargs: dict[str, Any]) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     from robustbench3d.errors import RobustBenchError
+    from robustbench3d.fileio import check_output_dir
     from robustbench3d.victims.onnx import require
 
+    check_output_dir(args.out, "--out")
     require("onnx")
     if args.exporter == "dynamo":
         require("onnxscript")

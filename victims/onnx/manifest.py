@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import DataFormatError
-from robustbench3d.fileio import sha256_file
+from robustbench3d.fileio import read_user_text, sha256_file
 from robustbench3d.victims.onnx import MANIFEST_FILE
 
 FORMAT = "robustbench3d.onnx_cascade/1"
@@ -224,12 +224,10 @@ def read_manifest(directory: str | Path) -> Manifest:
     if not Path(directory).is_dir():
         raise DataFormatError(directory, "ONNX victim directory not found")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_user_text(path)
     except FileNotFoundError:
         raise DataFormatError(path, "manifest not found; an ONNX victim directory is written by "
                                     "`robustbench3d export-onnx`") from None
-    except UnicodeDecodeError as exc:
-        raise DataFormatError(path, f"not UTF-8 text ({exc.reason})") from None
     return parse_manifest(text, path)
 
 

@@ -31,6 +31,7 @@ import numpy as np
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels, parse_labels
 from robustbench3d.runner.config import RESULT_PRECISION
+from robustbench3d.victims.base import victim_inputs
 from robustbench3d.victims.cascade import FPointNetCascade
 from robustbench3d.victims.fpointnet.glue import gather_points, mask_centroid, object_point_indices
 from robustbench3d.victims.fpointnet.model import TorchFrustumStages
@@ -158,7 +159,8 @@ def stage_inputs(victim: FPointNetCascade, frames: Sequence[Frame],
     cfg = victim.yolo.cfg
     images = np.stack([letterbox_image(f.image, cfg.input_size, cfg.fill)[0] for f in frames[:MAX_IMAGES]])
     source = "gt" if all(f.labels is not None for f in frames) else "detector"
-    props = make_proposals(frames, source, victim.yolo.detect, victim.car_class, victim.settings.gt_types)
+    bare, given = victim_inputs(frames, [f.labels for f in frames], source)
+    props = make_proposals(bare, given, victim.yolo.detect, victim.car_class, victim.settings.gt_types)
     found = frustum_inputs(frames, props, victim.settings, victim.num_points, min_points=1)[:MAX_FRUSTUMS]
     n = victim.num_points
     if found:
@@ -325,8 +327,9 @@ def run_parity(victim: FPointNetCascade, onnx_victim: OnnxCascade, frames: Seque
     for source in proposals:
         if source == "gt" and not labelled:
             continue
-        dets_torch = victim.detect(frames, source)
-        dets_onnx = onnx_victim.detect(frames, source)
+        bare, given = victim_inputs(frames, [f.labels for f in frames], source)  # as the runner calls them
+        dets_torch = victim.detect(bare, given)
+        dets_onnx = onnx_victim.detect(bare, given)
         report.boxes.append(box_parity(frames, source, dets_torch, dets_onnx, tol,
                                        lockstep_tracer(victim, onnx_victim, source, tol)))
         if labelled:

@@ -35,10 +35,12 @@ def run(args: argparse.Namespace) -> int:
 
     from robustbench3d.datasets import load_ground_truth, resolve_dataset
     from robustbench3d.errors import RobustBenchError
-    from robustbench3d.fileio import atomic_write_text
+    from robustbench3d.fileio import atomic_write_text, check_output_file
     from robustbench3d.kitti.dataset import Frame
     from robustbench3d.victims.onnx import require
 
+    if args.json:
+        check_output_file(args.json, "--json")
     require("onnx")
     require("onnxruntime")
     if not args.onnx and args.exporter == "dynamo":

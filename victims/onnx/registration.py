@@ -1,14 +1,19 @@
 """ONNX victim directories in the victim registry.
 
 Shipped ONNX exports (:data:`SHIPPED`, directories under the package's ``victims/weights/``)
-register as in-tree victims. Users add theirs in two ways, both through
+register with origin ``onnx shipped``. Users add theirs in two ways, both through
 :data:`robustbench3d.victims.VICTIMS`:
 
-* ``robustbench3d victims add-onnx DIR --name NAME`` records NAME -> DIR in the user registry file
-  ``<cache>/victims/onnx.json`` (:func:`user_registry_file`); this module is one of the registry's
-  in-tree modules, so every lookup registers the file's entries.
+* ``robustbench3d victims add-onnx DIR [--name NAME]`` records NAME -> DIR in the user registry
+  file ``<cache>/victims/onnx.json`` (:func:`user_registry_file`; origin ``onnx user registry``);
+  :func:`register_user_victims` is one of the registry's loaders, so the file is read on the
+  first lookup (not when this module is imported). ``victims remove NAME`` deletes an entry.
 * a directory given directly to ``run --victims`` (:func:`resolve_victim_reference`) is
-  registered under its sanitised directory name for the run.
+  registered under its directory name for the run (origin ``onnx directory``).
+
+Names derived from a directory name (:func:`sanitise_name`) are folded to ASCII (NFKD, accents
+dropped: ``nüscénes-dét`` -> ``nuscenes-det``); a letter or digit with no ASCII form (``日本``)
+makes the name underivable, and ``--name`` is then required.
 
 An entry's ``weights_sha256`` is the sha256 of the directory's ``manifest.json`` (which pins every
 stage file's sha256), so results record exactly which graphs ran. Nothing is validated at
@@ -22,12 +27,13 @@ from __future__ import annotations
 import json
 import os
 import re
+import unicodedata
 import warnings
 from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import DataFormatError, RobustBenchError
-from robustbench3d.fileio import atomic_write_text, sha256_file
+from robustbench3d.fileio import atomic_write_text, read_user_text, sha256_file
 from robustbench3d.paths import cache_dir
 from robustbench3d.registry import Capabilities, EntryInfo, RegistryError
 from robustbench3d.victims import VICTIMS
@@ -37,6 +43,9 @@ from robustbench3d.victims.spec import VictimSpec
 REGISTRY_FORMAT = "robustbench3d.onnx_victims/1"
 ONNX_CAPABILITIES = Capabilities(modalities=("camera", "lidar"), backend="onnx", gradients=False, deterministic=True)
 _INVALID = re.compile(r"[^a-z0-9._-]+")
+ORIGIN_SHIPPED = "onnx shipped"
+ORIGIN_USER = "onnx user registry"
+ORIGIN_DIRECTORY = "onnx directory"
 
 
 def user_registry_file() -> Path:
@@ -74,16 +83,41 @@ def victim_spec(directory: str | Path) -> VictimSpec:
     return VictimSpec(factory=factory, info=info)
 
 
-def register_directory(name: str, directory: str | Path) -> str:
-    """Register the ONNX victim in ``directory`` as ``name`` (idempotent for the same directory)."""
-    VICTIMS.register(name, victim_spec(directory))
+def register_directory(name: str, directory: str | Path, origin: str = ORIGIN_DIRECTORY) -> str:
+    """Register the ONNX victim in ``directory`` as ``name`` (idempotent for the same directory).
+
+    The registry's own entries (in-tree, shipped, user file, plugins) are discovered first, so
+    they take precedence over a directory registered for one run.
+    """
+    VICTIMS.names()
+    VICTIMS.register(name, victim_spec(directory), origin=origin)
     return name
 
 
 def sanitise_name(text: str) -> str:
-    """A registry name from a directory name: lowercase, runs of other characters -> "-"."""
-    name = _INVALID.sub("-", text.lower()).strip("-._")
-    return name or "onnx-victim"
+    """A registry name from free text (a directory name): NFKD-folded to ASCII with accents
+    dropped, lowercase, runs of other characters -> "-". "" when nothing is left or when a letter
+    or digit has no ASCII form (the name would not be readable)."""
+    folded = []
+    for ch in unicodedata.normalize("NFKD", text):
+        if ch.isascii():
+            folded.append(ch)
+        elif unicodedata.category(ch)[0] in "LN":
+            return ""
+        elif not unicodedata.combining(ch):
+            folded.append(" ")  # a non-ASCII symbol or space separates words
+    return _INVALID.sub("-", "".join(folded).lower()).strip("-._")
+
+
+def name_for_directory(directory: Path, how: str = "give one with --name NAME") -> str:
+    """The victim name derived from ``directory``'s name (:func:`sanitise_name`); raises
+    :class:`RobustBenchError` when none can be derived, saying ``how`` to name it instead."""
+    name = sanitise_name(directory.name)
+    if not name:
+        raise RobustBenchError(f"{directory}: no victim name can be derived from the folder name "
+                               f"{directory.name!r} (only letters and digits that fold to ASCII make a name); "
+                               f"{how}")
+    return name
 
 
 def looks_like_path(reference: str) -> bool:
@@ -101,7 +135,7 @@ def resolve_victim_reference(reference: str) -> str:
     if not (directory / MANIFEST_FILE).is_file():
         raise DataFormatError(directory / MANIFEST_FILE, "not an ONNX victim directory (no manifest.json); "
                                                          "write one with `robustbench3d export-onnx`")
-    name = sanitise_name(directory.name)
+    name = name_for_directory(directory, "register it with `robustbench3d victims add-onnx DIR --name NAME`")
     try:
         return register_directory(name, directory)
     except RegistryError:
@@ -123,8 +157,8 @@ def read_user_registry(path: Path | None = None) -> dict[str, str]:
     if not path.is_file():
         return {}
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        data = json.loads(read_user_text(path))
+    except json.JSONDecodeError as exc:
         raise DataFormatError(path, f"not valid JSON ({exc}); fix or delete the file") from None
     if not isinstance(data, dict) or data.get("format") != REGISTRY_FORMAT or not isinstance(data.get("victims"), dict):
         raise DataFormatError(path, f"expected {{'format': {REGISTRY_FORMAT!r}, 'victims': {{NAME: DIR}}}}; "
@@ -147,8 +181,9 @@ def add_user_victim(name: str, directory: str | Path, *, replace: bool = False) 
     entries = read_user_registry(path)
     directory = Path(directory).expanduser().resolve()
     if sanitise_name(name) != name:
-        raise RobustBenchError(f"victim name {name!r} must be lowercase letters, digits, '.', '_' or '-' "
-                               f"(e.g. {sanitise_name(name)!r})")
+        fixed = sanitise_name(name)
+        raise RobustBenchError(f"victim name {name!r} must be lowercase letters, digits, '.', '_' or '-'"
+                               + (f" (e.g. {fixed!r})" if fixed else ""))
     if name in VICTIMS and name not in entries:
         raise RobustBenchError(f"victim name {name!r} is taken by a {VICTIMS.entry(name).origin} victim; choose "
                                "another --name")
@@ -156,11 +191,42 @@ def add_user_victim(name: str, directory: str | Path, *, replace: bool = False) 
         raise RobustBenchError(f"victim {name!r} already points to {entries[name]} in {path}; pass --replace to "
                                "point it to the new directory")
     entries[name] = str(directory)
+    _write_user_registry(path, entries)
+    if name not in VICTIMS:
+        register_directory(name, directory, ORIGIN_USER)
+    return path
+
+
+def remove_user_victim(name: str) -> tuple[Path, str]:
+    """Delete ``name`` from the user registry file (undoing ``victims add-onnx``) and unregister
+    it. Returns the file and the directory the entry pointed to.
+
+    Raises :class:`RobustBenchError` for a victim that is registered another way (in-tree,
+    shipped, plugin, a directory of this run) and :class:`~robustbench3d.registry.UnknownNameError`
+    for an unknown name.
+    """
+    path = user_registry_file()
+    entries = read_user_registry(path)
+    if name not in entries:
+        origin = VICTIMS.entry(name).origin  # unknown names raise here, with did-you-mean
+        if origin.startswith("plugin "):
+            how = f"uninstall the plugin's distribution ({origin.split()[1]}) instead"
+        elif origin == ORIGIN_DIRECTORY:
+            how = "it is registered for this run only"
+        else:
+            how = "it ships with robustbench3d"
+        raise RobustBenchError(f"victim {name!r} ({origin}) was not added with `victims add-onnx`, so it cannot be "
+                               f"removed (only entries of {path} can); {how}")
+    directory = entries.pop(name)
+    _write_user_registry(path, entries)
+    if name in VICTIMS and VICTIMS.entry(name).origin == ORIGIN_USER:
+        VICTIMS.unregister(name)
+    return path, directory
+
+
+def _write_user_registry(path: Path, entries: dict[str, str]) -> None:
     text = json.dumps({"format": REGISTRY_FORMAT, "victims": dict(sorted(entries.items()))}, indent=2) + "\n"
     atomic_write_text(path, text)
-    if name not in VICTIMS:
-        register_directory(name, directory)
-    return path
 
 
 #: shipped ONNX victim name -> its directory under :func:`robustbench3d.victims.shipped.weights_dir`
@@ -174,13 +240,13 @@ def register_shipped_victims() -> None:
     for name, sub in SHIPPED.items():
         directory = weights_dir() / sub
         if (directory / MANIFEST_FILE).is_file():
-            register_directory(name, directory)
+            register_directory(name, directory, ORIGIN_SHIPPED)
 
 
 def register_user_victims() -> None:
-    """Register every entry of the user registry file. A broken file or entry is skipped with a
-    warning naming it (it must not make every other victim unusable)."""
-    VICTIMS.names()  # in-tree victims first, whichever module is imported first
+    """Register the shipped ONNX victims and every entry of the user registry file (the victim
+    registry's loader, run on its first lookup). A broken file or entry is skipped with a warning
+    naming it (it must not make every other victim unusable)."""
     register_shipped_victims()
     try:
         entries = read_user_registry()
@@ -189,9 +255,6 @@ def register_user_victims() -> None:
         return
     for name, directory in entries.items():
         try:
-            register_directory(name, directory)
+            register_directory(name, directory, ORIGIN_USER)
         except (RegistryError, OSError) as exc:
             warnings.warn(f"{user_registry_file()}: ignoring entry {name!r}: {exc}", stacklevel=2)
-
-
-register_user_victims()

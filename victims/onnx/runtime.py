@@ -178,7 +178,8 @@ class OnnxCascade:
         return make_proposals(frames, source, self.detect_2d, self.car_class, self.settings.gt_types)
 
     def detect(self, frames: Sequence[Frame], proposals: ProposalsArg = "detector") -> list[Labels]:
-        """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes)."""
+        """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes,
+        i.e. proposals with ``source="gt"``)."""
         return detect_frames(frames, proposals, detect_2d=self.detect_2d, car_class=self.car_class,
                              stages=self.frustum_stages, settings=self.settings, num_points=self.num_points,
                              num_object_points=self.num_object_points)

@@ -53,7 +53,7 @@ def build_image_set(dataset: KittiDataset, input_size: tuple[int, int], fill: fl
     if npy.exists() and npz.exists() and meta.exists() and json.loads(meta.read_text()) == key:
         with np.load(npz, allow_pickle=False) as z:
             rest = {k: z[k] for k in ("boxes", "box_offsets", "ignore", "ignore_offsets", "frame_ids")}
-        return YoloImageSet(images=np.load(npy, mmap_mode="r"), **rest)
+        return YoloImageSet(images=np.load(npy, mmap_mode="r", allow_pickle=False), **rest)
     wi, hi = input_size
     tmp = npy.with_name(f".{npy.name}.{os.getpid()}.tmp")
     images = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(len(dataset), hi, wi, 3))
@@ -80,7 +80,7 @@ def build_image_set(dataset: KittiDataset, input_size: tuple[int, int], fill: fl
     with atomic_open(npz, "wb") as f:
         np.savez(f, **rest)
     atomic_write_text(meta, json.dumps(key))
-    return YoloImageSet(images=np.load(npy, mmap_mode="r"), **rest)
+    return YoloImageSet(images=np.load(npy, mmap_mode="r", allow_pickle=False), **rest)
 
 
 def zoom(img: np.ndarray, boxes: list[np.ndarray], scale: float, offset: tuple[float, float], fill: int,

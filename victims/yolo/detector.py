@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from robustbench3d.victims.torchfile import build_network, load_network_part
 from robustbench3d.victims.yolo.boxes import box_iou, cxcywh_to_xyxy
 from robustbench3d.victims.yolo.config import YoloConfig
 from robustbench3d.victims.yolo.letterbox import Letterbox, letterbox
@@ -33,11 +34,10 @@ class YoloDetector:
 
     @classmethod
     def load(cls, path: str | Path) -> YoloDetector:
-        """From a ``model.pt`` written by the YOLO trainer (``{"config", "state_dict"}``)."""
-        data = torch.load(Path(path), map_location="cpu", weights_only=True)
-        net = Darknet(YoloConfig.from_dict(data["config"]))
-        net.load_state_dict(data["state_dict"])
-        return cls(net)
+        """From a ``model.pt`` written by the YOLO trainer (``{"config", "state_dict"}``) or a
+        cascade weights file, read as data only."""
+        part = load_network_part(path, "yolo")
+        return cls(build_network(lambda c: Darknet(YoloConfig.from_dict(c)), part, path, "yolo"))
 
     def predictions(self, images: torch.Tensor) -> tuple[YoloPredictions, Letterbox]:
         """Differentiable forward of (B, 3, H, W) images in [0, 1] (original resolution)."""

@@ -25,10 +25,11 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from robustbench3d.errors import RobustBenchError
+from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import sha256_file
 from robustbench3d.kitti.dataset import KittiDataset
 from robustbench3d.victims import training as loop
+from robustbench3d.victims.torchfile import load_network_part, one_line
 from robustbench3d.victims.yolo.anchors import kmeans_anchors
 from robustbench3d.victims.yolo.boxes import box_iou_np
 from robustbench3d.victims.yolo.config import CONFIGS, LAYOUTS, LOSSES, YoloConfig
@@ -101,7 +102,7 @@ class YoloTask:
             raise RobustBenchError(f"input size {net_cfg.input_size} is not a multiple of the {net_cfg.layout} "
                                    f"layout's largest stride {stride}")
         if init_state is not None:
-            load_prefix(self.model, init_state)
+            load_prefix(self.model, init_state, cfg.init)
         # channels-last convolutions are ~1.6x faster on these CPUs; the weights' values are unchanged
         self.model = self.model.to(memory_format=torch.channels_last)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -211,7 +212,10 @@ def init_anchors(init_cfg: YoloConfig, net_cfg: YoloConfig, boxes: np.ndarray | 
 def fit_anchors(boxes: np.ndarray, k: int, seed: int) -> tuple[tuple[float, float], ...]:
     """``k`` anchors (w, h px, sorted by area, rounded to 0.01) by k-means on the training boxes
     ``(N, 4)`` x1 y1 x2 y2, seeded by ``seed``."""
-    anchors, _ = kmeans_anchors(boxes[:, 2:] - boxes[:, :2], k, np.random.default_rng([seed, 3]))
+    try:
+        anchors, _ = kmeans_anchors(boxes[:, 2:] - boxes[:, :2], k, np.random.default_rng([seed, 3]))
+    except ValueError as exc:  # too few training boxes
+        raise RobustBenchError(f"k-means anchors: {exc} in the training split; use --anchors config") from None
     return tuple((round(float(w), 2), round(float(h), 2)) for w, h in anchors)
 
 
@@ -222,24 +226,34 @@ def load_init(path: str | Path, layout: str) -> tuple[YoloConfig, dict[str, torc
     path = Path(path)
     if not path.is_file():
         raise RobustBenchError(f"{path}: no such YOLO weights file (--init)")
-    data = torch.load(path, map_location="cpu", weights_only=True)
-    data = data.get("yolo", data) if isinstance(data, dict) else data
-    if not isinstance(data, dict) or "config" not in data or "state_dict" not in data:
-        raise RobustBenchError(f"{path}: not a YOLO model.pt or cascade weights file (no 'config'/'state_dict')")
-    init_cfg = YoloConfig.from_dict(data["config"])
-    init_layers = LAYOUTS[init_cfg.layout]()
+    data = load_network_part(path, "yolo")
+    try:
+        init_cfg = YoloConfig.from_dict(data["config"])
+        init_layers = LAYOUTS[init_cfg.layout]()
+    except Exception as exc:
+        raise DataFormatError(path, f"the yolo configuration is not usable ({one_line(exc)})", field="config") from None
     if LAYOUTS[layout]()[: len(init_layers)] != init_layers:
         raise RobustBenchError(f"{path}: layout {init_cfg.layout!r} is not the start of --layout {layout!r}")
     return init_cfg, data["state_dict"], sha256_file(path)
 
 
-def load_prefix(model: torch.nn.Module, state: dict[str, torch.Tensor]) -> None:
+def load_prefix(model: torch.nn.Module, state: dict[str, torch.Tensor], origin: str | Path | None = None) -> None:
     """Load ``state``, the weights of a network whose layers are ``model``'s first layers: every
-    tensor in it must fit ``model``; the blocks it lacks must all come after its last block."""
-    missing, unexpected = model.load_state_dict(state, strict=False)
+    tensor in it must fit ``model``; the blocks it lacks must all come after its last block.
+    Errors name ``origin`` (the file the weights came from)."""
+    where = origin if origin is not None else "initialising weights"
+    try:
+        missing, unexpected = model.load_state_dict(state, strict=False)
+    except RuntimeError as exc:
+        raise DataFormatError(where, f"the weights do not fit the network ({one_line(exc)})",
+                              field="state_dict") from None
+    if not state:
+        raise DataFormatError(where, "initialising weights hold no tensors", field="state_dict")
     if unexpected:
-        raise RobustBenchError(f"initialising weights have tensors the network lacks: {unexpected[:3]}")
+        raise DataFormatError(where, f"initialising weights have tensors the network lacks: {unexpected[:3]}",
+                              field="state_dict")
     last = max(int(k.split(".")[1]) for k in state)
     early = [k for k in missing if int(k.split(".")[1]) <= last]
     if early:
-        raise RobustBenchError(f"initialising weights lack tensors of their own layers: {early[:3]}")
+        raise DataFormatError(where, f"initialising weights lack tensors of their own layers: {early[:3]}",
+                              field="state_dict")

@@ -15,6 +15,7 @@ from robustbench3d.geometry import alpha_from_rotation_y, box_corners, project_b
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
+from robustbench3d.victims.base import ProposalsArg
 
 
 @dataclass(frozen=True)
@@ -143,8 +144,10 @@ class LidarClusterDetector:
     def __init__(self, settings: ClusterSettings | None = None):
         self.settings = settings or ClusterSettings()
 
-    def detect(self, frames: Sequence[Frame], proposals: object = "detector") -> list[Labels]:
-        if proposals != "detector":
+    def detect(self, frames: Sequence[Frame], proposals: ProposalsArg = "detector") -> list[Labels]:
+        """Detections per frame from the scan alone. The harness gives frames without labels; a
+        ``"gt"`` cell would pass ground-truth 2D boxes (``Proposals``), which this victim cannot use."""
+        if not isinstance(proposals, str) or proposals != "detector":
             raise ValueError("lidar-cluster is LiDAR-only: it supports proposals='detector' only")
         return [self.detect_frame(f) for f in frames]
 
