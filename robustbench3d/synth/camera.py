@@ -10,23 +10,25 @@ Shading (linear RGB, then exposure, a soft tone curve and the sRGB transfer curv
 where ``lit`` comes from a shadow ray towards the sun. Textures: asphalt and terrain noise, lane
 markings, sidewalk tiles, foliage and facade noise. Distant surfaces fade towards the horizon
 colour (aerial perspective). The image is then slightly blurred (a [1, 2, 1] kernel, like the soft
-KITTI optics) after the sensor noise is added.
+KITTI optics) after the sensor noise is added. The shading, haze, tone-mapping and noise models are
+:mod:`robustbench3d.sensors.camera_model`'s; this module casts the rays and adds the scenery's textures
+and sky.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
+from robustbench3d.sensors import camera_model as cm
+from robustbench3d.sensors.camera_model import SHADOW_RAY_LENGTH
 from robustbench3d.synth.calibs import CameraDay
 from robustbench3d.synth.materials import SPECULAR, Mat
 from robustbench3d.synth.raytrace import SceneGeometry
 from robustbench3d.synth.scene import Scene
-
-#: Shadow rays stop after this distance, m (all occluders of interest are closer).
-SHADOW_RAY_LENGTH = 80.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -140,16 +142,11 @@ def _put_columns(dst: np.ndarray, idx: np.ndarray, values: np.ndarray) -> None:
         row[idx] = vals
 
 
-def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise dot products of (N, 3) arrays, summed in the order of ``np.sum(a * b, axis=1)``."""
-    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
-
-
 def _sky(scene: Scene, d: np.ndarray, noise: Noise) -> np.ndarray:
     """(3, N) sky radiance along unit directions d (N, 3)."""
     lt = scene.lighting
     el = np.clip(d[:, 2], 0.0, 1.0)
-    col = lt.sky_horizon[:, None] + (lt.sky_zenith - lt.sky_horizon)[:, None] * np.sqrt(el)
+    col = cm.sky_gradient(d[:, 2], lt.sky_horizon, lt.sky_zenith)
     glow = np.clip(d @ lt.sun_direction, 0.0, 1.0) ** 32
     col = col + 0.6 * glow * lt.sun_color[:, None] / 3.0
     az = np.arctan2(d[:, 1], d[:, 0])
@@ -213,9 +210,9 @@ def _in_shadow(geometry: SceneGeometry, cand: np.ndarray, pix: np.ndarray, pix_o
     """(len(cand),) bool: the sun is blocked at the hits ``cand`` (ascending indices into the hit arrays:
     pixels ``pix``, their objects ``pix_object``, surface points ``p`` (3, N) and normals ``normal`` (3, N)).
 
-    Shadow rays start 3 cm off the surface. A pixel in an odd column (``odd_column``, per pixel) reuses
-    the answer of its left neighbour when both show the same object, which halves the rays at a one-pixel
-    blur of shadow edges.
+    Shadow rays start 3 cm off the surface (:func:`~robustbench3d.sensors.camera_model.shadow_ray_origins`).
+    A pixel in an odd column (``odd_column``, per pixel) reuses the answer of its left neighbour when both
+    show the same object, which halves the rays at a one-pixel blur of shadow edges.
     """
     px, obj = pix[cand], pix_object[cand]
     # px is ascending, so a pixel's left neighbour, if it is a candidate at all, is the entry just before it
@@ -225,32 +222,110 @@ def _in_shadow(geometry: SceneGeometry, cand: np.ndarray, pix: np.ndarray, pix_o
     cast = np.flatnonzero(~reuse)
     q = cand[cast]
     blocked = np.zeros(len(cand), dtype=bool)
-    origins = p.take(q, axis=1) + 0.03 * normal.take(q, axis=1)
+    origins = cm.shadow_ray_origins(p.take(q, axis=1), normal.take(q, axis=1))
     blocked[cast] = geometry.occluded(origins.T, sun, SHADOW_RAY_LENGTH)
     copy = np.flatnonzero(reuse)
     blocked[copy] = blocked[copy - 1]
     return blocked
 
 
-@lru_cache(maxsize=1)
-def _display_lut() -> np.ndarray:
-    """4096-entry int16 table: linear radiance (after exposure) in [0, 4) -> 8-bit display value.
+class PixelHits(NamedTuple):
+    """Step 1 of :func:`render_image`: what each pixel's ray hits.
 
-    A soft shoulder x / (1 + x / 4) keeps highlights from clipping, then the sRGB transfer curve.
+    Attributes:
+        hit: (N,) ascending indices of the pixels (row-major over (v, u)) whose ray hits a triangle.
+        miss: indices of the pixels that see the sky.
+        prim: (N,) int32 triangle hit by each of those pixels.
+        t: (N,) float32 distance to the hit, m.
+        hit_object: (N,) int32 scene object of each hit.
+        object_id: (H*W,) int32 scene object seen at each pixel, -1 for sky.
     """
-    x = np.arange(4096, dtype=np.float64) / 1024.0
-    x = x / (1.0 + 0.25 * x)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
-    return np.round(np.clip(srgb, 0.0, 1.0) * 255.0).astype(np.int16)
+
+    hit: np.ndarray
+    miss: np.ndarray
+    prim: np.ndarray
+    t: np.ndarray
+    hit_object: np.ndarray
+    object_id: np.ndarray
 
 
-def _lut_index(radiance: np.ndarray, exposure: np.float32) -> np.ndarray:
-    """:func:`_display_lut` index (int16) of linear radiance times ``exposure`` (LUT steps per unit)."""
-    return np.clip(radiance * exposure, 0, 4095).astype(np.int16)
+def intersect_pixels(rays: CameraRays, geometry: SceneGeometry) -> PixelHits:
+    """Cast every pixel's ray into the scene (first hits within 2 km)."""
+    w, h = rays.image_size
+    hits = geometry.intersect(rays.origins, rays.directions, 2000.0)
+    hit = np.flatnonzero(hits.hit)
+    miss = np.flatnonzero(~hits.hit)
+    object_id = np.full(w * h, -1, dtype=np.int32)
+    prim = hits.prim[hit]
+    hit_object = geometry.tri_object.take(prim)
+    object_id[hit] = hit_object
+    return PixelHits(hit, miss, prim, hits.t[hit], hit_object, object_id)
+
+
+class Surface(NamedTuple):
+    """Step 2 of :func:`render_image`: the surface seen at each hit pixel (per point (3, N) float32, velodyne).
+
+    Attributes:
+        points: (3, N) hit points, m.
+        view: (3, N) unit view directions, camera to point.
+        face_normals: (F, 3) unit normals of all triangles, turned towards the camera.
+        normals: (3, N) those normals at the hits.
+        material: (N,) uint8 material ids.
+    """
+
+    points: np.ndarray
+    view: np.ndarray
+    face_normals: np.ndarray
+    normals: np.ndarray
+    material: np.ndarray
+
+
+def surface_attributes(rays: CameraRays, geometry: SceneGeometry, px: PixelHits) -> Surface:
+    """Hit points, view directions, camera-facing normals and materials of the hit pixels."""
+    dh = rays.channels.take(px.hit, axis=1)
+    origin = rays.origin.astype(np.float32)
+    p = origin[:, None] + px.t * dh
+    nf = cm.face_toward(geometry.face_normals, geometry.face_anchor, origin)
+    n_hit = np.ascontiguousarray(nf.T).take(px.prim, axis=1)
+    return Surface(p, dh, nf, n_hit, geometry.tri_material.take(px.prim))
+
+
+def shade_diffuse(scene: Scene, geometry: SceneGeometry, rays: CameraRays, px: PixelHits,
+                  surf: Surface) -> tuple[np.ndarray, np.ndarray]:
+    """Step 3: flat Lambertian shading with cast shadows (every term but shadows is per triangle).
+
+    Returns:
+        shaded: (3, N) float32 radiance of the hit pixels.
+        sunlit: (N,) bool, the sun reaches the point.
+    """
+    lt = scene.lighting
+    sun = lt.sun_direction.astype(np.float32)
+    faces = cm.diffuse_faces(geometry.tri_color, surf.face_normals, sun, lt.sun_color, lt.ambient, lt.sky_zenith,
+                             lt.sky_horizon)
+    lit = faces.cos_sun.take(px.prim) > 0
+    cand = np.flatnonzero(lit)
+    blocked = _in_shadow(geometry, cand, px.hit, px.hit_object, surf.points, surf.normals, sun, rays.odd_column)
+    lit[cand[blocked]] = False
+    return cm.gather_faces(faces.shadowed, faces.lit, px.prim, lit), lit
+
+
+def apply_specular(scene: Scene, surf: Surface, shaded: np.ndarray, sunlit: np.ndarray) -> None:
+    """Step 5: sky reflection and sun highlight of shiny materials, into ``shaded`` (3, N) in place."""
+    spec = SPECULAR[surf.material]
+    shiny = np.flatnonzero(spec > 0)
+    if len(shiny):
+        lt = scene.lighting
+        out = cm.specular_shading(shaded.take(shiny, axis=1), surf.normals.take(shiny, axis=1),
+                                  surf.view.take(shiny, axis=1), spec[shiny], surf.material[shiny] == Mat.GLASS,
+                                  sunlit[shiny], lt.sun_direction.astype(np.float32), lt.sun_color, lt.sky_horizon,
+                                  lt.sky_zenith)
+        _put_columns(shaded, shiny, out)
 
 
 def render_image(scene: Scene, geometry: SceneGeometry, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Render camera 2.
+    """Render camera 2: intersection -> surface attributes -> diffuse shading and shadows -> textures ->
+    specular -> haze -> tone map -> sensor noise and blur (the shading steps are
+    :mod:`robustbench3d.sensors.camera_model`'s).
 
     Per-pixel quantities are stored by component, (3, N), so that numpy's elementwise operations run
     over whole rows (the (N, 3) layout broadcasts over rows of three, several times slower).
@@ -263,78 +338,19 @@ def render_image(scene: Scene, geometry: SceneGeometry, rng: np.random.Generator
     w, h = rays.image_size
     lt = scene.lighting
     noise = Noise(rng)
-    hits = geometry.intersect(rays.origins, rays.directions, 2000.0)
-    hit = np.flatnonzero(hits.hit)
-    miss = np.flatnonzero(~hits.hit)
-    object_id = np.full(w * h, -1, dtype=np.int32)
-    prim = hits.prim[hit]
-    hit_object = geometry.tri_object.take(prim)
-    object_id[hit] = hit_object
+    px = intersect_pixels(rays, geometry)
 
-    exposure = np.float32(lt.exposure * 1024.0)
+    exposure = cm.exposure_scale(lt.exposure)
     lut_index = np.empty((3, w * h), dtype=np.int16)  # display-LUT index of the exposed radiance
-    _put_columns(lut_index, miss, _lut_index(_sky(scene, rays.directions.take(miss, axis=0), noise), exposure))
-    dh = rays.channels.take(hit, axis=1)
-    t = hits.t[hit]
-    origin = rays.origin.astype(np.float32)
-    p = origin[:, None] + t * dh
+    _put_columns(lut_index, px.miss, cm.lut_index(_sky(scene, rays.directions.take(px.miss, axis=0), noise), exposure))
 
-    # flat shading: every term but textures and shadows is per triangle
-    sun = lt.sun_direction.astype(np.float32)
-    nf = geometry.face_normals
-    nf = nf * np.where(_dot3(nf, geometry.face_anchor - origin) > 0, -1.0, 1.0).astype(np.float32)[:, None]  # to camera
-    ndl = nf @ sun
-    sky_rgb = (0.5 * lt.sky_zenith + 0.5 * lt.sky_horizon).astype(np.float32)
-    amb = (np.float32(lt.ambient) * (0.6 + 0.4 * nf[:, 2:3])) * sky_rgb
-    face_shadow = geometry.tri_color * amb
-    face_lit = face_shadow + geometry.tri_color * (np.maximum(ndl, 0.0)[:, None] * lt.sun_color.astype(np.float32))
+    surf = surface_attributes(rays, geometry, px)
+    shaded, sunlit = shade_diffuse(scene, geometry, rays, px, surf)
+    _apply_textures(scene, surf.material, surf.points, shaded, noise)
+    apply_specular(scene, surf, shaded, sunlit)
+    radiance = cm.aerial_perspective(shaded, px.t, lt.sky_horizon, lt.haze_distance)
+    _put_columns(lut_index, px.hit, cm.lut_index(radiance, exposure))
 
-    n_hit = np.ascontiguousarray(nf.T).take(prim, axis=1)
-    lit = ndl.take(prim) > 0
-    cand = np.flatnonzero(lit)
-    lit[cand[_in_shadow(geometry, cand, hit, hit_object, p, n_hit, sun, rays.odd_column)]] = False
-    shaded = np.ascontiguousarray(np.concatenate([face_shadow, face_lit]).T).take(prim + len(nf) * lit, axis=1)
-    material = geometry.tri_material.take(prim)
-    _apply_textures(scene, material, p, shaded, noise)
-
-    spec = SPECULAR[material]
-    shiny = np.flatnonzero(spec > 0)
-    if len(shiny):
-        ns, ds = n_hit.take(shiny, axis=1), dh.take(shiny, axis=1)
-        cos_v = np.clip(-(ns[0] * ds[0] + ns[1] * ds[1] + ns[2] * ds[2]), 0.0, 1.0)
-        refl = ds + 2.0 * cos_v * ns
-        c1 = 1.0 - cos_v
-        c2 = c1 * c1
-        fresnel = 0.04 + 0.96 * c2 * c2 * c1
-        up = refl[2] > 0
-        base = shaded.take(shiny, axis=1)
-        env = 0.25 * base + 0.02
-        el = np.sqrt(np.clip(refl[2, up], 0.0, 1.0))
-        env[:, up] = lt.sky_horizon[:, None] + (lt.sky_zenith - lt.sky_horizon)[:, None] * el
-        k = spec[shiny] * np.maximum(fresnel, 0.08 + 0.2 * (material[shiny] == Mat.GLASS))
-        r1 = np.clip(np.ascontiguousarray(refl.T) @ sun, 0.0, 1.0)  # the (N, 3) matmul, for identical rounding
-        r4 = (r1 * r1) ** 2
-        r16 = (r4 * r4) ** 2
-        r64 = (r16 * r16) ** 2  # Phong exponent 64
-        highlight = (r64 * lit[shiny]) * lt.sun_color[:, None] * spec[shiny]
-        _put_columns(shaded, shiny, base * (1.0 - k) + k * env + highlight.astype(np.float32))
-
-    horizon = lt.sky_horizon.astype(np.float32)[:, None]
-    radiance = horizon + (shaded - horizon) * np.exp(-t / np.float32(lt.haze_distance))
-    _put_columns(lut_index, hit, _lut_index(radiance, exposure))
-
-    img = _display_lut().take(lut_index.T).reshape(h, w, 3)
-    # sensor noise: sum of two uniform 3-bit draws, centred (triangular on -7..7, sd 3.2 grey levels)
+    img = cm.display_lut().take(lut_index.T).reshape(h, w, 3)
     b = np.frombuffer(rng.bytes(img.size), dtype=np.uint8).reshape(img.shape)
-    img += b & 7
-    img += b >> 5
-    img8 = np.clip(img - 7, 0, 255).astype(np.uint8)
-    return _blur121(img8), object_id.reshape(h, w)
-
-
-def _blur121(img: np.ndarray) -> np.ndarray:
-    """3x3 binomial blur ([1, 2, 1] x [1, 2, 1] / 16) of an (H, W, 3) uint8 image."""
-    from PIL import Image, ImageFilter
-
-    kernel = ImageFilter.Kernel((3, 3), [1, 2, 1, 2, 4, 2, 1, 2, 1], scale=16)
-    return np.asarray(Image.fromarray(img, "RGB").filter(kernel))
+    return cm.optics_blur(cm.apply_sensor_noise(img, b)), px.object_id.reshape(h, w)

@@ -4,21 +4,10 @@ Frame: velodyne (x forward, y left, z up; m). Output rows are (x, y, z, reflecta
 KITTI scan order (laser by laser from the top, azimuth increasing from 0 deg; rays without a
 return are dropped, the order of the others is kept).
 
-Models (fitted by eye to the six real KITTI scans; ranges in m):
-
-* Rays: :class:`~robustbench3d.sensors.hdl64e.HDL64E` with 2,154 firings per laser, fixed per-laser
-  firing offsets and a random rotation phase per frame.
-* Return or not: a pulse returns with probability ``return_prob(material) * sigmoid(ln(S / S0) /
-  0.5)`` with received signal S = rho * max(cos(incidence), 0.02) / r^2 and S0 = 3.9e-6, so grazing
-  asphalt fades out around 50-60 m while walls and cars return up to the 120 m maximum range.
-  Glass returns three pulses in four (the rest pass through or scatter away), tyres most.
-* Range noise: Gaussian along the ray, sigma 1 cm clipped at 3 cm (the point stays on its laser's
-  cone, as in real scans).
-* Reflectance: rho * (0.55 + 0.45 cos(incidence)) * (1 - 0.012 max(0, r - 20)) with 12 % log-normal
-  noise, reported as 0 with probability 0.04 + 0.9 sigmoid((r - 45) / 5) (real scans: about 5 % zeros
-  below 25 m, half at 45 m, 90 % beyond 60 m), quantised to 0.01 and kept in [0, 0.99].
-  rho comes from the material (asphalt 0.30, lane paint 0.75, grass 0.40, car paint 0.23-0.58 by
-  brightness, glass 0.08, signs 0.97, ...).
+Rays: :class:`~robustbench3d.sensors.hdl64e.HDL64E` with 2,154 firings per laser, fixed per-laser
+firing offsets and a random rotation phase per frame. Return, range-noise and reflectance model:
+:mod:`robustbench3d.sensors.lidar_model` (fitted by eye to the six real KITTI scans); this module adds
+the terrain's per-point reflectivity (asphalt 0.30, lane paint 0.75, grass 0.40).
 """
 
 from __future__ import annotations
@@ -28,19 +17,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from robustbench3d.sensors import lidar_model as lm
 from robustbench3d.sensors.hdl64e import AZIMUTH_QUANTUM_DEG, HDL64E, MAX_RANGE_M
-from robustbench3d.synth.materials import REFLECTIVITY, RETURN_PROB, Mat
+from robustbench3d.synth.materials import RETURN_PROB, Mat
 from robustbench3d.synth.raytrace import SceneGeometry
 from robustbench3d.synth.scene import Scene
-
-SIGNAL_THRESHOLD = 3.9e-6
-RANGE_NOISE_SD = 0.01
-#: Returns closer than this are discarded, m (the real scans start at about 1.4 m).
-MIN_RANGE_M = 1.0
-
-
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return 0.5 * (1.0 + np.tanh(0.5 * x))
 
 
 def ground_reflectivity(scene: Scene, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -52,21 +33,15 @@ def ground_reflectivity(scene: Scene, x: np.ndarray, y: np.ndarray) -> np.ndarra
     return rho
 
 
-#: Materials whose reflectivity scales with the albedo's brightness (indexed by material id).
-_TINTED = np.isin(np.arange(len(Mat)), [Mat.PAINT, Mat.FACADE, Mat.WALL, Mat.CLOTH])
-
-
 def surface_reflectivity(scene: Scene, material: np.ndarray, color: np.ndarray, x: np.ndarray,
                          y: np.ndarray) -> np.ndarray:
-    """Reflectivity rho in [0, 1) per hit (velodyne x, y) from material, albedo brightness and road markings."""
-    rho = REFLECTIVITY[material]
-    lum = color @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
-    tinted = _TINTED[material]
-    rho[tinted] *= 0.55 + 0.9 * np.sqrt(lum[tinted])
+    """Reflectivity rho in [0, 0.98] per hit (velodyne x, y): :func:`~robustbench3d.sensors.lidar_model.
+    material_reflectivity` of material and albedo, the terrain's from the road markings."""
+    rho = lm.material_reflectivity(material, color)
     g = material == Mat.GROUND
     if g.any():
         rho[g] = ground_reflectivity(scene, x[g], y[g])
-    return np.clip(rho, 0.0, 0.98)
+    return rho
 
 
 class _Beams(NamedTuple):
@@ -102,29 +77,26 @@ def simulate_scan(scene: Scene, geometry: SceneGeometry, rng: np.random.Generato
     bx, by, bz = beams.direction_rows
     directions = np.stack([c * bx - s * by, s * bx + c * by, bz])
     hits = geometry.intersect(beams.origins, directions.T, MAX_RANGE_M)
-    idx = np.flatnonzero(hits.hit & (hits.t > MIN_RANGE_M))
+    idx = np.flatnonzero(hits.hit & lm.in_range(hits.t))
     prim = hits.prim[idx]
     t = hits.t[idx].astype(np.float64)
     d = directions.take(idx, axis=1)
     o = beams.origin_rows.take(idx, axis=1)
-    nrm = geometry.face_normals.take(prim, axis=0)
-    cos_inc = np.abs(nrm[:, 0] * d[0] + nrm[:, 1] * d[1] + nrm[:, 2] * d[2])  # = sum(nrm * d.T, axis=1)
+    cos_inc = lm.cos_incidence(geometry.face_normals.take(prim, axis=0), d.T)
     material = geometry.tri_material[prim]
     rho = surface_reflectivity(scene, material, geometry.tri_color.take(prim, axis=0), o[0] + t * d[0],
                                o[1] + t * d[1])
 
-    signal = rho * np.maximum(cos_inc, 0.02) / (t * t)
-    p_return = RETURN_PROB[material] * _sigmoid(np.log(np.maximum(signal, 1e-30) / SIGNAL_THRESHOLD) / 0.5)
+    p_return = lm.return_probability(RETURN_PROB[material], rho, cos_inc, t)
     keep = np.flatnonzero(rng.random(len(idx)) < p_return)
     prim, t, cos_inc, rho = prim[keep], t[keep], cos_inc[keep], rho[keep]
     d, o = d.take(keep, axis=1), o.take(keep, axis=1)
 
     n = len(keep)
-    r = t + np.clip(rng.normal(0.0, RANGE_NOISE_SD, n), -3 * RANGE_NOISE_SD, 3 * RANGE_NOISE_SD)
-    level = np.clip(1.0 - 0.012 * np.maximum(r - 20.0, 0.0), 0.3, 1.0)
-    refl = rho * (0.55 + 0.45 * cos_inc) * level * np.exp(rng.normal(0.0, 0.12, n))
-    zero = rng.random(n) < 0.04 + 0.9 * _sigmoid((r - 45.0) / 5.0)
+    r = t + lm.range_noise(rng, n)
+    refl = lm.reflectance_mean(rho, cos_inc, r) * lm.reflectance_noise(rng, n)
+    zero = rng.random(n) < lm.zero_reflectance_probability(r)
     scan = np.empty((n, 4), dtype=np.float32)
     scan[:, :3] = (o + r * d).T
-    scan[:, 3] = np.where(zero, 0.0, np.clip(np.floor(refl * 100.0) / 100.0, 0.0, 0.99))
+    scan[:, 3] = lm.quantize_reflectance(refl, zero)
     return scan, geometry.tri_object[prim]

@@ -11,6 +11,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from robustbench3d.sensors.mesh import icosphere
 from robustbench3d.synth.materials import Mat
 
 
@@ -227,40 +228,10 @@ def loft(rings: np.ndarray, material: np.ndarray, color: np.ndarray, cap_materia
     return Mesh(verts, _loft_faces(m, k), mat.astype(np.uint8), col.astype(np.float32))
 
 
-@lru_cache(maxsize=4)
-def _icosphere(level: int) -> tuple[np.ndarray, np.ndarray]:
-    t = (1 + 5 ** 0.5) / 2
-    v = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
-         [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
-    f = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2],
-         [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11],
-         [6, 2, 10], [8, 6, 7], [9, 8, 1]]
-    verts = [np.array(p, dtype=np.float64) / np.linalg.norm(p) for p in v]
-    faces = f
-    for _ in range(level):
-        midpoint: dict[tuple[int, int], int] = {}
-        new = []
-        for tri in faces:
-            ids = []
-            for i, j in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
-                key = (min(i, j), max(i, j))
-                if key not in midpoint:
-                    p = verts[i] + verts[j]
-                    verts.append(p / np.linalg.norm(p))
-                    midpoint[key] = len(verts) - 1
-                ids.append(midpoint[key])
-            ab, bc, ca = ids
-            a, b, c = tri
-            new += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        faces = new
-    return np.array(verts), np.array(faces, dtype=np.int64)
-
-
 def ellipsoid(center: np.ndarray, radii: np.ndarray, material: Mat, color: np.ndarray, level: int = 1,
               roughness: float = 0.0, rng: np.random.Generator | None = None) -> Mesh:
     """Ellipsoid from an icosphere (level 1: 80 faces); ``roughness`` jitters radii by that fraction."""
-    v, f = _icosphere(level)
-    v = v.copy()
+    v, f = icosphere(level)
     if roughness > 0:
         if rng is None:
             raise ValueError("roughness needs a Generator")

@@ -14,6 +14,7 @@ import numpy as np
 from embreex import rtcore, rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
+from robustbench3d.sensors.mesh import face_normals
 from robustbench3d.synth.scene import Scene
 
 
@@ -68,17 +69,10 @@ class SceneGeometry:
         self.tri_material = np.concatenate([m.material for m in meshes])
         #: (F, 3) float32 linear-RGB albedo of each triangle.
         self.tri_color = np.concatenate([m.color for m in meshes]).astype(np.float32)
-        v0, v1, v2 = (np.take(self.vertices, self.faces[:, k], axis=0) for k in range(3))
-        a, b = v1 - v0, v2 - v0
-        n = np.empty_like(a)  # the cross product a x b, computed like np.cross
-        n[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-        n[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-        n[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-        length = np.sqrt(n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1] + n[:, 2] * n[:, 2])  # = np.linalg.norm(n, axis=1)
         #: (F, 3) float32 unit normals (orientation arbitrary).
-        self.face_normals = (n / np.maximum(length, 1e-12)[:, None]).astype(np.float32)
+        self.face_normals = face_normals(self.vertices, self.faces).astype(np.float32)
         #: (F, 3) float32 first vertex of each triangle.
-        self.face_anchor = v0.astype(np.float32)
+        self.face_anchor = np.take(self.vertices, self.faces[:, 0], axis=0).astype(np.float32)
         self._meshes = meshes
         self._scene = _embree(self.vertices, self.faces)
         self._solo: dict[int, rtcore_scene.EmbreeScene] = {}
