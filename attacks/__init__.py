@@ -17,10 +17,13 @@ Importing this package imports no numpy or torch.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
-from robustbench3d.attacks.spec import AttackRequirements, AttackSpec
+from robustbench3d.attacks.spec import AttackRequirements, AttackSpec, AttackSpecError
 from robustbench3d.registry import Registry
+
+if TYPE_CHECKING:
+    from robustbench3d.attacks.base import Attack
 
 ENTRY_POINT_GROUP = "robustbench3d.attacks"
 
@@ -29,12 +32,16 @@ ATTACKS: Registry[AttackSpec] = Registry(
     modules=("robustbench3d.attacks.controls",),
 )
 
+#: A factory ``(**params) -> Attack``: an Attack subclass or a function.
+AttackFactory = TypeVar("AttackFactory", bound="Callable[..., Attack]")
+
 
 def register_attack(name: str, *, requirements: AttackRequirements | None = None,
-                    summary: str = "") -> Callable[[Callable[..., Any]], Callable[..., Any]]:
-    """Decorator: register a factory ``(**params) -> Attack`` (typically the class) under ``name``."""
+                    summary: str = "") -> Callable[[AttackFactory], AttackFactory]:
+    """Decorator: register a factory ``(**params) -> Attack`` (typically the class) under ``name``;
+    the factory is returned unchanged."""
 
-    def decorator(factory: Callable[..., Any]) -> Callable[..., Any]:
+    def decorator(factory: AttackFactory) -> AttackFactory:
         ATTACKS.register(name, AttackSpec(factory=factory, requirements=requirements or AttackRequirements(),
                                           summary=summary))
         return factory
@@ -42,9 +49,17 @@ def register_attack(name: str, *, requirements: AttackRequirements | None = None
     return decorator
 
 
-def create_attack(name: str, **params: Any) -> Any:
-    """Build the registered attack ``name`` with ``params`` (unknown names: did-you-mean error)."""
-    return ATTACKS.get(name).create(name, **params)
+def create_attack(name: str, **params: Any) -> Attack:
+    """Build the registered attack ``name`` with ``params`` (unknown names: did-you-mean error;
+    parameters the factory does not take: :class:`AttackSpecError` naming the attack)."""
+    spec = ATTACKS.get(name)
+    try:
+        return spec.create(**params)
+    except AttackSpecError as exc:
+        raise AttackSpecError(f"attack {name!r}: {exc}") from None
 
 
-__all__ = ["ATTACKS", "ENTRY_POINT_GROUP", "AttackRequirements", "AttackSpec", "create_attack", "register_attack"]
+__all__ = [
+    "ATTACKS", "ENTRY_POINT_GROUP", "AttackRequirements", "AttackSpec", "AttackSpecError",
+    "create_attack", "register_attack",
+]

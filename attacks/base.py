@@ -33,15 +33,16 @@ def target_cars(labels: Labels | None) -> Labels:
     (rect frame; bottom-centre location in m, rotation_y in rad). Empty without labels."""
     if labels is None:
         return Labels.empty()
-    return labels.select(np.isin(labels.type.astype(str), TARGET_TYPES))
+    return labels.of_types(TARGET_TYPES)
 
 
 class Attack(ABC):
     """Base class of every attack object (see the module doc for the calling protocol)."""
 
     def prepare(self, victim: Any) -> None:  # noqa: B027 - optional hook, deliberately empty
-        """Called once per benchmark cell before :meth:`apply`; white-box attacks (declaring
-        ``needs_gradients``) keep the victim to query its oracles. Default: nothing."""
+        """Called once per benchmark cell before :meth:`apply` (one instance serves every cell of a
+        run, so this replaces any earlier victim); white-box attacks (declaring ``needs_gradients``)
+        keep the victim to query its oracles. Default: nothing."""
 
     @abstractmethod
     def apply(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> Frame:

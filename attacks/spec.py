@@ -1,5 +1,7 @@
 """What the attack registry holds: :class:`AttackSpec` (a factory plus metadata) and the victim
-requirements an attack declares (:class:`AttackRequirements`).
+requirements an attack declares (:class:`AttackRequirements`, checked against the victim's
+:class:`~robustbench3d.victims.spec.Capabilities`: attacks know the victim contract, victims never
+know attacks).
 
 Standard library only, so importing ``robustbench3d.attacks`` loads no numpy/torch.
 """
@@ -7,12 +9,19 @@ Standard library only, so importing ``robustbench3d.attacks`` loads no numpy/tor
 from __future__ import annotations
 
 import inspect
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from robustbench3d.errors import RobustBenchError
-from robustbench3d.registry import Capabilities
+from robustbench3d.registry import Spec
+from robustbench3d.victims.spec import Capabilities
+
+if TYPE_CHECKING:
+    from robustbench3d.attacks.base import Attack
+
+
+class AttackSpecError(RobustBenchError):
+    """An attack factory refused its parameters or built something that is not an Attack."""
 
 
 @dataclass(frozen=True)
@@ -53,7 +62,7 @@ class AttackRequirements:
 
 
 @dataclass(frozen=True)
-class AttackSpec:
+class AttackSpec(Spec["Attack"]):
     """A factory ``(**params) -> Attack`` plus metadata; :meth:`create` checks the parameters.
 
     Attributes:
@@ -62,27 +71,21 @@ class AttackSpec:
         summary: one line for listings.
     """
 
-    factory: Callable[..., Any]
     requirements: AttackRequirements = field(default_factory=AttackRequirements)
     summary: str = ""
 
-    @property
-    def key(self) -> str:
-        """Identity used to tell a re-registration of the same factory from a collision."""
-        mod, qual = getattr(self.factory, "__module__", None), getattr(self.factory, "__qualname__", None)
-        return f"{mod}:{qual}" if mod and qual else f"id:{id(self.factory)}"
-
-    def create(self, name: str = "attack", **params: Any) -> Any:
-        """Build the attack; unknown or missing parameters raise :class:`RobustBenchError`."""
+    def create(self, **params: Any) -> Attack:
+        """Build the attack; unknown or missing parameters, or a factory that does not return an
+        :class:`~robustbench3d.attacks.base.Attack`, raise :class:`AttackSpecError`."""
         from robustbench3d.attacks.base import Attack
 
         try:
             inspect.signature(self.factory).bind(**params)
         except TypeError as exc:
-            raise RobustBenchError(f"attack {name!r}: invalid parameters {params}: {exc}") from None
+            raise AttackSpecError(f"invalid parameters {params}: {exc}") from None
         except ValueError:  # no signature available (builtins): let the call decide
             pass
         attack = self.factory(**params)
         if not isinstance(attack, Attack):
-            raise RobustBenchError(f"attack {name!r}: factory returned a {type(attack).__name__}, not an Attack")
+            raise AttackSpecError(f"factory returned a {type(attack).__name__}, not an Attack")
         return attack

@@ -43,10 +43,10 @@ def run(args: argparse.Namespace) -> int:
         raise RobustBenchError(str(exc)) from None
 
     from robustbench3d.eval.kitti_eval import evaluate_dirs
-    from robustbench3d.eval.report import format_table, write_json
+    from robustbench3d.eval.report import ap_table, write_json
 
     result = evaluate_dirs(args.gt, args.pred, args.split, classes=classes, metrics=metrics)
-    print(format_table(result))
+    print(ap_table(result))
     if args.json:
         write_json(args.json, result)
     return 0

@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from robustbench3d.eval.rules import DIFFICULTIES
+from robustbench3d.eval.rules import DIFFICULTIES, RECALL_SAMPLES
+from robustbench3d.texttable import format_table
 
 _METRIC_LABEL = {"2d": "2D AP", "aos": "AOS", "bev": "BEV AP", "3d": "3D AP"}
 
@@ -15,20 +16,18 @@ def row_label(cls: str, metric: str, threshold: float, recall: str) -> str:
     return f"{cls} {_METRIC_LABEL[metric]}@{threshold:.2f} {recall}"
 
 
-def format_table(result: dict) -> str:
+def ap_table(result: dict) -> str:
     """Metric x difficulty table (AP in percent), R40 and R11 rows labelled, then notes."""
     meta = result["meta"]
     rows = []
     for cls in meta["classes"]:
         for metric, by_recall in result.get(cls, {}).items():
             thr = meta["min_overlap"][cls][metric]
-            for recall in ("R40", "R11"):
+            for recall in RECALL_SAMPLES:
                 aps = by_recall[recall]
-                rows.append((row_label(cls, metric, thr, recall), [aps[d] for d in DIFFICULTIES]))
-    width = max([len(r[0]) for r in rows] + [10])
+                rows.append([row_label(cls, metric, thr, recall), *(f"{aps[d]:.2f}" for d in DIFFICULTIES)])
     head = f"KITTI AP in % ({meta['evaluator']} {meta['version']}, devkit semantics), {meta['frames']} frames"
-    lines = [head, " " * width + "".join(f"{d:>10}" for d in DIFFICULTIES)]
-    lines += [label.ljust(width) + "".join(f"{v:10.2f}" for v in values) for label, values in rows]
+    lines = [head, format_table(["", *DIFFICULTIES], rows, align="l" + "r" * len(DIFFICULTIES), rule=False)]
     for s in meta.get("skipped", []):
         lines.append(f"skipped: {s['class']} {s['metric']}: {s['reason']}")
     lines += [f"note: {n}" for n in meta.get("notes", [])]

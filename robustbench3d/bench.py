@@ -17,6 +17,8 @@ import sys
 import time
 from dataclasses import dataclass
 
+from robustbench3d.texttable import format_table
+
 BENCHMARKS: dict[str, str] = {
     "cli": "robustbench3d.bench:cli_startup",
     "eval": "robustbench3d.eval.bench:run",
@@ -61,8 +63,8 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def format_table(rows: list[dict]) -> str:
-    """Plain-text table of dict rows (columns in first-seen order)."""
+def dict_table(rows: list[dict]) -> str:
+    """Plain-text table of dict rows (columns in first-seen order; floats to 4 significant digits)."""
     cols: list[str] = []
     for r in rows:
         cols.extend(k for k in r if k not in cols)
@@ -74,12 +76,7 @@ def format_table(rows: list[dict]) -> str:
             return "yes" if v else "NO"
         return "" if v is None else str(v)
 
-    cells = [[fmt(r.get(c)) for c in cols] for r in rows]
-    widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(cols)]
-    line = "  ".join(c.ljust(w) for c, w in zip(cols, widths, strict=True))
-    sep = "  ".join("-" * w for w in widths)
-    body = ["  ".join(v.ljust(w) for v, w in zip(row, widths, strict=True)) for row in cells]
-    return "\n".join([line, sep, *body])
+    return format_table(cols, [[fmt(r.get(c)) for c in cols] for r in rows])
 
 
 def cli_startup(quick: bool) -> list[dict]:
@@ -115,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         rows = getattr(importlib.import_module(module), func)(quick=args.quick)
         print(f"== {name} ({time.perf_counter() - t0:.1f} s)")
-        print(format_table(rows))
+        print(dict_table(rows))
         all_rows.extend({"benchmark": name, **r} for r in rows)
     if args.json:
         from robustbench3d.fileio import atomic_write_text

@@ -73,7 +73,7 @@ def format_comparison(stats: list[dict]) -> str:
     """Readable table: one column per dataset, plus the max per-ring elevation difference to the first."""
     import numpy as np
 
-    from robustbench3d.bench import format_table
+    from robustbench3d.bench import dict_table
 
     def row(name: str, fn) -> dict:
         return {"statistic": name, **{f"[{i}] {s['root']}": fn(s) for i, s in enumerate(stats)}}
@@ -101,7 +101,7 @@ def format_comparison(stats: list[dict]) -> str:
         rows.append(row(f"points on a car at {key} (median, n)",
                         lambda s, k=key: "n/a" if not s["car_points_by_distance"][k]["cars"] else
                         f"{s['car_points_by_distance'][k]['median']:g} ({s['car_points_by_distance'][k]['cars']})"))
-    return format_table(rows)
+    return dict_table(rows)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -24,7 +24,7 @@ from robustbench3d.kitti.dataset import KittiDataset
 from robustbench3d.kitti.labels import Labels, parse_labels
 from robustbench3d.kitti.splits import read_split
 from robustbench3d.provenance import SplitDigest
-from robustbench3d.synth.cli import DEFAULT_FRAMES, DEFAULT_SEED, DEFAULT_VAL_FRACTION
+from robustbench3d.synth import DEFAULT_FRAMES, DEFAULT_SEED, DEFAULT_VAL_FRACTION
 
 EMBEDDED_NAME = "synth"
 

@@ -1,4 +1,4 @@
-"""Typed, lazy, strict plugin registries (victims now; attacks and datasets later).
+"""Typed, lazy, strict plugin registries (victims and attacks; datasets later).
 
 A :class:`Registry` maps names to targets of one type ``T``. Targets arrive three ways:
 
@@ -17,9 +17,9 @@ raises :class:`PluginImportError` naming the distribution, the entry point and t
 setting the environment variable ``ROBUSTBENCH3D_NO_PLUGINS=1`` disables entry-point discovery
 altogether.
 
-Entries also carry metadata for listings and result provenance (:class:`EntryInfo`): the
-capabilities of the target (:class:`Capabilities`) and the sha256 of its weights. This module
-imports only the standard library.
+Targets are typically :class:`Spec` objects (a factory plus whatever metadata the kind of target
+declares: :class:`robustbench3d.victims.spec.VictimSpec`, :class:`robustbench3d.attacks.spec.AttackSpec`).
+This module knows no kind of target and imports only the standard library.
 """
 
 from __future__ import annotations
@@ -43,10 +43,7 @@ F = TypeVar("F")
 #: Environment variable: any value other than "", "0", "false", "no" disables plugin discovery.
 NO_PLUGINS_ENV = "ROBUSTBENCH3D_NO_PLUGINS"
 
-MODALITIES: tuple[str, ...] = ("camera", "lidar")
-BACKENDS: tuple[str, ...] = ("torch", "onnx", "other")
 _NAME = re.compile(r"^[a-z0-9][a-z0-9._-]*$")
-_SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
 
 class RegistryError(RobustBenchError, ValueError):
@@ -69,63 +66,11 @@ class UnknownNameError(RobustBenchError, LookupError):
 
 
 @dataclass(frozen=True)
-class Capabilities:
-    """What a registered model (or attack) uses and offers.
-
-    Attributes:
-        modalities: sensors used, a subset of ``("camera", "lidar")``.
-        backend: "torch", "onnx" or "other" (e.g. numpy).
-        gradients: True if it exposes differentiable quantities to attacks (white box).
-        deterministic: True if identical inputs give bit-identical outputs across calls.
-    """
-
-    modalities: tuple[str, ...]
-    backend: str
-    gradients: bool
-    deterministic: bool
-
-    def __post_init__(self) -> None:
-        mods = tuple(self.modalities)
-        if not mods or len(set(mods)) != len(mods) or any(m not in MODALITIES for m in mods):
-            raise ValueError(f"modalities must be distinct values of {MODALITIES}, got {mods}")
-        object.__setattr__(self, "modalities", tuple(m for m in MODALITIES if m in mods))
-        if self.backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"modalities": list(self.modalities), "backend": self.backend,
-                "gradients": self.gradients, "deterministic": self.deterministic}
-
-
-@dataclass(frozen=True)
-class EntryInfo:
-    """Metadata every registered entry declares.
-
-    Attributes:
-        capabilities: see :class:`Capabilities`.
-        weights_sha256: lowercase hex sha256 of the shipped weights file, None until weights ship.
-        summary: one line for listings.
-    """
-
-    capabilities: Capabilities
-    weights_sha256: str | None = None
-    summary: str = ""
-
-    def __post_init__(self) -> None:
-        if self.weights_sha256 is not None and not _SHA256.match(self.weights_sha256):
-            raise ValueError(f"weights_sha256 must be 64 lowercase hex digits, got {self.weights_sha256!r}")
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"capabilities": self.capabilities.as_dict(), "weights_sha256": self.weights_sha256,
-                "summary": self.summary}
-
-
-@dataclass(frozen=True)
 class Spec(Generic[F]):
-    """A registrable factory with its metadata: ``spec.create(**kwargs)`` builds the object."""
+    """A registrable factory: ``spec.create(**kwargs)`` builds the object. Subclasses add the
+    metadata of their kind of target and may check what ``create`` builds."""
 
     factory: Callable[..., F]
-    info: EntryInfo
 
     def create(self, **kwargs: Any) -> F:
         return self.factory(**kwargs)
@@ -417,6 +362,6 @@ class Registry(Generic[T]):
 
 
 __all__ = [
-    "BACKENDS", "MODALITIES", "NO_PLUGINS_ENV", "Capabilities", "Entry", "EntryInfo", "PluginImportError",
-    "Registry", "RegistryError", "Spec", "UnknownNameError", "import_reference", "plugins_disabled",
+    "NO_PLUGINS_ENV", "Entry", "PluginImportError", "Registry", "RegistryError", "Spec", "UnknownNameError",
+    "import_reference", "plugins_disabled",
 ]

@@ -16,13 +16,15 @@ from __future__ import annotations
 import csv
 import io
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from robustbench3d.errors import DataFormatError
+from robustbench3d.eval.rules import DIFFICULTIES, RECALL_SAMPLES
 from robustbench3d.fileio import atomic_write_text
 
 SCHEMA_VERSION = 1
@@ -30,8 +32,8 @@ SCHEMA_RESOURCE = "summary.schema.json"
 CSV_COLUMNS: tuple[str, ...] = (
     "victim", "attack", "proposals", "class", "metric", "iou", "recall_points", "difficulty", "ap",
 )
-_DIFFICULTIES = ("easy", "moderate", "hard")
-_RECALLS = {"R40": 40, "R11": 11}
+#: Recall sampling name -> number of recall points (``R40`` -> 40, ``R11`` -> 11), in report order.
+RECALL_POINTS: dict[str, int] = {name: len(idx) for name, idx in RECALL_SAMPLES.items()}
 
 
 @lru_cache(maxsize=1)
@@ -115,24 +117,111 @@ def read_summary(path: str | Path) -> list[dict[str, Any]]:
     return data
 
 
+class APValue(NamedTuple):
+    """One AP number of an evaluation (percent) and where it sits."""
+
+    cls: str
+    metric: str
+    recall: str
+    difficulty: str
+    ap: float
+
+
+@dataclass(frozen=True)
+class APResult:
+    """Typed read access to the evaluator's JSON (:func:`robustbench3d.eval.evaluate`'s result)."""
+
+    data: Mapping[str, Any]
+
+    @property
+    def classes(self) -> tuple[str, ...]:
+        """Evaluated classes, in the evaluator's order."""
+        return tuple(self.data["meta"]["classes"])
+
+    def metrics(self, cls: str) -> tuple[str, ...]:
+        """Metrics with AP values for ``cls`` (none if the class was skipped), in result order."""
+        return tuple(self.data.get(cls, {}))
+
+    def iou(self, cls: str, metric: str) -> float:
+        """Minimum overlap of ``metric`` for ``cls``."""
+        return self.data["meta"]["min_overlap"][cls][metric]
+
+    def ap(self, cls: str, metric: str, recall: str, difficulty: str) -> float:
+        """AP in percent; :class:`LookupError` naming what is missing if there is no such value."""
+        checks = (("recall sampling", recall, tuple(RECALL_POINTS)), ("difficulty", difficulty, DIFFICULTIES))
+        for what, value, known in checks:
+            if value not in known:
+                raise LookupError(f"unknown {what} {value!r}; expected one of {', '.join(known)}")
+        if metric not in self.metrics(cls):
+            have = ", ".join(f"{c}/{m}" for c in self.classes for m in self.metrics(c)) or "none"
+            raise LookupError(f"no AP for class {cls!r} metric {metric!r} (evaluated: {have})")
+        return self.data[cls][metric][recall][difficulty]
+
+    def values(self) -> Iterator[APValue]:
+        """Every AP value: by class, metric, recall sampling (R40 before R11), then difficulty."""
+        for cls in self.classes:
+            for metric in self.metrics(cls):
+                for recall in RECALL_POINTS:
+                    for diff in DIFFICULTIES:
+                        yield APValue(cls, metric, recall, diff, self.data[cls][metric][recall][diff])
+
+
+@dataclass(frozen=True)
+class CellResult:
+    """Typed read access to one summary cell (see the module docstring)."""
+
+    cell: Mapping[str, Any]
+
+    @property
+    def victim(self) -> str:
+        return self.cell["victim"]
+
+    @property
+    def attack(self) -> str:
+        return self.cell["attack"]
+
+    @property
+    def proposals(self) -> str:
+        return self.cell["proposals"]
+
+    @property
+    def status(self) -> str:
+        return self.cell["status"]
+
+    @property
+    def reason(self) -> str | None:
+        return self.cell["reason"]
+
+    @property
+    def frames(self) -> int:
+        return self.cell["dataset"]["frames"]
+
+    @property
+    def result(self) -> APResult | None:
+        """The cell's evaluation, or None unless it is ``ok``."""
+        return APResult(self.cell["metrics"]) if self.status == "ok" else None
+
+    def ap(self, cls: str, metric: str, recall: str, difficulty: str) -> float:
+        """AP in percent of an ``ok`` cell (:class:`LookupError` for another status or a missing value)."""
+        result = self.result
+        if result is None:
+            raise LookupError(f"cell {self.victim} / {self.attack} / {self.proposals} is {self.status}: no AP")
+        return result.ap(cls, metric, recall, difficulty)
+
+
 def long_rows(cells: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per AP value of every ``ok`` cell, in cell order, then class, metric, recall
     sampling (R40 before R11) and difficulty. ``iou`` is the metric's minimum overlap,
     ``recall_points`` 40 or 11, ``ap`` in percent."""
     rows = []
-    for cell in cells:
-        if cell["status"] != "ok":
+    for cell in map(CellResult, cells):
+        result = cell.result
+        if result is None:
             continue
-        metrics = cell["metrics"]
-        overlap = metrics["meta"]["min_overlap"]
-        for cls in metrics["meta"]["classes"]:
-            for metric, by_recall in metrics.get(cls, {}).items():
-                for recall, points in _RECALLS.items():
-                    for diff in _DIFFICULTIES:
-                        rows.append({"victim": cell["victim"], "attack": cell["attack"],
-                                     "proposals": cell["proposals"], "class": cls, "metric": metric,
-                                     "iou": overlap[cls][metric], "recall_points": points, "difficulty": diff,
-                                     "ap": by_recall[recall][diff]})
+        for v in result.values():
+            rows.append({"victim": cell.victim, "attack": cell.attack, "proposals": cell.proposals, "class": v.cls,
+                         "metric": v.metric, "iou": result.iou(v.cls, v.metric),
+                         "recall_points": RECALL_POINTS[v.recall], "difficulty": v.difficulty, "ap": v.ap})
     return rows
 
 
@@ -154,6 +243,7 @@ def write_long_csv(path: str | Path, cells: Sequence[dict[str, Any]]) -> list[di
 
 
 __all__ = [
-    "CSV_COLUMNS", "SCHEMA_VERSION", "dumps", "load_schema", "long_csv_text", "long_rows", "read_json",
-    "read_summary", "schema_errors", "validate_summary", "write_long_csv", "write_validated",
+    "CSV_COLUMNS", "RECALL_POINTS", "SCHEMA_VERSION", "APResult", "APValue", "CellResult", "dumps", "load_schema",
+    "long_csv_text", "long_rows", "read_json", "read_summary", "schema_errors", "validate_summary", "write_long_csv",
+    "write_validated",
 ]

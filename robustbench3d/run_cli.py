@@ -10,8 +10,6 @@ import json
 import os
 from typing import Any
 
-PROPOSAL_CHOICES = ("detector", "gt")
-
 
 def _names(text: str) -> list[str]:
     return [t.strip() for t in text.split(",") if t.strip()]
@@ -68,8 +66,8 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from robustbench3d.fileio import check_output_dir, remove_created_dir
-    from robustbench3d.runner import RunConfig, format_table, run_benchmark
-    from robustbench3d.victims.onnx.registration import resolve_victim_references
+    from robustbench3d.runner import RunConfig, run_benchmark, summary_table
+    from robustbench3d.victims import resolve_victim_references
 
     out = check_output_dir(args.out, "--out")
     created = not out.exists()
@@ -90,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         if created:  # a run that failed before writing any result leaves no directory behind
             remove_created_dir(out)
         raise
-    print(format_table(report.summary))
+    print(summary_table(report.summary))
     print(f"results: {report.out / 'summary.json'}, {report.out / 'results.csv'}")
     if report.earlier or report.left_out:
         print(f"{len(report.earlier)} of these cells come from earlier runs into {report.out}; "

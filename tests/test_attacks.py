@@ -11,7 +11,8 @@ from robustbench3d.errors import RobustBenchError
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
-from robustbench3d.registry import Capabilities, RegistryError, UnknownNameError
+from robustbench3d.registry import RegistryError, UnknownNameError
+from robustbench3d.victims.spec import Capabilities
 
 
 def random_frame(rng: np.random.Generator) -> Frame:
@@ -77,7 +78,7 @@ def test_registry_accepts_only_attack_specs_and_factories_must_build_attacks():
         ATTACKS.register("test-not-a-spec", object())
     spec = AttackSpec(factory=lambda: object())
     with pytest.raises(RobustBenchError, match="returned a object, not an Attack"):
-        spec.create("test-bad-factory")
+        spec.create()
 
 
 def test_attack_base_class_requires_apply_and_describe():

@@ -11,6 +11,7 @@ from robustbench3d.errors import DataFormatError
 from robustbench3d.kitti import (
     CALIB_KEYS,
     KittiDataset,
+    Labels,
     parse_calibration,
     parse_labels,
     read_calibration,
@@ -24,6 +25,7 @@ from robustbench3d.kitti import (
     write_scan,
     write_split,
 )
+from robustbench3d.kitti.labels import type_mask
 
 FRAMES = [f"{i:06d}" for i in range(6)]
 
@@ -70,6 +72,23 @@ def test_scored_round_trip_keeps_score_order(tmp_path: Path) -> None:
     write_labels(tmp_path / "r.txt", dets)
     again = read_labels(tmp_path / "r.txt", scored=True)
     assert again.score[0] > again.score[1]
+
+
+def test_labels_of_types_keeps_the_rows_of_those_types_in_order() -> None:
+    rows = ["Car", "Van", "DontCare", "Car", "Pedestrian"]
+    text = "".join(f"{t} 0.00 0 0.00 {i} 0 {i + 10} 10 1.5 1.6 3.9 0 1.7 {i} 0.0\n" for i, t in enumerate(rows))
+    labels = parse_labels(text)
+    assert type_mask(labels.type, ("Car", "Pedestrian")).tolist() == [True, False, False, True, True]
+    assert type_mask(labels.type, iter(["Van"])).tolist() == [False, True, False, False, False]
+    cars = labels.of_types(["Car"])
+    assert cars.type.tolist() == ["Car", "Car"] and cars.bbox[:, 0].tolist() == [0.0, 3.0]
+    assert len(labels.of_types([])) == 0 and len(Labels.empty().of_types(["Car"])) == 0
+
+
+def test_result_text_has_two_decimals_and_exact_scores() -> None:
+    row = "Car -1 -1 0.123 1.005 2 30 40 1.5 1.6 3.9 1 1.7 20 0.1 0.123456789\n"
+    line = parse_labels(row, scored=True).to_text()
+    assert line == "Car -1.00 -1 0.12 1.00 2.00 30.00 40.00 1.50 1.60 3.90 1.00 1.70 20.00 0.10 0.123456789\n"
 
 
 GOOD = "Car 0.00 0 1.85 387.63 181.54 423.81 203.12 1.67 1.87 3.69 -16.53 2.39 58.49 1.57"

@@ -3,8 +3,6 @@ were planted, with the torch margin, and judged against the tie tolerances."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -33,10 +31,9 @@ def victim():
 
 @pytest.fixture(scope="module")
 def frame(tmp_path_factory) -> Frame:
-    from robustbench3d.synth.writer import generate_dataset
+    from robustbench3d.testing import synth_dataset
 
-    root: Path = tmp_path_factory.mktemp("synth")
-    generate_dataset(root, 2, seed=0, val_fraction=0.5, workers=1, progress=False)
+    root = synth_dataset(tmp_path_factory.mktemp("synth"), 2, seed=0)
     ds = KittiDataset(root, split=None)
     frames = [ds.frame(f) for f in ds.frame_ids]
     return max(frames, key=lambda f: int((f.labels.type == "Car").sum()))

@@ -16,7 +16,7 @@ import torch
 from robustbench3d.cli import main
 from robustbench3d.errors import DataFormatError
 from robustbench3d.fileio import sha256_file
-from robustbench3d.kitti.splits import write_split
+from robustbench3d.testing import link_frames
 from robustbench3d.victims import VICTIMS, create_victim
 from robustbench3d.victims.cascade import FPointNetCascade
 from robustbench3d.victims.onnx.export import legacy_exporter_available
@@ -110,12 +110,7 @@ def test_victim_references_resolve_names_and_directories(onnx_dir, tmp_path):
 
 
 def test_run_accepts_an_onnx_directory(onnx_dir, kitti_samples, tmp_path, capsys):
-    data = tmp_path / "data"
-    for sub in ("image_2", "velodyne", "calib", "label_2"):
-        (data / "training" / sub).mkdir(parents=True)
-        for src in sorted((kitti_samples / "training" / sub).iterdir())[2:4]:
-            (data / "training" / sub / src.name).symlink_to(src)
-    write_split(data / "ImageSets" / "val.txt", ["000002", "000003"])
+    data = link_frames(kitti_samples, tmp_path / "data", ["000002", "000003"])
     rc = main(["run", "--victims", str(onnx_dir), "--proposals", "gt", "--data", str(data), "--out",
                str(tmp_path / "out"), "--no-progress", "--victim-arg", f"{onnx_dir}:threads=1"])
     assert rc == 0, capsys.readouterr().err

@@ -56,9 +56,9 @@ def test_shipped_export_is_reproduced_by_its_command(onnx_dir, tmp_path):
 
 
 def test_shipped_export_matches_the_torch_victim(onnx_dir, tmp_path):
-    from robustbench3d.synth.writer import generate_dataset
+    from robustbench3d.testing import synth_dataset
 
-    generate_dataset(tmp_path / "synth", 3, seed=0, val_fraction=0.5, workers=1, progress=False)
+    synth_dataset(tmp_path / "synth", 3, seed=0)
     ds = KittiDataset(tmp_path / "synth", split=None)
     frames = [ds.frame(f) for f in ds.frame_ids]
     victim = create_victim("fpointnet-v1-lite")

@@ -95,11 +95,9 @@ def frames(kitti_samples):
 
 @pytest.fixture(scope="module")
 def synth(tmp_path_factory) -> Path:
-    from robustbench3d.synth.writer import generate_dataset
+    from robustbench3d.testing import synth_dataset
 
-    root = tmp_path_factory.mktemp("synth")
-    generate_dataset(root, 4, seed=0, val_fraction=0.5, workers=1, progress=False)
-    return root
+    return synth_dataset(tmp_path_factory.mktemp("synth"), 4, seed=0)
 
 
 # ---- export and manifest -------------------------------------------------------------------
@@ -338,9 +336,9 @@ def test_export_command_reproduces_the_hashes(exported, weights, tmp_path):
 @pytest.mark.slow
 def test_ap_parity_on_more_generated_frames(weights, tmp_path):
     """Slow: AP-level parity of both exporters on a 16-frame generated dataset (8 val frames)."""
-    from robustbench3d.synth.writer import generate_dataset
+    from robustbench3d.testing import synth_dataset
 
-    generate_dataset(tmp_path / "data", 16, seed=1, val_fraction=0.5, workers=1, progress=False)
+    synth_dataset(tmp_path / "data", 16, seed=1)
     ds = KittiDataset(tmp_path / "data", split="val")
     frames = [ds.frame(f) for f in ds.frame_ids]
     for exporter in ("dynamo", "legacy") if legacy_exporter_available() else ("dynamo",):

@@ -4,7 +4,6 @@ distributions, the disable switch, metadata validation."""
 
 from __future__ import annotations
 
-import json
 import sys
 import textwrap
 from pathlib import Path
@@ -13,10 +12,9 @@ import pytest
 
 from robustbench3d.registry import (
     NO_PLUGINS_ENV,
-    Capabilities,
-    EntryInfo,
     Registry,
     RegistryError,
+    Spec,
     UnknownNameError,
 )
 
@@ -201,16 +199,13 @@ def test_env_var_disables_plugins(plugin_path, monkeypatch):
     assert Registry("thing", group=GROUP).names() == ["fake-e"]
 
 
-def test_capabilities_and_info_validation():
-    cap = Capabilities(modalities=("lidar", "camera"), backend="torch", gradients=True, deterministic=True)
-    assert cap.modalities == ("camera", "lidar")  # canonical order
-    for bad in ((), ("radar",), ("lidar", "lidar")):
-        with pytest.raises(ValueError, match="modalities"):
-            Capabilities(modalities=bad, backend="torch", gradients=False, deterministic=True)
-    with pytest.raises(ValueError, match="backend"):
-        Capabilities(modalities=("lidar",), backend="jax", gradients=False, deterministic=True)
-    EntryInfo(cap, weights_sha256="0" * 64)
-    for bad in ("0" * 63, "G" * 64, "A" * 64):
-        with pytest.raises(ValueError, match="sha256"):
-            EntryInfo(cap, weights_sha256=bad)
-    assert json.loads(json.dumps(EntryInfo(cap).as_dict()))["capabilities"]["modalities"] == ["camera", "lidar"]
+def test_spec_creates_through_its_factory_and_is_identified_by_it():
+    spec = Spec(factory=Thing)
+    made = spec.create(label="x")
+    assert isinstance(made, Thing) and made.label == "x"
+    assert spec.key == f"{__name__}:Thing"
+    reg: Registry[Spec[Thing]] = Registry("thing", base=Spec, key=lambda s: s.key)
+    reg.register("t", Spec(factory=Thing))
+    reg.register("t", Spec(factory=Thing))  # the same factory again: a no-op
+    with pytest.raises(RegistryError, match="already registered"):
+        reg.register("t", Spec(factory=dict))

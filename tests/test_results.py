@@ -14,6 +14,9 @@ import pytest
 from robustbench3d.errors import DataFormatError
 from robustbench3d.results import (
     CSV_COLUMNS,
+    RECALL_POINTS,
+    APResult,
+    CellResult,
     load_schema,
     long_csv_text,
     long_rows,
@@ -153,6 +156,30 @@ def test_long_rows_one_per_ap_value_of_ok_cells():
     by_key = {(r["metric"], r["recall_points"], r["difficulty"]): r["ap"] for r in rows}
     assert by_key[("bev", 11, "hard")] == 76.5
     assert by_key[("3d", 40, "moderate")] == 60.0
+
+
+def test_cell_result_reads_ap_values_by_name():
+    ok, skipped = CellResult(valid_cell()), CellResult(skipped_cell())
+    assert (ok.victim, ok.attack, ok.proposals, ok.status, ok.reason, ok.frames) == (
+        "lidar-cluster", "none", "detector", "ok", None, 3769)
+    assert ok.ap("Car", "bev", "R11", "hard") == 76.5 and ok.ap("Car", "3d", "R40", "moderate") == 60.0
+    assert ok.result.classes == ("Car",) and ok.result.metrics("Car") == ("bev", "3d")
+    assert ok.result.metrics("Pedestrian") == () and ok.result.iou("Car", "3d") == 0.7
+    values = list(ok.result.values())
+    assert [tuple(v) for v in values[:4]] == [
+        ("Car", "bev", "R40", "easy", 85.5), ("Car", "bev", "R40", "moderate", 80.25),
+        ("Car", "bev", "R40", "hard", 75.0), ("Car", "bev", "R11", "easy", 86.0)]
+    assert len(values) == 12 and values[-1] == ("Car", "3d", "R11", "hard", 51.0)
+    assert RECALL_POINTS == {"R40": 40, "R11": 11}
+    assert skipped.result is None
+    with pytest.raises(LookupError, match="is skipped: no AP"):
+        skipped.ap("Car", "bev", "R40", "easy")
+    with pytest.raises(LookupError, match=r"no AP for class 'Car' metric '2d' \(evaluated: Car/bev, Car/3d\)"):
+        ok.ap("Car", "2d", "R40", "easy")
+    with pytest.raises(LookupError, match="unknown difficulty 'medium'"):
+        ok.ap("Car", "bev", "R40", "medium")
+    with pytest.raises(LookupError, match="unknown recall sampling 'R41'"):
+        APResult(valid_cell()["metrics"]).ap("Car", "bev", "R41", "easy")
 
 
 def test_csv_round_trips_exact_numbers():

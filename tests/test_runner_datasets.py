@@ -8,11 +8,10 @@ import pytest
 from robustbench3d import datasets
 from robustbench3d.datasets import EmbeddedParams, resolve_dataset
 from robustbench3d.errors import DataFormatError
-from robustbench3d.registry import Capabilities, EntryInfo
 from robustbench3d.runner import RunConfig, run_benchmark
-from robustbench3d.synth.cli import DEFAULT_FRAMES, DEFAULT_SEED, DEFAULT_VAL_FRACTION
+from robustbench3d.synth import DEFAULT_FRAMES, DEFAULT_SEED, DEFAULT_VAL_FRACTION
 from robustbench3d.victims import VICTIMS
-from robustbench3d.victims.spec import VictimSpec
+from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
 
 TINY = EmbeddedParams(frames=2, seed=4, val_fraction=1.0)
 

@@ -11,6 +11,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -22,12 +23,11 @@ from robustbench3d.cli import main
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.eval import evaluate_dirs
 from robustbench3d.kitti import read_split
-from robustbench3d.registry import Capabilities, EntryInfo
 from robustbench3d.results import load_schema, read_summary
 from robustbench3d.runner import RunConfig, run_benchmark
-from robustbench3d.synth.writer import generate_dataset
+from robustbench3d.testing import synth_dataset
 from robustbench3d.victims import VICTIMS
-from robustbench3d.victims.spec import VictimSpec
+from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
 
 pytestmark = pytest.mark.skipif(
     importlib.util.find_spec("rb3d_lidar_cluster") is None,
@@ -41,9 +41,7 @@ CELL = "lidar-cluster+none+detector"
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
     """Four generated frames, all in the val split."""
-    root = tmp_path_factory.mktemp("synth")
-    generate_dataset(root, FRAMES, seed=5, val_fraction=1.0, workers=1, progress=False)
-    return root
+    return synth_dataset(tmp_path_factory.mktemp("synth"), FRAMES, seed=5, val_fraction=1.0)
 
 
 def run_cli(dataset: Path, out: Path, *extra: str, victims: str = "lidar-cluster",
@@ -219,6 +217,38 @@ def test_attack_requirements_skip_cells(dataset, tmp_path):
     assert texture["reason"] == ("attack 'test-camera-texture' needs the camera; the victim offers lidar, "
                                  "no gradients")
     assert texture["provenance"]["config"]["attack"]["object"] == {"texture": "test"}
+
+
+@register_attack("test-counted-attack", summary="TEST ONLY: numbers its instances, leaves frames as they are")
+class CountedAttack(Attack):
+    created: ClassVar[list[CountedAttack]] = []
+
+    def __init__(self) -> None:
+        self.number, self.prepared, self.applied = len(CountedAttack.created) + 1, [], 0
+        CountedAttack.created.append(self)
+
+    def prepare(self, victim) -> None:
+        self.prepared.append(type(victim).__name__)
+
+    def apply(self, frame, targets, rng: np.random.Generator):
+        self.applied += 1
+        return frame
+
+    def describe(self):
+        return {"instance": self.number}
+
+
+def test_each_attack_is_built_once_and_the_described_instance_is_applied(dataset, tmp_path):
+    CountedAttack.created.clear()
+    report = run_benchmark(RunConfig(victims=("lidar-cluster", "test-broken-victim"), attacks=("test-counted-attack",),
+                                     proposals=("detector",), out=tmp_path / "run", data=dataset, progress=False),
+                           lambda line: None)  # 4 frames in one batch: the broken victim's one call succeeds
+    assert [c["status"] for c in report.cells] == ["ok", "ok"]
+    assert len(CountedAttack.created) == 1  # one instance for the whole run ...
+    (attack,) = CountedAttack.created
+    assert [c["provenance"]["config"]["attack"]["object"] for c in report.cells] == [{"instance": 1}] * 2
+    assert attack.prepared == ["LidarClusterDetector", "BrokenDetector"]  # ... prepared for each cell
+    assert attack.applied == 2 * FRAMES  # ... and it is the one that attacked every frame of both cells
 
 
 def test_unknown_names_and_bad_arguments_fail_before_any_work(tmp_path, capsys):

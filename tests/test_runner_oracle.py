@@ -10,23 +10,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from simple_calibration import SIMPLE_CALIB
 
 from robustbench3d.eval import evaluate
-from robustbench3d.kitti import (
-    Labels,
-    write_calibration,
-    write_image,
-    write_labels,
-    write_scan,
-    write_split,
-)
+from robustbench3d.kitti import Labels, write_split
 from robustbench3d.kitti.labels import read_labels
-from robustbench3d.registry import Capabilities, EntryInfo
 from robustbench3d.results import read_summary
 from robustbench3d.runner import RunConfig, run_benchmark
+from robustbench3d.testing import write_kitti_frame
 from robustbench3d.victims import VICTIMS
-from robustbench3d.victims.spec import VictimSpec
+from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
 
 N_FRAMES, CARS_PER_FRAME = 6, 8
 
@@ -60,11 +52,7 @@ def toy_dataset(tmp_path_factory) -> Path:
     rng = np.random.default_rng(11)
     ids = [f"{i:06d}" for i in range(N_FRAMES)]
     for fid in ids:
-        train = root / "training"
-        write_labels(train / "label_2" / f"{fid}.txt", toy_labels(rng))
-        write_calibration(train / "calib" / f"{fid}.txt", SIMPLE_CALIB)
-        write_image(train / "image_2" / f"{fid}.png", np.zeros((375, 1242, 3), dtype=np.uint8))
-        write_scan(train / "velodyne" / f"{fid}.bin", rng.normal(size=(64, 4)).astype(np.float32))
+        write_kitti_frame(root, fid, labels=toy_labels(rng), scan=rng.normal(size=(64, 4)).astype(np.float32))
     write_split(root / "ImageSets" / "val.txt", ids)
     return root
 

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_victims_training import write_tiny_dataset
 
 from robustbench3d.cli import main
 from robustbench3d.errors import DataFormatError
 from robustbench3d.fileio import sha256_file
+from robustbench3d.testing import box_car_dataset
 from robustbench3d.victims.cascade import FPointNetCascade
 from robustbench3d.victims.torchfile import load_torch_data
 from robustbench3d.victims.training import CHECKPOINT, read_checkpoint
@@ -89,7 +89,7 @@ def marker(tmp_path) -> Path:
 
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory) -> Path:
-    return write_tiny_dataset(tmp_path_factory.mktemp("tiny_kitti"))
+    return box_car_dataset(tmp_path_factory.mktemp("tiny_kitti"))
 
 
 @pytest.fixture(scope="module")

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from simple_calibration import SIMPLE_CALIB
 
 from robustbench3d.cli import main
-from robustbench3d.kitti import write_calibration, write_image, write_scan, write_split
+from robustbench3d.kitti import write_image, write_split
+from robustbench3d.testing import write_kitti_frame
 
 CAR = "Car 0.00 0 -1.57 500.00 150.00 700.00 250.00 1.50 1.60 3.90 0.00 1.65 15.00 -1.57\n"
 needs_plugin = pytest.mark.skipif(
@@ -25,15 +25,10 @@ needs_plugin = pytest.mark.skipif(
 
 def tiny_dataset(root: Path, scan: np.ndarray | None = None) -> Path:
     """One frame 000000 (listed in ImageSets/val.txt): 1242x375 black image, one car."""
-    t = root / "training"
     rng = np.random.default_rng(0)
     if scan is None:
         scan = np.concatenate([rng.uniform(-20, 20, (300, 3)), rng.uniform(0, 1, (300, 1))], axis=1)
-    write_scan(t / "velodyne" / "000000.bin", scan)
-    write_image(t / "image_2" / "000000.png", np.zeros((375, 1242, 3), dtype=np.uint8))
-    write_calibration(t / "calib" / "000000.txt", SIMPLE_CALIB)
-    (t / "label_2").mkdir(parents=True)
-    (t / "label_2" / "000000.txt").write_text(CAR)
+    write_kitti_frame(root, "000000", scan=scan, labels=CAR)
     write_split(root / "ImageSets" / "val.txt", ["000000"])
     return root
 

@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
-from simple_calibration import SIMPLE_CALIB
 
 from robustbench3d.errors import DataFormatError
 from robustbench3d.eval import evaluate_dirs
-from robustbench3d.kitti import KittiDataset, parse_labels, read_image, read_labels, write_calibration, write_scan
+from robustbench3d.kitti import KittiDataset, parse_labels, read_image, read_labels
 from robustbench3d.kitti.image import check_image_fits_calibration
+from robustbench3d.testing import SIMPLE_CALIB, write_kitti_frame
 
 
 def _png(arr: np.ndarray, colour_type: int) -> bytes:
@@ -113,13 +113,8 @@ def test_principal_point_band(size: tuple[int, int], ok: bool) -> None:
 
 
 def _one_frame(root: Path, image: np.ndarray, labels: str = "") -> KittiDataset:
-    t = root / "training"
-    write_calibration(t / "calib" / "000000.txt", SIMPLE_CALIB)
-    write_scan(t / "velodyne" / "000000.bin", np.zeros((3, 4), dtype=np.float32))
-    (t / "image_2").mkdir(parents=True)
-    Image.fromarray(image).save(t / "image_2" / "000000.png")
-    (t / "label_2").mkdir(parents=True)
-    (t / "label_2" / "000000.txt").write_text(labels)
+    write_kitti_frame(root, "000000", scan=np.zeros((3, 4), dtype=np.float32), labels=labels)
+    Image.fromarray(image).save(root / "training" / "image_2" / "000000.png")  # replaces the default image
     return KittiDataset(root, split=None)
 
 

@@ -16,13 +16,12 @@ import pytest
 from robustbench3d.cli import main
 from robustbench3d.eval import evaluate
 from robustbench3d.kitti.labels import Labels
-from robustbench3d.registry import Capabilities, EntryInfo
 from robustbench3d.results import read_summary
 from robustbench3d.runner import RunConfig, run_benchmark
-from robustbench3d.synth.writer import generate_dataset
+from robustbench3d.testing import synth_dataset
 from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.base import Proposals
-from robustbench3d.victims.spec import VictimSpec
+from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
 
 FRAMES = 4
 SNOOP = "test-trust-snoop"
@@ -112,9 +111,7 @@ VICTIMS.register("test-trust-nan", VictimSpec(factory=NanVictim, info=EntryInfo(
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
     """Four generated frames, all in the val split (Cars, Vans, Pedestrians, DontCare ...)."""
-    root = tmp_path_factory.mktemp("synth")
-    generate_dataset(root, FRAMES, seed=5, val_fraction=1.0, workers=1, progress=False)
-    return root
+    return synth_dataset(tmp_path_factory.mktemp("synth"), FRAMES, seed=5, val_fraction=1.0)
 
 
 def label_rows(dataset: Path, frame_id: str) -> list[list[str]]:

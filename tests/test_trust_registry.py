@@ -22,7 +22,7 @@ from robustbench3d.cli import main
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import sha256_file
 from robustbench3d.kitti.calib import read_calibration
-from robustbench3d.kitti.splits import write_split
+from robustbench3d.testing import link_frames
 from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.onnx.registration import resolve_victim_reference, sanitise_name, user_registry_file
 from robustbench3d.victims.shipped import weights_dir
@@ -60,13 +60,7 @@ def cache(tmp_path, monkeypatch) -> Path:
 @pytest.fixture
 def two_frames(kitti_samples, tmp_path) -> Path:
     """A KITTI-layout dataset of two real frames (symlinks) with a val split."""
-    data = tmp_path / "data"
-    for sub in ("image_2", "velodyne", "calib", "label_2"):
-        (data / "training" / sub).mkdir(parents=True)
-        for src in sorted((kitti_samples / "training" / sub).iterdir())[2:4]:
-            (data / "training" / sub / src.name).symlink_to(src)
-    write_split(data / "ImageSets" / "val.txt", ["000002", "000003"])
-    return data
+    return link_frames(kitti_samples, tmp_path / "data", ["000002", "000003"])
 
 
 def onnx_copy(parent: Path, folder: str) -> Path:

@@ -12,6 +12,7 @@ from robustbench3d.victims.fpointnet.box_coding import (
     NUM_SIZE_CLUSTER,
     SIZE_TYPES,
     angle_to_class,
+    car_one_hot,
     class_to_angle,
     class_to_size,
     corners_from_center,
@@ -73,6 +74,9 @@ def test_size_table_and_coding():
 def test_one_hot():
     assert one_hot(["Car", "Pedestrian", "Cyclist", "Van"]).tolist() == [
         [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 0]]
+    cars = car_one_hot(2)
+    assert cars.dtype == np.float32 and cars.tolist() == [[1, 0, 0], [1, 0, 0]]
+    assert car_one_hot(0).shape == (0, 3)
 
 
 def test_corners_match_the_kitti_box_of_the_same_object():

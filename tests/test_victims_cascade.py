@@ -98,17 +98,54 @@ def test_frustum_oracle_is_differentiable(victim, frames):
     car = frame.labels.select(frame.labels.type == "Car")
     rect = np.concatenate([frame.calib.velo_to_rect_points(frame.scan[:, :3]), frame.scan[:, 3:4]], axis=1)
     pts = torch.tensor(rect, dtype=torch.float32, requires_grad=True)
-    out = victim.frustum_logits(pts, frame.calib, frame.image_size, car.bbox[0], seed=1)
+    out = victim.frustum_logits(pts, frame.calib, frame.image_size, car.bbox[0], frame_id=frame.frame_id, proposal=0)
     assert out is not None and out.logits.shape == (victim.num_points, 2)
     fr = extract_frustum(project_scan(frame.scan, frame.calib, frame.image_size), car.bbox[0], frame.calib)
     assert np.isin(out.sample_index, fr.indices).all()
-    again = victim.frustum_logits(pts, frame.calib, frame.image_size, car.bbox[0], seed=1)
+    again = victim.frustum_logits(pts, frame.calib, frame.image_size, car.bbox[0], frame_id=frame.frame_id, proposal=0)
     assert torch.equal(out.logits, again.logits)
     out.object_prob.max().backward()
     grad = pts.grad.abs().sum(dim=1)
     assert torch.isfinite(pts.grad).all() and grad.sum() > 0
     assert (grad[np.setdiff1d(np.arange(len(rect)), out.sample_index)] == 0).all()  # only sampled points
-    assert victim.frustum_logits(pts, frame.calib, frame.image_size, np.array([0.0, 0, 20, 20])) is None
+    assert victim.frustum_logits(pts, frame.calib, frame.image_size, np.array([0.0, 0, 20, 20]),
+                                 frame_id=frame.frame_id, proposal=0) is None
+
+
+def test_frustum_oracle_resamples_the_points_detect_scores(victim, frames, monkeypatch):
+    """For every usable proposal of a frame, the oracle's network input is the one ``detect`` feeds
+    the segmentation network (same resampled points, in the same order)."""
+    from robustbench3d.victims.fpointnet import pipeline
+
+    fed: list[np.ndarray] = []
+    real = pipeline.run_frustum_stages
+
+    def recording(stages, points, *args, **kwargs):
+        fed.extend(np.array(p) for p in points)
+        return real(stages, points, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "run_frustum_stages", recording)
+    scored = frames[2:5]  # three usable cars (GT proposals need one frustum point)
+    victim.detect(scored, "gt")
+    oracle = []
+    for frame in scored:
+        (props,) = victim.proposals([frame], "gt")
+        rect = np.concatenate([frame.calib.velo_to_rect_points(frame.scan[:, :3]), frame.scan[:, 3:4]], axis=1)
+        pts = torch.tensor(rect, dtype=torch.float32)
+        for k, box in enumerate(props.boxes):
+            out = victim.frustum_logits(pts, frame.calib, frame.image_size, box, frame_id=frame.frame_id, proposal=k)
+            if out is not None and box[3] - box[1] >= victim.settings.min_box_height:
+                oracle.append((frame, k, box, rect, out))
+    assert len(oracle) == len(fed) == 3
+    for (_, _, _, rect, got), want in zip(oracle, fed, strict=True):
+        assert np.allclose(got.points.detach().numpy(), want, atol=1e-4)
+        assert np.array_equal(rect[got.sample_index, 3].astype(np.float32), want[:, 3])  # the very points fed
+    # another proposal index (or frame) draws another resampling
+    frame, k, box, rect, first = oracle[-1]
+    pts = torch.tensor(rect, dtype=torch.float32)
+    for frame_id, proposal in ((frame.frame_id, k + 1), (scored[0].frame_id, k)):
+        other = victim.frustum_logits(pts, frame.calib, frame.image_size, box, frame_id=frame_id, proposal=proposal)
+        assert not np.array_equal(other.sample_index, first.sample_index)
 
 
 def test_weights_round_trip(victim, frames, tmp_path):

@@ -10,10 +10,10 @@ import importlib.util
 
 import numpy as np
 import pytest
-from simple_calibration import SIMPLE_CALIB
 
 from robustbench3d.geometry import box_corners, points_in_boxes
 from robustbench3d.kitti.dataset import Frame, KittiDataset
+from robustbench3d.testing import SIMPLE_CALIB
 from robustbench3d.victims import VICTIMS, create_victim
 from robustbench3d.victims.base import Detector, FrustumSegmentationOracle, ImageObjectnessOracle
 

@@ -1,4 +1,4 @@
-"""Training entry points on a tiny KITTI-layout dataset written here with the kitti writers:
+"""Training entry points on a tiny KITTI-layout dataset (robustbench3d.testing.box_car_dataset):
 frustum data (perturbation, targets, augmentations), resume == uninterrupted run, few-step
 overfit sanity, the CLI."""
 
@@ -10,21 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from simple_calibration import SIMPLE_CALIB
 
 from robustbench3d.cli import main
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.fileio import sha256_file
-from robustbench3d.geometry import alpha_from_rotation_y, box_corners, points_in_boxes, project_boxes_to_image
-from robustbench3d.kitti import (
-    KittiDataset,
-    Labels,
-    write_calibration,
-    write_image,
-    write_labels,
-    write_scan,
-    write_split,
-)
+from robustbench3d.geometry import points_in_boxes
+from robustbench3d.kitti import KittiDataset
+from robustbench3d.testing import IMAGE_SIZE, box_car_dataset
 from robustbench3d.victims.cascade import FPointNetCascade
 from robustbench3d.victims.fpointnet.box_coding import angle_to_class
 from robustbench3d.victims.fpointnet.data import build_frustum_set, make_item
@@ -42,56 +34,12 @@ from robustbench3d.victims.yolo.training import train as train_yolo
 
 torch.set_num_threads(1)
 
-W, H = 1242, 375
-
-
-def write_tiny_dataset(root: Path, n_train: int = 4, n_val: int = 2, seed: int = 0) -> Path:
-    """Frames with a flat ground, 1-2 box-shaped cars (points on all faces) and an image where
-    each car's 2D box is a dark rectangle."""
-    rng = np.random.default_rng(seed)
-    ids = [f"{i:06d}" for i in range(n_train + n_val)]
-    for fid in ids:
-        gx, gz = np.meshgrid(np.arange(-12.0, 12.0, 0.4), np.arange(4.0, 35.0, 0.4))
-        ground = np.stack([gx.ravel(), np.full(gx.size, 1.65), gz.ravel()], axis=1)
-        n_cars = int(rng.integers(1, 3))
-        dims = np.column_stack([rng.uniform(1.4, 1.6, n_cars), rng.uniform(1.5, 1.8, n_cars),
-                                rng.uniform(3.6, 4.4, n_cars)])
-        loc = np.column_stack([np.array([-3.5, 3.5])[:n_cars] + rng.uniform(-1, 1, n_cars), np.full(n_cars, 1.65),
-                               rng.uniform(9, 22, n_cars)])
-        ry = rng.uniform(-np.pi, np.pi, n_cars)
-        corners = box_corners(dims, loc, ry)
-        cars = []
-        for k in range(n_cars):  # points on the box surface: random points pushed to a random face
-            u = rng.uniform(-0.5, 0.5, (600, 3))
-            axis = rng.integers(0, 3, 600)
-            u[np.arange(600), axis] = np.sign(u[np.arange(600), axis]) * 0.48  # just inside a face
-            local = u * dims[k][[2, 0, 1]] + [0, -dims[k, 0] / 2, 0]  # (l, h, w) extents, y up from the bottom
-            c, s = np.cos(ry[k]), np.sin(ry[k])
-            rect = np.stack([c * local[:, 0] + s * local[:, 2], local[:, 1], -s * local[:, 0] + c * local[:, 2]], 1)
-            cars.append(rect + loc[k])
-        rect_pts = np.concatenate([ground[~points_in_boxes(ground, dims, loc, ry, margin=0.1).any(axis=1)], *cars])
-        velo = SIMPLE_CALIB.rect_to_velo_points(rect_pts)
-        scan = np.concatenate([velo, rng.uniform(0, 1, (len(velo), 1))], axis=1).astype(np.float32)
-        bbox, valid = project_boxes_to_image(corners, SIMPLE_CALIB, (W, H))
-        image = rng.integers(150, 200, (H, W, 3), dtype=np.uint8)
-        for b in bbox[valid]:
-            image[int(b[1]):int(b[3]), int(b[0]):int(b[2])] = (40, 40, 60)
-        labels = Labels(type=np.array(["Car"] * n_cars, dtype=object), truncated=np.zeros(n_cars),
-                        occluded=np.zeros(n_cars, dtype=np.int64), alpha=alpha_from_rotation_y(ry, loc), bbox=bbox,
-                        dimensions=dims, location=loc, rotation_y=ry)
-        d = root / "training"
-        write_scan(d / "velodyne" / f"{fid}.bin", scan)
-        write_image(d / "image_2" / f"{fid}.png", image)
-        write_labels(d / "label_2" / f"{fid}.txt", labels)
-        write_calibration(d / "calib" / f"{fid}.txt", SIMPLE_CALIB)
-    write_split(root / "ImageSets" / "train.txt", ids[:n_train])
-    write_split(root / "ImageSets" / "val.txt", ids[n_train:])
-    return root
+W, H = IMAGE_SIZE
 
 
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory) -> Path:
-    return write_tiny_dataset(tmp_path_factory.mktemp("tiny_kitti"))
+    return box_car_dataset(tmp_path_factory.mktemp("tiny_kitti"))
 
 
 def test_frustum_set_and_items(tiny_data):

@@ -11,7 +11,6 @@ import pytest
 
 from robustbench3d.cli import main
 from robustbench3d.errors import RobustBenchError
-from robustbench3d.registry import Capabilities
 from robustbench3d.victims import VICTIMS, create_victim
 from robustbench3d.victims.base import (
     Detector,
@@ -20,6 +19,7 @@ from robustbench3d.victims.base import (
     VictimSpec,
     check_victim,
 )
+from robustbench3d.victims.spec import Capabilities, EntryInfo
 
 
 def test_in_tree_victims_are_registered_with_metadata():
@@ -82,3 +82,18 @@ def test_victims_list_cli(capsys):
     table = capsys.readouterr().out.splitlines()
     assert table[0].split()[:3] == ["name", "modalities", "backend"]
     assert any(line.startswith("fpointnet-v1-lite ") and "camera+lidar" in line for line in table)
+
+
+def test_capabilities_and_info_validation():
+    cap = Capabilities(modalities=("lidar", "camera"), backend="torch", gradients=True, deterministic=True)
+    assert cap.modalities == ("camera", "lidar")  # canonical order
+    for bad in ((), ("radar",), ("lidar", "lidar")):
+        with pytest.raises(ValueError, match="modalities"):
+            Capabilities(modalities=bad, backend="torch", gradients=False, deterministic=True)
+    with pytest.raises(ValueError, match="backend"):
+        Capabilities(modalities=("lidar",), backend="jax", gradients=False, deterministic=True)
+    EntryInfo(cap, weights_sha256="0" * 64)
+    for bad in ("0" * 63, "G" * 64, "A" * 64):
+        with pytest.raises(ValueError, match="sha256"):
+            EntryInfo(cap, weights_sha256=bad)
+    assert json.loads(json.dumps(EntryInfo(cap).as_dict()))["capabilities"]["modalities"] == ["camera", "lidar"]

@@ -11,11 +11,11 @@ implements the protocols that make sense for it and declares its :class:`Capabil
 * :class:`ImageObjectnessOracle` — the 2D detector's objectness logits for the candidate
   predictions around target boxes, differentiable w.r.t. an image tensor.
 * :class:`FrustumSegmentationOracle` — frustum construction from rect-frame points (selection and
-  resampling are non-differentiable and seeded) and the segmentation logits, differentiable
-  w.r.t. the point coordinates.
+  resampling are non-differentiable and seeded per frame and proposal, as in ``detect``) and the
+  segmentation logits, differentiable w.r.t. the point coordinates.
 
 Victims are registered in :data:`robustbench3d.victims.VICTIMS` as :class:`VictimSpec` objects
-(a factory plus :class:`~robustbench3d.registry.EntryInfo` metadata).
+(a factory plus :class:`EntryInfo` metadata; both in :mod:`robustbench3d.victims.spec`).
 
 What the harness hands ``detect`` (:func:`victim_inputs`), per proposal mode of a cell:
 
@@ -40,25 +40,22 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Literal, Protocol, get_args, runtime_checkable
 
 import numpy as np
 
 from robustbench3d.kitti.dataset import Frame
-from robustbench3d.kitti.labels import Labels
-from robustbench3d.registry import Capabilities, EntryInfo
-from robustbench3d.victims.spec import VictimSpec
+from robustbench3d.kitti.labels import Labels, type_mask
+from robustbench3d.victims.spec import PROPOSAL_SOURCES, Capabilities, EntryInfo, ProposalSource, VictimSpec
 
 if TYPE_CHECKING:
     import torch
 
     from robustbench3d.kitti.calib import Calibration
 
-#: A cell's proposal mode: the victim's own 2D detector, or the frame's ground-truth 2D boxes.
-ProposalSource = Literal["detector", "gt"]
-#: Where the boxes of one :class:`Proposals` come from.
-ProposalOrigin = Literal["detector", "gt", "external"]
-PROPOSAL_ORIGINS: tuple[str, ...] = ("detector", "gt", "external")
+#: Where the boxes of one :class:`Proposals` come from: a proposal mode, or anything else.
+ProposalOrigin = Literal[ProposalSource, "external"]
+PROPOSAL_ORIGINS: tuple[str, ...] = get_args(ProposalOrigin)
 
 
 @dataclass(frozen=True)
@@ -105,7 +102,7 @@ class Proposals:
         """The boxes whose type is in ``types`` (in order); raises ValueError without types."""
         if self.types is None:
             raise ValueError(f"Proposals from {self.source!r} carry no box types")
-        return self.select(np.isin(self.types, list(types)))
+        return self.select(type_mask(self.types, types))
 
 
 #: A ``detect`` call's proposals: a mode name or one :class:`Proposals` per frame.
@@ -233,8 +230,10 @@ class FrustumSegmentationOracle(Protocol):
     num_points: int
 
     def frustum_logits(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
-                       box2d: np.ndarray, *, seed: int = 0, class_id: int = 0) -> FrustumLogits | None:
-        """Segment the frustum of ``box2d``.
+                       box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0) -> FrustumLogits | None:
+        """Segment the frustum of ``box2d``, resampled to ``num_points`` (with replacement) by the
+        same generator ``detect`` uses for proposal ``proposal`` of frame ``frame_id`` (the victim's
+        own seed), so the frustum an attack's loss sees is the one that gets scored.
 
         Args:
             points_rect: (P, 4) rect-frame xyz (m) and reflectance (e.g. scan points plus
@@ -242,7 +241,9 @@ class FrustumSegmentationOracle(Protocol):
             calib: the frame's calibration (P2 for the image projection).
             image_size: (width, height) of the camera image in pixels.
             box2d: (4,) left, top, right, bottom in image-2 pixels.
-            seed: seed of the resampling to ``num_points`` (with replacement).
+            frame_id: the frame's id.
+            proposal: index of ``box2d`` in the frame's proposal set as ``detect`` enumerates it
+                (for the F-PN cascades: ``victim.proposals([frame], source)[0]``).
             class_id: one-hot class (0 Car, 1 Pedestrian, 2 Cyclist).
         Returns:
             The logits, or None if the frustum holds no point.
@@ -263,10 +264,10 @@ def check_victim(victim: Any, capabilities: Capabilities) -> None:
     """
     if not isinstance(victim, Detector):
         raise TypeError(f"{type(victim).__name__} does not implement Detector (detect, supported_proposals)")
-    bad = set(victim.supported_proposals) - {"detector", "gt"}
+    bad = set(victim.supported_proposals) - set(PROPOSAL_SOURCES)
     if bad or not victim.supported_proposals:
         raise TypeError(f"{type(victim).__name__}.supported_proposals must be a non-empty subset of "
-                        f"('detector', 'gt'), got {victim.supported_proposals}")
+                        f"{PROPOSAL_SOURCES}, got {victim.supported_proposals}")
     if capabilities.gradients:
         oracles = [isinstance(victim, ImageObjectnessOracle), isinstance(victim, FrustumSegmentationOracle)]
         if not any(oracles):
@@ -282,7 +283,7 @@ def empty_detections() -> Labels:
 
 
 __all__ = [
-    "PROPOSAL_ORIGINS", "Capabilities", "Detector", "EntryInfo", "FrustumLogits", "FrustumSegmentationOracle",
-    "ImageObjectnessOracle", "ObjectnessCandidates", "ProposalOrigin", "ProposalSource",
+    "PROPOSAL_ORIGINS", "PROPOSAL_SOURCES", "Capabilities", "Detector", "EntryInfo", "FrustumLogits",
+    "FrustumSegmentationOracle", "ImageObjectnessOracle", "ObjectnessCandidates", "ProposalOrigin", "ProposalSource",
     "Proposals", "ProposalsArg", "VictimSpec", "check_victim", "empty_detections", "gt_proposals", "victim_inputs",
 ]

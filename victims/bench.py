@@ -1,13 +1,14 @@
 """``robustbench3d bench victim``: per-frame inference cost, peak memory and determinism of the
 F-PN cascades (torch, one thread).
 
-Frames: a small embedded-style dataset generated into a temporary directory (seed 0; 8 frames, 3
-when quick). Each victim runs in its own fresh interpreter (:func:`robustbench3d.bench.run_timed_subprocess`)
-so its peak RSS is its own: it loads, detects every frame once as a warm-up, then times each frame
-with the victim's own 2D detector as proposal source (2D detection alone, then the whole frame:
-2D + every frustum) and with GT boxes, and runs detection a second time to check that the rows are
-identical. Rows: median ms per frame, frustums per frame, peak RSS and the determinism verdict.
-The full v1 network runs with seeded untrained weights (its compute does not depend on them).
+Frames: a small embedded-style dataset generated into a temporary directory by the tests' builder
+(:func:`robustbench3d.testing.synth_dataset`, seed 0; 8 frames, 3 when quick). Each victim runs in
+its own fresh interpreter (:func:`robustbench3d.bench.run_timed_subprocess`) so its peak RSS is its
+own: it loads, detects every frame once as a warm-up, then times each frame with the victim's own
+2D detector as proposal source (2D detection alone, then the whole frame: 2D + every frustum) and
+with GT boxes, and runs detection a second time to check that the rows are identical. Rows: median
+ms per frame, frustums per frame, peak RSS and the determinism verdict. The full v1 network runs
+with seeded untrained weights (its compute does not depend on them).
 """
 
 from __future__ import annotations
@@ -71,12 +72,11 @@ def worker(data_dir: str, victim: str, kwargs_json: str) -> None:
 
 def run(quick: bool) -> list[dict]:
     from robustbench3d.bench import run_timed_subprocess
-    from robustbench3d.synth.writer import generate_dataset
+    from robustbench3d.testing import synth_dataset
 
     rows: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="robustbench3d-bench-victim-") as tmp:
-        data = Path(tmp) / "data"
-        generate_dataset(data, 3 if quick else 8, seed=0, val_fraction=0.5, workers=1, progress=False)
+        data = synth_dataset(Path(tmp) / "data", 3 if quick else 8, seed=0)  # the tests' builder
         for victim, kwargs in CASES.items():
             code = ("import sys; from robustbench3d.victims.bench import worker; "
                     "worker(sys.argv[1], sys.argv[2], sys.argv[3])")

@@ -8,10 +8,12 @@ Implements :class:`~robustbench3d.victims.base.Detector`,
 2D decoding and NMS, frustum extraction, resampling, masking, gather, box decoding — shared with
 the ONNX victim) around the torch networks. Determinism: the resampling of each frustum to N
 points (with replacement, as the original) and the random object-point gather draw from
-``numpy.random.default_rng([seed, frame, proposal])``, so a frustum's result does not depend on
-the batch or on other frames; the networks run in eval mode (BatchNorm running statistics, no
-dropout). Proposal filters follow §1.3: 2D height >= 25 px, and at least ``min_points_detector``
-(5) frustum points for detector boxes or one for GT boxes.
+:func:`~robustbench3d.victims.fpointnet.pipeline.frustum_rng` (``numpy.random.default_rng([seed,
+frame, proposal])``), so a frustum's result does not depend on the batch or on other frames, and
+``frustum_logits`` resamples exactly the points ``detect`` feeds the network; the networks run
+in eval mode (BatchNorm running statistics, no dropout). Proposal filters follow §1.3: 2D height
+>= 25 px, and at least ``min_points_detector`` (5) frustum points for detector boxes or one for
+GT boxes.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from robustbench3d.fileio import atomic_open, sha256_file
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
-from robustbench3d.victims.base import FrustumLogits, ObjectnessCandidates, Proposals, ProposalsArg
+from robustbench3d.victims.base import PROPOSAL_SOURCES, FrustumLogits, ObjectnessCandidates, Proposals, ProposalsArg
 from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
 from robustbench3d.victims.fpointnet.frustum import extract_frustum, project_rect_points, resample_indices
 from robustbench3d.victims.fpointnet.model import (
@@ -39,7 +41,13 @@ from robustbench3d.victims.fpointnet.model import (
     build_model,
     rotate_to_frustum_torch,
 )
-from robustbench3d.victims.fpointnet.pipeline import CascadeSettings, detect_frames, frame_key, make_proposals
+from robustbench3d.victims.fpointnet.pipeline import (
+    CascadeSettings,
+    detect_frames,
+    frame_key,
+    frustum_rng,
+    make_proposals,
+)
 from robustbench3d.victims.torchfile import (
     CASCADE_FORMAT,
     build_network,
@@ -55,7 +63,7 @@ from robustbench3d.victims.yolo.model import Darknet
 class FPointNetCascade:
     """YOLO -> Frustum-PointNet v1 for KITTI cars (see the module docstring)."""
 
-    supported_proposals: tuple[str, ...] = ("detector", "gt")
+    supported_proposals: tuple[str, ...] = PROPOSAL_SOURCES
 
     def __init__(self, yolo: YoloDetector, fpn: FrustumPointNetV1, settings: CascadeSettings | None = None):
         self.yolo = yolo
@@ -158,13 +166,15 @@ class FPointNetCascade:
 
     # ---- FrustumSegmentationOracle ----------------------------------------------------
     def frustum_logits(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
-                       box2d: np.ndarray, *, seed: int = 0, class_id: int = 0) -> FrustumLogits | None:
-        """Seg logits of the frustum of ``box2d`` over (P, 4) rect points (differentiable)."""
+                       box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0) -> FrustumLogits | None:
+        """Seg logits of the frustum of ``box2d`` over (P, 4) rect points (differentiable), resampled
+        with :func:`frustum_rng` of ``settings.seed``, ``frame_id`` and ``proposal`` as ``detect`` does."""
         projected = project_rect_points(points_rect.detach().cpu().double().numpy(), calib, image_size)
         fr = extract_frustum(projected, np.asarray(box2d, dtype=np.float64), calib)
         if len(fr) == 0:
             return None
-        idx = fr.indices[resample_indices(len(fr), self.num_points, np.random.default_rng(seed))]
+        rng = frustum_rng(self.settings.seed, frame_id, proposal)
+        idx = fr.indices[resample_indices(len(fr), self.num_points, rng)]
         pts = rotate_to_frustum_torch(points_rect[torch.from_numpy(idx)], fr.rot_angle)
         one_hot = torch.zeros(1, len(ONE_HOT_CLASSES), dtype=pts.dtype)
         one_hot[0, class_id] = 1.0
@@ -179,4 +189,4 @@ class FPointNetCascade:
         return seg(points, one_hot)
 
 
-__all__ = ["CascadeSettings", "FPointNetCascade", "frame_key"]
+__all__ = ["CascadeSettings", "FPointNetCascade", "frame_key", "frustum_rng"]

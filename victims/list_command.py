@@ -35,7 +35,10 @@ def rows(pattern: str = "*") -> list[dict[str, Any]]:
     return out
 
 
-def format_table(items: list[dict[str, Any]]) -> str:
+def victims_table(items: list[dict[str, Any]]) -> str:
+    """One line per :func:`rows` item (no rule under the header)."""
+    from robustbench3d.texttable import format_table
+
     header = ("name", "modalities", "backend", "gradients", "deterministic", "weights sha256", "origin", "summary")
     lines = []
     for r in items:
@@ -47,9 +50,7 @@ def format_table(items: list[dict[str, Any]]) -> str:
         lines.append((r["name"], "+".join(cap["modalities"]), cap["backend"], "yes" if cap["gradients"] else "no",
                       "yes" if cap["deterministic"] else "no", sha[:12] + "…" if sha else "none",
                       r["origin"], r["summary"]))
-    widths = [max(len(str(c)) for c in col) for col in zip(header, *lines, strict=False)]
-    fmt = "  ".join(f"{{:<{w}}}" for w in widths)
-    return "\n".join(fmt.format(*row).rstrip() for row in [header, *lines])
+    return format_table(header, lines, rule=False)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,5 +59,5 @@ def run(args: argparse.Namespace) -> int:
     items = rows(args.pattern)
     for why in VICTIMS.rejected():
         print(f"robustbench3d: warning: {why}", file=sys.stderr)
-    print(json.dumps(items, indent=2) if args.json else format_table(items))
+    print(json.dumps(items, indent=2) if args.json else victims_table(items))
     return 1 if any(r["error"] for r in items) else 0

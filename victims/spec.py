@@ -1,24 +1,96 @@
-"""What the victim registry holds: :class:`VictimSpec`, a factory plus its metadata.
+"""The victim side's words, standard library only: what a victim declares (:class:`Capabilities`,
+:class:`EntryInfo`), what the victim registry holds (:class:`VictimSpec`) and the proposal modes
+(:data:`PROPOSAL_SOURCES`).
 
-Standard library only, so ``robustbench3d.victims`` (and ``victims list``) import no numpy/torch.
+Kept free of numpy/torch, so ``robustbench3d.victims`` (and ``victims list``, ``run --help``) stay
+cheap; the contract these words describe is :mod:`robustbench3d.victims.base`.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal, get_args
 
 from robustbench3d.registry import Spec
 
+if TYPE_CHECKING:
+    from robustbench3d.victims.base import Detector
+
+MODALITIES: tuple[str, ...] = ("camera", "lidar")
+BACKENDS: tuple[str, ...] = ("torch", "onnx", "other")
+_SHA256 = re.compile(r"^[0-9a-f]{64}$")
+
+#: A cell's proposal mode: the victim's own 2D detector, or the frame's ground-truth 2D boxes.
+ProposalSource = Literal["detector", "gt"]
+PROPOSAL_SOURCES: tuple[str, ...] = get_args(ProposalSource)
+
 
 @dataclass(frozen=True)
-class VictimSpec(Spec[Any]):
-    """A factory returning a :class:`~robustbench3d.victims.base.Detector`, plus
-    :class:`~robustbench3d.registry.EntryInfo` metadata. :meth:`create` checks the contract."""
+class Capabilities:
+    """What a registered victim uses and offers.
 
-    def create(self, **kwargs: Any) -> Any:
+    Attributes:
+        modalities: sensors used, a subset of ``("camera", "lidar")``.
+        backend: "torch", "onnx" or "other" (e.g. numpy).
+        gradients: True if it exposes differentiable quantities to attacks (white box).
+        deterministic: True if identical inputs give bit-identical outputs across calls.
+    """
+
+    modalities: tuple[str, ...]
+    backend: str
+    gradients: bool
+    deterministic: bool
+
+    def __post_init__(self) -> None:
+        mods = tuple(self.modalities)
+        if not mods or len(set(mods)) != len(mods) or any(m not in MODALITIES for m in mods):
+            raise ValueError(f"modalities must be distinct values of {MODALITIES}, got {mods}")
+        object.__setattr__(self, "modalities", tuple(m for m in MODALITIES if m in mods))
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"modalities": list(self.modalities), "backend": self.backend,
+                "gradients": self.gradients, "deterministic": self.deterministic}
+
+
+@dataclass(frozen=True)
+class EntryInfo:
+    """Metadata every registered victim declares.
+
+    Attributes:
+        capabilities: see :class:`Capabilities`.
+        weights_sha256: lowercase hex sha256 of the shipped weights file, None until weights ship.
+        summary: one line for listings.
+    """
+
+    capabilities: Capabilities
+    weights_sha256: str | None = None
+    summary: str = ""
+
+    def __post_init__(self) -> None:
+        if self.weights_sha256 is not None and not _SHA256.match(self.weights_sha256):
+            raise ValueError(f"weights_sha256 must be 64 lowercase hex digits, got {self.weights_sha256!r}")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"capabilities": self.capabilities.as_dict(), "weights_sha256": self.weights_sha256,
+                "summary": self.summary}
+
+
+@dataclass(frozen=True)
+class VictimSpec(Spec["Detector"]):
+    """A factory returning a :class:`~robustbench3d.victims.base.Detector`, plus its
+    :class:`EntryInfo`. :meth:`create` checks the contract the capabilities declare."""
+
+    info: EntryInfo
+
+    def create(self, **kwargs: Any) -> Detector:
         from robustbench3d.victims.base import check_victim
 
         victim = self.factory(**kwargs)
         check_victim(victim, self.info.capabilities)
         return victim
+
+
+__all__ = ["BACKENDS", "MODALITIES", "PROPOSAL_SOURCES", "Capabilities", "EntryInfo", "ProposalSource", "VictimSpec"]

@@ -10,12 +10,15 @@ by :meth:`~robustbench3d.victims.cascade.FPointNetCascade.save`) or the two trai
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from robustbench3d.errors import RobustBenchError
-from robustbench3d.registry import Capabilities
 from robustbench3d.victims import VICTIMS, register_victim
 from robustbench3d.victims.shipped import shipped, shipped_sha256
+from robustbench3d.victims.spec import Capabilities
+
+if TYPE_CHECKING:
+    from robustbench3d.victims.cascade import FPointNetCascade
 
 CASCADE_CAPABILITIES = Capabilities(modalities=("camera", "lidar"), backend="torch", gradients=True,
                                     deterministic=True)
@@ -23,7 +26,7 @@ CASCADE_CAPABILITIES = Capabilities(modalities=("camera", "lidar"), backend="tor
 
 def _cascade(name: str, fpn_config: str, weights: str | Path | None, yolo_weights: str | Path | None,
              fpointnet_weights: str | Path | None, allow_untrained: bool, seed: int, gather: str,
-             yolo_config: str = "mini") -> Any:
+             yolo_config: str = "mini") -> FPointNetCascade:
     from robustbench3d.victims.cascade import CascadeSettings, FPointNetCascade
 
     settings = CascadeSettings(seed=seed, gather=gather)  # type: ignore[arg-type]
@@ -49,7 +52,7 @@ def _cascade(name: str, fpn_config: str, weights: str | Path | None, yolo_weight
                  summary="YOLO 2D stage -> Frustum-PointNet v1 (1024 pts), KITTI Car")
 def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
                  fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,
-                 seed: int = 0, gather: str = "random") -> Any:
+                 seed: int = 0, gather: str = "random") -> FPointNetCascade:
     """The F-PN v1 cascade with the full v1 network (§1.6)."""
     return _cascade("fpointnet-v1", "full", weights, yolo_weights, fpointnet_weights, allow_untrained, seed, gather)
 
@@ -59,7 +62,7 @@ def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path 
                  summary="mini3-YOLO 960x288 -> Frustum-PointNet v1 lite (512 pts, CPU config)")
 def fpointnet_v1_lite(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
                       fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,
-                      seed: int = 0, gather: str = "random") -> Any:
+                      seed: int = 0, gather: str = "random") -> FPointNetCascade:
     """The cascade with the "lite" F-PN config (N = 512, global feature 256, seg head 128-64)."""
     return _cascade("fpointnet-v1-lite", "lite", weights, yolo_weights, fpointnet_weights, allow_untrained,
                     seed, gather)

@@ -15,6 +15,7 @@ are a detector's output and are not held to this: a bad prediction is scored, no
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +31,14 @@ FIELDS: tuple[str, ...] = (
     "type", "truncated", "occluded", "alpha", "bbox_left", "bbox_top", "bbox_right", "bbox_bottom",
     "height", "width", "length", "x", "y", "z", "rotation_y", "score",
 )
+#: Decimals of the geometry columns of written result files (the KITTI devkit's ``%.2f``); scores
+#: are written exactly. Results are evaluated on the parsed files, so in-memory and file scores agree.
+RESULT_PRECISION = 2
+
+
+def type_mask(types: np.ndarray | Iterable[str], wanted: Iterable[str]) -> np.ndarray:
+    """(N,) bool: which of N KITTI type names (e.g. :attr:`Labels.type`) are one of ``wanted``."""
+    return np.isin(np.asarray(types, dtype=str), np.asarray(list(wanted), dtype=str))
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,6 +103,10 @@ class Labels:
             score=None if self.score is None else self.score[index],
         )
 
+    def of_types(self, types: Iterable[str]) -> Labels:
+        """The objects whose type is one of ``types``, in order (:func:`type_mask`)."""
+        return self.select(type_mask(self.type, types))
+
     @classmethod
     def concatenate(cls, parts: list[Labels]) -> Labels:
         if not parts:
@@ -111,7 +124,7 @@ class Labels:
             rotation_y=cat("rotation_y"), score=cat("score") if parts[0].has_score else None,
         )
 
-    def to_text(self, precision: int = 2) -> str:
+    def to_text(self, precision: int = RESULT_PRECISION) -> str:
         """Label-file text, one line per object, the KITTI devkit's ``%.2f`` style by default.
 
         Scores (result files) are written exactly (shortest round-trip repr), so ranking and ties survive.

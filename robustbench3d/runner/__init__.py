@@ -11,6 +11,6 @@ summary schema and the long-format CSV.
 
 from robustbench3d.runner.config import PROPOSAL_SOURCES, CellKey, RunConfig
 from robustbench3d.runner.grid import CellOutcome, RunReport, run_benchmark
-from robustbench3d.runner.table import format_table
+from robustbench3d.runner.table import summary_table
 
-__all__ = ["PROPOSAL_SOURCES", "CellKey", "CellOutcome", "RunConfig", "RunReport", "format_table", "run_benchmark"]
+__all__ = ["PROPOSAL_SOURCES", "CellKey", "CellOutcome", "RunConfig", "RunReport", "run_benchmark", "summary_table"]

@@ -26,8 +26,7 @@ from robustbench3d.datasets import GroundTruth
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import atomic_write_text
 from robustbench3d.kitti.dataset import Frame, KittiDataset
-from robustbench3d.kitti.labels import Labels, parse_labels
-from robustbench3d.runner.config import RESULT_PRECISION
+from robustbench3d.kitti.labels import RESULT_PRECISION, Labels, parse_labels
 from robustbench3d.victims.base import victim_inputs
 
 #: Third entropy word of the attack generators (separates them from other uses of the seed).

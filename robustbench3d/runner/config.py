@@ -10,11 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import RobustBenchError
-
-PROPOSAL_SOURCES: tuple[str, ...] = ("detector", "gt")
-#: Decimals of the geometry columns of written result files (the KITTI devkit's ``%.2f``); scores
-#: are written exactly. Cells are evaluated on the parsed files, so in-memory and file scores agree.
-RESULT_PRECISION = 2
+from robustbench3d.victims.spec import PROPOSAL_SOURCES
 
 
 def _unique(values: tuple[str, ...], what: str) -> None:

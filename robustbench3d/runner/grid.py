@@ -12,6 +12,8 @@ A cell is finished when its ``cell.json`` exists (written atomically, last). A r
 finished ``ok`` or ``skipped`` cell whose configuration fingerprint is unchanged (and whose result
 files are all there); anything else is (re)computed. ``error`` cells are always retried.
 A victim that cannot be created (e.g. missing weights) or fails makes error cells; the run goes on.
+Each attack is created once per run: the instance whose ``describe()`` enters the fingerprints is
+the one every cell prepares and applies.
 
 The summary and the CSV cover every finished cell of ``OUT`` run on the same dataset, evaluation
 and seed (:mod:`robustbench3d.runner.collect`), so runs of different victims or attacks into one
@@ -29,11 +31,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from robustbench3d.attacks import ATTACKS
+from robustbench3d.attacks import ATTACKS, create_attack
+from robustbench3d.attacks.base import Attack
 from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.provenance import determinism_flags, host_provenance, library_versions, utc_now
-from robustbench3d.registry import Capabilities, PluginImportError
+from robustbench3d.registry import PluginImportError
 from robustbench3d.results import SCHEMA_VERSION, read_json, validate_summary, write_long_csv, write_validated
 from robustbench3d.runner.cell import (
     ATTACK_STREAM,
@@ -53,6 +56,7 @@ from robustbench3d.runner.records import (
     victim_record,
 )
 from robustbench3d.victims import VICTIMS, create_victim
+from robustbench3d.victims.spec import Capabilities
 
 CELL_FILE = "cell.json"
 SUMMARY_FILE = "summary.json"
@@ -174,11 +178,9 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
     """
     log = print_fn or (lambda line: print(line, file=sys.stderr, flush=True))
     _check_names(config)
-    attack_specs = {name: ATTACKS.get(name) for name in config.attacks}
-    attack_records = {}
-    for name, spec in attack_specs.items():
-        params = dict(config.attack_args.get(name, {}))
-        attack_records[name] = attack_record(name, params, spec.create(name, **params))
+    attacks = {name: _create_attack(name, config) for name in config.attacks}  # one instance per run
+    attack_records = {name: attack_record(name, dict(config.attack_args.get(name, {})), attack)
+                      for name, attack in attacks.items()}
     out = config.out
     out.mkdir(parents=True, exist_ok=True)
     with _exclusive(out):
@@ -191,8 +193,8 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
             f"{identity['split_frames']} frames (labels sha256 {identity['sha256'][:12]})")
         inputs = CellInputs(kitti=dataset.kitti(), gt=gt, seed=config.seed, batch_size=config.batch_size,
                             classes=config.classes, progress=config.progress)
-        host = host_provenance()
         evaluation = evaluation_record(config.classes)
+        run = _RunContext(config, inputs, identity, host_provenance(), log)
         report = RunReport(out=out, dataset=identity)
         slots: dict[str, _VictimSlot] = {}
         records: dict[str, dict[str, Any]] = {}
@@ -203,8 +205,7 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
         for i, key in enumerate(cells, start=1):
             cfg = cell_config(key, records[key.victim], attack_records[key.attack], identity, config.seed,
                               config.batch_size, evaluation)
-            outcome = _run_one(key, cfg, config, inputs, identity, host, slots[key.victim], out / "cells" / key.dirname,
-                               log)
+            outcome = _run_one(run, key, cfg, slots[key.victim], attacks[key.attack], out / "cells" / key.dirname)
             log(f"[{i}/{len(cells)}] {key}: {_describe(outcome)}")
             report.outcomes.append(outcome)
         found = earlier_cells(out / "cells", {key.dirname for key in cells}, identity, evaluation, config.seed,
@@ -226,51 +227,101 @@ def _describe(outcome: CellOutcome) -> str:
     return f"{cell['status']}{' (reused)' if outcome.reused else ''}: {cell['reason']}"
 
 
-def _run_one(key: CellKey, cfg: dict[str, Any], config: RunConfig, inputs: CellInputs, identity: dict[str, Any],
-             host: dict[str, Any], slot: _VictimSlot, cell_dir: Path, log: Callable[[str], None]) -> CellOutcome:
-    want = fingerprint(cfg)
-    old = _reusable(cell_dir, log, want, inputs.gt.frame_ids)
-    if old is not None:
-        return CellOutcome(key, old, reused=True)
-    (cell_dir / CELL_FILE).unlink(missing_ok=True)  # from here on, no stale "finished" marker
-    started, t0 = utc_now(), time.perf_counter()
-    status, reason, metrics, tb = "ok", None, None, None
-    caps = cfg["victim"]["capabilities"]
-    unmet = ATTACKS.get(key.attack).requirements.unmet(Capabilities(**caps)) if caps is not None else None
-    try:
+@dataclass(frozen=True)
+class _RunContext:
+    """What every cell of a run shares."""
+
+    config: RunConfig
+    inputs: CellInputs
+    identity: dict[str, Any]
+    host: dict[str, Any]
+    log: Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class _Verdict:
+    """How a cell ended: status, reason (skipped, error), metrics (ok) and traceback (error)."""
+
+    status: str
+    reason: str | None = None
+    metrics: dict[str, Any] | None = None
+    traceback: str | None = None
+
+
+def _create_attack(name: str, config: RunConfig) -> Attack:
+    """The run's one instance of attack ``name``: described in every cell's fingerprint and applied."""
+    return create_attack(name, **dict(config.attack_args.get(name, {})))
+
+
+def _skip_reason(key: CellKey, capabilities: dict[str, Any] | None, slot: _VictimSlot) -> str | None:
+    """Why the cell is skipped (attack needs what the victim lacks, unsupported proposal source), or None.
+
+    Creates the victim only when the attack's requirements are met (raises :class:`CellFailure` if
+    it cannot be created)."""
+    if capabilities is not None:
+        unmet = ATTACKS.get(key.attack).requirements.unmet(Capabilities(**capabilities))
         if unmet is not None:
-            status, reason = "skipped", f"attack {key.attack!r} {unmet}"
-        else:
-            victim = slot.get()
-            supported = tuple(victim.supported_proposals)
-            if key.proposals not in supported:
-                status, reason = "skipped", (f"victim {key.victim!r} supports proposals {', '.join(supported)} only "
-                                             f"(not {key.proposals!r})")
-            else:
-                attack = ATTACKS.get(key.attack).create(key.attack, **dict(config.attack_args.get(key.attack, {})))
-                metrics = run_cell(victim, key.victim, attack, key.attack, key.proposals, inputs, cell_dir)
+            return f"attack {key.attack!r} {unmet}"
+    supported = tuple(slot.get().supported_proposals)
+    if key.proposals not in supported:
+        return f"victim {key.victim!r} supports proposals {', '.join(supported)} only (not {key.proposals!r})"
+    return None
+
+
+def _failure(exc: CellFailure, log: Callable[[str], None]) -> _Verdict:
+    """The error verdict of a failed cell, with the traceback of its cause (logged if unexpected)."""
+    cause = exc.__cause__ or exc
+    tb = "".join(traceback.format_exception(type(cause), cause, cause.__traceback__))
+    if not isinstance(cause, RobustBenchError):  # an unexpected exception: show where it came from
+        log(tb.rstrip())
+    return _Verdict("error", str(exc), traceback=tb)
+
+
+def _execute(run: _RunContext, key: CellKey, capabilities: dict[str, Any] | None, slot: _VictimSlot,
+             attack: Attack, cell_dir: Path) -> _Verdict:
+    """Skip, run or fail the cell; a cell that is not ``ok`` keeps no result files."""
+    try:
+        skip = _skip_reason(key, capabilities, slot)
+        verdict = (_Verdict("skipped", skip) if skip is not None else
+                   _Verdict("ok", metrics=run_cell(slot.get(), key.victim, attack, key.attack, key.proposals,
+                                                   run.inputs, cell_dir)))
     except CellFailure as exc:
-        status, reason, metrics = "error", str(exc), None
-        cause = exc.__cause__ or exc
-        tb = "".join(traceback.format_exception(type(cause), cause, cause.__traceback__))
-        if not isinstance(cause, RobustBenchError):  # an unexpected exception: show where it came from
-            log(tb.rstrip())
-    if status != "ok":
+        verdict = _failure(exc, run.log)
+    if verdict.status != "ok":
         remove_results(cell_dir)
+    return verdict
+
+
+def _provenance(run: _RunContext, want: str, cfg: dict[str, Any], verdict: _Verdict, started: str,
+                t0: float) -> dict[str, Any]:
+    caps = cfg["victim"]["capabilities"]
     provenance = {
-        "fingerprint": want, "config": cfg, "run": config.as_dict(), **host, "versions": library_versions(),
-        "seed": config.seed,
+        "fingerprint": want, "config": cfg, "run": run.config.as_dict(), **run.host, "versions": library_versions(),
+        "seed": run.config.seed,
         "determinism": {**determinism_flags(), "victim_deterministic": None if caps is None else caps["deterministic"],
                         "attack_rng": f"numpy.random.default_rng([seed, int(frame_id), {ATTACK_STREAM:#x}])"},
         "started": started, "finished": utc_now(), "seconds": round(time.perf_counter() - t0, 3),
     }
-    if tb is not None:
-        provenance["traceback"] = tb
+    if verdict.traceback is not None:
+        provenance["traceback"] = verdict.traceback
+    return provenance
+
+
+def _run_one(run: _RunContext, key: CellKey, cfg: dict[str, Any], slot: _VictimSlot, attack: Attack,
+             cell_dir: Path) -> CellOutcome:
+    """Reuse the finished cell if its fingerprint is unchanged, else compute and record it."""
+    want = fingerprint(cfg)
+    old = _reusable(cell_dir, run.log, want, run.inputs.gt.frame_ids)
+    if old is not None:
+        return CellOutcome(key, old, reused=True)
+    (cell_dir / CELL_FILE).unlink(missing_ok=True)  # from here on, no stale "finished" marker
+    started, t0 = utc_now(), time.perf_counter()
+    verdict = _execute(run, key, cfg["victim"]["capabilities"], slot, attack, cell_dir)
     cell = {"schema_version": SCHEMA_VERSION, "victim": key.victim, "attack": key.attack, "proposals": key.proposals,
-            "status": status, "reason": reason, "dataset": identity, "metrics": metrics, "provenance": provenance}
+            "status": verdict.status, "reason": verdict.reason, "dataset": run.identity, "metrics": verdict.metrics,
+            "provenance": _provenance(run, want, cfg, verdict, started, t0)}
     cell_dir.mkdir(parents=True, exist_ok=True)
-    cell = write_validated(cell_dir / CELL_FILE, cell, cell_only=True)
-    return CellOutcome(key, cell, reused=False)
+    return CellOutcome(key, write_validated(cell_dir / CELL_FILE, cell, cell_only=True), reused=False)
 
 
 __all__ = ["CELL_FILE", "CSV_FILE", "SUMMARY_FILE", "CellOutcome", "RunReport", "run_benchmark"]

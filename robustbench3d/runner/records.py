@@ -14,10 +14,11 @@ from typing import Any
 from robustbench3d import __version__
 from robustbench3d.attacks import ATTACKS
 from robustbench3d.attacks.base import Attack
+from robustbench3d.kitti.labels import RESULT_PRECISION
 from robustbench3d.provenance import weight_files
 from robustbench3d.registry import RegistryError
 from robustbench3d.results import SCHEMA_VERSION
-from robustbench3d.runner.config import RESULT_PRECISION, CellKey
+from robustbench3d.runner.config import CellKey
 from robustbench3d.victims import VICTIMS
 
 

@@ -5,35 +5,31 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from robustbench3d.eval.rules import DIFFICULTIES
+from robustbench3d.results import CellResult
+from robustbench3d.texttable import format_table
+
 #: (metric, recall sampling) column groups of the table.
 COLUMNS: tuple[tuple[str, str], ...] = (("bev", "R40"), ("bev", "R11"), ("3d", "R40"), ("3d", "R11"))
 _LABEL = {"bev": "BEV", "3d": "3D"}
-_DIFFS = ("easy", "moderate", "hard")
 
 
-def _group(metrics: dict[str, Any] | None, cls: str, metric: str, recall: str) -> str:
-    if metrics is None or metric not in metrics.get(cls, {}):
+def _group(cell: CellResult, cls: str, metric: str, recall: str) -> str:
+    result = cell.result
+    if result is None or metric not in result.metrics(cls):
         return "-"
-    aps = metrics[cls][metric][recall]
-    return " ".join(f"{aps[d]:6.2f}" for d in _DIFFS)
+    return " ".join(f"{result.ap(cls, metric, recall, d):6.2f}" for d in DIFFICULTIES)
 
 
-def format_table(cells: Sequence[dict[str, Any]], cls: str = "Car") -> str:
+def summary_table(cells: Sequence[dict[str, Any]], cls: str = "Car") -> str:
     """Plain-text table of summary cells, then one line per skipped or failed cell."""
-    iou = next((c["metrics"]["meta"]["min_overlap"][cls]["bev"] for c in cells
-                if c["status"] == "ok" and cls in c["metrics"]["meta"]["min_overlap"]), 0.7)
+    results = [CellResult(c) for c in cells]
+    iou = next((r.result.iou(cls, "bev") for r in results
+                if r.result is not None and "bev" in r.result.metrics(cls)), 0.7)
     head = ["victim", "attack", "proposals", "status"] + [f"{_LABEL[m]} {r} (E M H)" for m, r in COLUMNS]
-    rows = [[c["victim"], c["attack"], c["proposals"], c["status"]]
-            + [_group(c["metrics"], cls, m, r) for m, r in COLUMNS] for c in cells]
-    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(head)]
-
-    def line(values: Sequence[str]) -> str:
-        return "  ".join(v.ljust(w) for v, w in zip(values, widths, strict=True)).rstrip()
-
-    frames = next((c["dataset"]["frames"] for c in cells), 0)
-    lines = [f"{cls} AP in % at IoU {iou:.2f}, easy / moderate / hard, {frames} frames",
-             line(head), line(["-" * w for w in widths]), *(line(r) for r in rows)]
-    for c in cells:
-        if c["status"] != "ok":
-            lines.append(f"{c['status']}: {c['victim']} / {c['attack']} / {c['proposals']}: {c['reason']}")
+    rows = [[r.victim, r.attack, r.proposals, r.status] + [_group(r, cls, m, rec) for m, rec in COLUMNS]
+            for r in results]
+    frames = next((r.frames for r in results), 0)
+    lines = [f"{cls} AP in % at IoU {iou:.2f}, easy / moderate / hard, {frames} frames", format_table(head, rows)]
+    lines += [f"{r.status}: {r.victim} / {r.attack} / {r.proposals}: {r.reason}" for r in results if r.status != "ok"]
     return "\n".join(lines)

@@ -12,3 +12,9 @@ Modules: ``road`` (road geometry, ground), ``layout`` (object placement), ``vehi
 (scene container, KITTI poses), ``raytrace`` (Embree), ``lidar``, ``camera``, ``annotate`` (labels),
 ``frame``, ``writer``, ``cli``, ``bench``.
 """
+
+#: Defaults of ``robustbench3d data synth``, which are also the fixed parameters of the embedded
+#: dataset a benchmark generates when no ``--data`` is given (:data:`robustbench3d.datasets.EMBEDDED`).
+DEFAULT_FRAMES = 2000
+DEFAULT_SEED = 0
+DEFAULT_VAL_FRACTION = 0.5

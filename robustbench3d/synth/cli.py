@@ -8,9 +8,7 @@ from __future__ import annotations
 import argparse
 import os
 
-DEFAULT_FRAMES = 2000
-DEFAULT_SEED = 0
-DEFAULT_VAL_FRACTION = 0.5
+from robustbench3d.synth import DEFAULT_FRAMES, DEFAULT_SEED, DEFAULT_VAL_FRACTION
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

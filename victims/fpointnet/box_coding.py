@@ -81,6 +81,11 @@ def one_hot(types: np.ndarray | list[str] | str) -> np.ndarray:
     return out
 
 
+def car_one_hot(n: int) -> np.ndarray:
+    """(n, 3) float32 one-hot rows of Car: the class vector of every frustum a cascade scores."""
+    return np.repeat(one_hot("Car"), n, axis=0)
+
+
 def corners_from_center(center: np.ndarray, heading: np.ndarray, size_lwh: np.ndarray) -> np.ndarray:
     """(N, 8, 3) corners of boxes given by their geometric centre (N, 3), heading about y (N,)
     and size (N, 3) l, w, h — the original ``get_3d_box`` layout: corners 0-3 at y = +h/2

@@ -25,6 +25,7 @@ from robustbench3d.fileio import atomic_open
 from robustbench3d.geometry import points_in_boxes
 from robustbench3d.kitti.dataset import KittiDataset
 from robustbench3d.kitti.image import image_size
+from robustbench3d.kitti.labels import type_mask
 from robustbench3d.victims.fpointnet.box_coding import angle_to_class, one_hot, size_to_class
 from robustbench3d.victims.fpointnet.frustum import (
     extract_frustum,
@@ -80,13 +81,13 @@ class FrustumSet:
 def build_frustum_set(dataset: KittiDataset, rng: np.random.Generator, types: Iterable[str] = ("Car",),
                       augment_x: int = 1, perturb: bool = False, frame_ids: Iterable[str] | None = None) -> FrustumSet:
     """Frustums of the GT boxes of ``types`` in the dataset's frames (see module docstring)."""
-    wanted = set(types)
+    wanted = tuple(types)
     cols: dict[str, list] = {k: [] for k in ("points", "seg", "box2d", "rot", "center", "ry", "size", "type", "frame")}
     for fid in (frame_ids if frame_ids is not None else dataset.frame_ids):
         labels = dataset.labels(fid)
         if labels is None:
             continue
-        sel = np.flatnonzero(np.isin(labels.type.astype(str), sorted(wanted)))
+        sel = np.flatnonzero(type_mask(labels.type, wanted))
         if len(sel) == 0:
             continue
         calib = dataset.calib(fid)

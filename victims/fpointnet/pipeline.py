@@ -5,8 +5,10 @@ One implementation for every backend: :class:`~robustbench3d.victims.cascade.FPo
 with their own 2D detector function and :class:`~robustbench3d.victims.fpointnet.glue.FrustumStages`.
 
 Determinism: the resampling of each frustum to N points (with replacement, as the original) and
-the random object-point gather draw from ``numpy.random.default_rng([seed, frame, proposal])``,
-so a frustum's result does not depend on the batch or on other frames. Proposal filters follow
+the random object-point gather draw from :func:`frustum_rng` (``numpy.random.default_rng([seed,
+frame, proposal])``), so a frustum's result does not depend on the batch or on other frames; the
+frustum oracle (``frustum_logits``) resamples with the same generator, so an attack's loss sees the
+frustums that ``detect`` scores. Proposal filters follow
 §1.3: 2D height >= 25 px, and at least ``min_points_detector`` (5) frustum points for detector
 boxes or ``min_points_gt`` (1) for GT boxes.
 
@@ -25,7 +27,7 @@ import numpy as np
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
 from robustbench3d.victims.base import Proposals, ProposalsArg, empty_detections, victim_inputs
-from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
+from robustbench3d.victims.fpointnet.box_coding import car_one_hot
 from robustbench3d.victims.fpointnet.frustum import (
     Frustum,
     extract_frustum,
@@ -77,6 +79,13 @@ class CascadeSettings:
 def frame_key(frame_id: str) -> int:
     """Integer seed component of a frame id (its value if numeric, else a CRC32)."""
     return int(frame_id) if frame_id.isdigit() else zlib.crc32(frame_id.encode("utf-8"))
+
+
+def frustum_rng(seed: int, frame_id: str, proposal: int) -> np.random.Generator:
+    """The generator of one frustum: proposal ``proposal`` (its index in the frame's proposal set,
+    as :func:`make_proposals` returns it) of frame ``frame_id``. It draws the resampling to N points
+    and then, with the random gather, the object points; ``detect`` and the oracle both use it."""
+    return np.random.default_rng([int(seed), frame_key(frame_id), int(proposal)])
 
 
 def make_proposals(frames: Sequence[Frame], source: ProposalsArg, detect_2d: Detect2DFn, car_class: int,
@@ -134,7 +143,7 @@ def frustum_inputs(frames: Sequence[Frame], proposals: Sequence[Proposals], sett
             fr = extract_frustum(projected, box, frame.calib)
             if len(fr) < max(least, 1):
                 continue
-            rng = np.random.default_rng([settings.seed, frame_key(frame.frame_id), k])
+            rng = frustum_rng(settings.seed, frame.frame_id, k)
             idx = resample_indices(len(fr), num_points, rng)
             pts = rotate_to_frustum(fr.points[idx], fr.rot_angle).astype(np.float32)
             out.append(FrustumInput(fi, fr, float(score), rng, pts, gt))
@@ -154,10 +163,8 @@ def detect_frames(frames: Sequence[Frame], proposals: ProposalsArg, *, detect_2d
     bs = settings.batch_size
     for start in range(0, len(inputs), bs):
         chunk = inputs[start:start + bs]
-        one_hot = np.zeros((len(chunk), len(ONE_HOT_CLASSES)), dtype=np.float32)
-        one_hot[:, 0] = 1.0
-        out = run_frustum_stages(stages, np.stack([j.points for j in chunk]), one_hot, num_object_points,
-                                 settings.gather, [j.rng for j in chunk])
+        out = run_frustum_stages(stages, np.stack([j.points for j in chunk]), car_one_hot(len(chunk)),
+                                 num_object_points, settings.gather, [j.rng for j in chunk])
         boxes = decode(out)
         scores = np.where([j.ground_truth for j in chunk], boxes.score_3d, [j.score for j in chunk])
         rows = to_labels(boxes, np.array([j.frustum.rot_angle for j in chunk]),

@@ -31,7 +31,7 @@ import numpy as np
 
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.victims.base import Proposals, gt_proposals
-from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
+from robustbench3d.victims.fpointnet.box_coding import car_one_hot
 from robustbench3d.victims.fpointnet.frustum import box_mask, project_scan
 from robustbench3d.victims.fpointnet.glue import (
     HEADING_SCORES,
@@ -170,8 +170,7 @@ def _frustum_flips(jobs_t: list[FrustumInput], jobs_o: list[FrustumInput], stage
     for start in range(0, len(jobs_t), bs):
         chunk_t, chunk_o = jobs_t[start:start + bs], jobs_o[start:start + bs]
         names = [f"proposal {start + r}" for r in range(len(chunk_t))]
-        one_hot = np.zeros((len(chunk_t), len(ONE_HOT_CLASSES)), dtype=np.float32)
-        one_hot[:, 0] = 1.0
+        one_hot = car_one_hot(len(chunk_t))
         out_t, out_o = (run_frustum_stages(stages, np.stack([j.points for j in chunk]), one_hot, num_object_points,
                                            settings.gather, [j.rng for j in chunk])
                         for stages, chunk in ((stages_t, chunk_t), (stages_o, chunk_o)))

@@ -29,8 +29,7 @@ from typing import Any
 import numpy as np
 
 from robustbench3d.kitti.dataset import Frame
-from robustbench3d.kitti.labels import Labels, parse_labels
-from robustbench3d.runner.config import RESULT_PRECISION
+from robustbench3d.kitti.labels import RESULT_PRECISION, Labels, parse_labels
 from robustbench3d.victims.base import victim_inputs
 from robustbench3d.victims.cascade import FPointNetCascade
 from robustbench3d.victims.fpointnet.glue import gather_points, mask_centroid, object_point_indices
@@ -289,16 +288,11 @@ def _as_written(dets: Sequence[Labels]) -> list[Labels]:
     return [parse_labels(d.to_text(RESULT_PRECISION), "<result>", scored=True) for d in dets]
 
 
-def _ap_values(metrics: dict[str, Any], prefix: str = "") -> dict[str, float]:
-    out: dict[str, float] = {}
-    for key, value in metrics.items():
-        if key == "meta":
-            continue
-        if isinstance(value, dict):
-            out.update(_ap_values(value, f"{prefix}{key}/"))
-        elif isinstance(value, int | float):
-            out[f"{prefix}{key}"] = float(value)
-    return out
+def _ap_values(metrics: dict[str, Any]) -> dict[str, float]:
+    """Every AP value of an evaluation, keyed ``class/metric/recall/difficulty``."""
+    from robustbench3d.results import APResult
+
+    return {f"{v.cls}/{v.metric}/{v.recall}/{v.difficulty}": float(v.ap) for v in APResult(metrics).values()}
 
 
 def ap_parity(gt: Sequence[Labels], proposals: str, dets_torch: Sequence[Labels], dets_onnx: Sequence[Labels],
@@ -340,37 +334,37 @@ def run_parity(victim: FPointNetCascade, onnx_victim: OnnxCascade, frames: Seque
 
 def format_report(report: ParityReport) -> str:
     """Plain-text tables of every level."""
-    from robustbench3d.bench import format_table
+    from robustbench3d.bench import dict_table
 
     t = report.tolerances
     parts = [f"== stage tensors (pass: max |Δ| <= {t.tensor_atol:g}; mismatch: |Δ| > {t.mismatch_atol:g} + "
              f"{t.mismatch_rtol:g}·|ref|)",
-             format_table([{"stage": r.stage, "tensor": r.tensor, "shape": "x".join(map(str, r.shape)),
-                            "max_abs_diff": r.max_abs_diff, "max_abs_ref": r.max_abs_ref,
-                            "differing": r.differing_fraction, "mismatch": r.mismatch_fraction, "ok": r.ok}
-                           for r in report.tensors]),
+             dict_table([{"stage": r.stage, "tensor": r.tensor, "shape": "x".join(map(str, r.shape)),
+                          "max_abs_diff": r.max_abs_diff, "max_abs_ref": r.max_abs_ref,
+                          "differing": r.differing_fraction, "mismatch": r.mismatch_fraction, "ok": r.ok}
+                         for r in report.tensors]),
              "== input sensitivity (an input that moves the torch output must move the ONNX output)",
-             format_table([{"stage": s.stage, "input": s.input, "torch_change": s.torch_change,
-                            "onnx_change": s.onnx_change, "perturbed_max_abs_diff": s.perturbed_max_abs_diff,
-                            "ok": s.ok, "note": "" if s.torch_change > t.sensitivity_min else
-                            "vacuous: constant in torch too (e.g. the zero-initialised T-Net head)"}
-                           for s in report.sensitivity])]
+             dict_table([{"stage": s.stage, "input": s.input, "torch_change": s.torch_change,
+                          "onnx_change": s.onnx_change, "perturbed_max_abs_diff": s.perturbed_max_abs_diff,
+                          "ok": s.ok, "note": "" if s.torch_change > t.sensitivity_min else
+                          "vacuous: constant in torch too (e.g. the zero-initialised T-Net head)"}
+                         for s in report.sensitivity])]
     if report.boxes:
         parts += [f"== boxes per frame (same rows, decoded geometry within {t.geometry_atol:g} px/m/rad; "
                   f"|Δscore| <= {t.score_atol:g}; a differing frame passes as a near tie if only decisions within "
                   f"{t.tie_atol:g} (logit/score/IoU) or {t.tie_px:g} px of their boundary flipped)",
-                  format_table([{"proposals": b.proposals, "frames": b.frames, "rows_torch": b.rows_torch,
-                                 "rows_onnx": b.rows_onnx, "identical_frames": b.identical_frames,
-                                 "near_tie_frames": b.near_tie_frames, "max_score_diff": b.max_score_diff,
-                                 "ok": b.ok} for b in report.boxes])]
+                  dict_table([{"proposals": b.proposals, "frames": b.frames, "rows_torch": b.rows_torch,
+                               "rows_onnx": b.rows_onnx, "identical_frames": b.identical_frames,
+                               "near_tie_frames": b.near_tie_frames, "max_score_diff": b.max_score_diff,
+                               "ok": b.ok} for b in report.boxes])]
         for b in report.boxes:
             if b.first_difference:
                 parts.append(f"  first difference ({b.proposals}): {b.first_difference}")
             parts += [f"  {b.proposals}: {note}" for note in b.divergences]
     if report.ap:
         parts += [f"== AP (Car; all metrics, R11/R40, difficulties; |ΔAP| <= {t.ap_atol:g} points)",
-                  format_table([{"proposals": a.proposals, "values": a.values, "max_abs_delta": a.max_abs_delta,
-                                 "worst": a.worst, "bev_R40_mod_torch": a.bev_moderate_r40[0],
-                                 "bev_R40_mod_onnx": a.bev_moderate_r40[1], "ok": a.ok} for a in report.ap])]
+                  dict_table([{"proposals": a.proposals, "values": a.values, "max_abs_delta": a.max_abs_delta,
+                               "worst": a.worst, "bev_R40_mod_torch": a.bev_moderate_r40[0],
+                               "bev_R40_mod_onnx": a.bev_moderate_r40[1], "ok": a.ok} for a in report.ap])]
     parts.append(f"parity: {'PASS' if report.ok else 'FAIL'}")
     return "\n".join(parts)

@@ -30,15 +30,18 @@ import re
 import unicodedata
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import atomic_write_text, read_user_text, sha256_file
 from robustbench3d.paths import cache_dir
-from robustbench3d.registry import Capabilities, EntryInfo, RegistryError
+from robustbench3d.registry import RegistryError
 from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.onnx import MANIFEST_FILE
-from robustbench3d.victims.spec import VictimSpec
+from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
+
+if TYPE_CHECKING:
+    from robustbench3d.victims.onnx.runtime import OnnxCascade
 
 REGISTRY_FORMAT = "robustbench3d.onnx_victims/1"
 ONNX_CAPABILITIES = Capabilities(modalities=("camera", "lidar"), backend="onnx", gradients=False, deterministic=True)
@@ -66,7 +69,7 @@ class OnnxVictimFactory:
         self.__module__ = __name__
         self.__qualname__ = f"OnnxVictimFactory[{self.directory}]"
 
-    def __call__(self, *, seed: int | None = None, gather: str | None = None, threads: int = 1) -> Any:
+    def __call__(self, *, seed: int | None = None, gather: str | None = None, threads: int = 1) -> OnnxCascade:
         from robustbench3d.victims.onnx.runtime import OnnxCascade
 
         return OnnxCascade(self.directory, seed=seed, gather=gather, threads=threads)
@@ -142,13 +145,6 @@ def resolve_victim_reference(reference: str) -> str:
         raise RobustBenchError(f"--victims {reference}: the directory's name {name!r} is already a registered "
                                "victim; rename the directory or register it under another name with "
                                "`robustbench3d victims add-onnx DIR --name NAME`") from None
-
-
-def resolve_victim_references(victims: list[str], victim_args: dict[str, Any]) -> tuple[list[str], dict[str, Any]]:
-    """:func:`resolve_victim_reference` over ``run``'s victim list and the keys of its
-    ``--victim-arg`` mapping (so ``--victim-arg DIR:threads=2`` follows the directory)."""
-    return ([resolve_victim_reference(v) for v in victims],
-            {resolve_victim_reference(k): v for k, v in victim_args.items()})
 
 
 def read_user_registry(path: Path | None = None) -> dict[str, str]:

@@ -24,7 +24,7 @@ import numpy as np
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
-from robustbench3d.victims.base import Proposals, ProposalsArg
+from robustbench3d.victims.base import PROPOSAL_SOURCES, Proposals, ProposalsArg
 from robustbench3d.victims.fpointnet.pipeline import CascadeSettings, detect_frames, make_proposals
 from robustbench3d.victims.onnx import require
 from robustbench3d.victims.onnx.manifest import (
@@ -128,7 +128,7 @@ class OnnxCascade:
         threads: onnxruntime intra-op threads per session.
     """
 
-    supported_proposals: tuple[str, ...] = ("detector", "gt")
+    supported_proposals: tuple[str, ...] = PROPOSAL_SOURCES
 
     def __init__(self, directory: str | Path, *, seed: int | None = None, gather: str | None = None,
                  threads: int = 1):

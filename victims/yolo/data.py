@@ -17,6 +17,7 @@ import torch
 
 from robustbench3d.fileio import atomic_open, atomic_write_text
 from robustbench3d.kitti.dataset import KittiDataset
+from robustbench3d.kitti.labels import Labels
 from robustbench3d.victims.yolo.letterbox import image_to_tensor, letterbox
 
 TARGET_TYPES: tuple[str, ...] = ("Car",)
@@ -63,10 +64,9 @@ def build_image_set(dataset: KittiDataset, input_size: tuple[int, int], fill: fl
         x, geo = letterbox(image_to_tensor(dataset.image(fid)), input_size, fill)
         images[i] = (x[0].permute(1, 2, 0).clamp(0, 1) * 255).round().to(torch.uint8).numpy()
         labels = dataset.labels(fid)
-        types = labels.type.astype(str) if labels is not None else np.zeros(0, dtype=str)
-        bbox = labels.bbox if labels is not None else np.zeros((0, 4))
-        boxes.append(np.asarray(geo.to_input(bbox[np.isin(types, TARGET_TYPES)])).reshape(-1, 4))
-        ignore.append(np.asarray(geo.to_input(bbox[np.isin(types, IGNORE_TYPES)])).reshape(-1, 4))
+        labels = labels if labels is not None else Labels.empty()
+        boxes.append(np.asarray(geo.to_input(labels.of_types(TARGET_TYPES).bbox)).reshape(-1, 4))
+        ignore.append(np.asarray(geo.to_input(labels.of_types(IGNORE_TYPES).bbox)).reshape(-1, 4))
     images.flush()
     del images
     os.replace(tmp, npy)

@@ -9,8 +9,7 @@ from __future__ import annotations
 from typing import Any
 
 from rb3d_lidar_cluster.detector import ClusterSettings, LidarClusterDetector
-from robustbench3d.registry import Capabilities, EntryInfo
-from robustbench3d.victims.base import VictimSpec
+from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
 
 
 def build(**settings: Any) -> LidarClusterDetector:
