@@ -5,6 +5,7 @@ An :class:`Attack` turns a clean :class:`~robustbench3d.kitti.dataset.Frame` int
 calibration, frame id and ground-truth labels stay as they were. The benchmark runner calls, per
 victim x attack cell::
 
+    attack.bind_dataset(kitti)                   # once per run: the dataset the frames come from
     attack.prepare(victim)                       # once; only white-box attacks use the victim
     attacked = attack.apply(frame, targets, rng) # per frame, in frame order
 
@@ -21,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from robustbench3d.kitti.dataset import Frame
+from robustbench3d.kitti.dataset import Frame, KittiDataset
 from robustbench3d.kitti.labels import Labels
 
 #: Object types whose instances carry an attack object.
@@ -43,6 +44,11 @@ class Attack(ABC):
         """Called once per benchmark cell before :meth:`apply` (one instance serves every cell of a
         run, so this replaces any earlier victim); white-box attacks (declaring ``needs_gradients``)
         keep the victim to query its oracles. Default: nothing."""
+
+    def bind_dataset(self, kitti: KittiDataset) -> None:  # noqa: B027 - optional hook, deliberately empty
+        """Called once per run (and by ``attack apply``) with the dataset whose frames :meth:`apply` will
+        get, before any of them: attacks that need more than a frame says (e.g. the generated scene a
+        frame came from, for exact occlusion) note it here. Default: nothing."""
 
     @abstractmethod
     def apply(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> Frame:

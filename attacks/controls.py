@@ -1,20 +1,30 @@
 """Control attacks: the reference cells attacked results are compared against.
 
-``none`` places no object: frames reach the victim unchanged (the clean AP). The benign sphere
-and random-shape controls will join here.
+``none`` places no object: frames reach the victim unchanged (the clean AP). ``benign-sphere``
+(the undeformed grey sphere) and ``random-shape`` (a seeded random smooth deformation with random
+colours, param ``seed``) put a physical but unoptimised object on every target car
+(:class:`~robustbench3d.attacks.roof.RoofObjectAttack`): how much AP a mere object costs.
+``object-file`` (param ``path``) applies any object file (:mod:`robustbench3d.attacks.objectfile`);
+:func:`resolve_attack_references` lets ``run --attacks`` name such a file directly.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from robustbench3d.attacks import register_attack
+from robustbench3d.attacks import ATTACKS, register_attack
 from robustbench3d.attacks.base import Attack
-from robustbench3d.attacks.spec import AttackRequirements
+from robustbench3d.attacks.spec import AttackRequirements, AttackSpec, AttackSpecError
+from robustbench3d.errors import RobustBenchError
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
+from robustbench3d.registry import RegistryError
+
+if TYPE_CHECKING:
+    from robustbench3d.attacks.roof import RoofObjectAttack
 
 
 @register_attack("none", requirements=AttackRequirements(),
@@ -27,3 +37,79 @@ class NoAttack(Attack):
 
     def describe(self) -> dict[str, Any]:
         return {"object": None}
+
+
+@register_attack("benign-sphere", summary="control: the undeformed grey sphere (r 0.40 m) on every target car's roof")
+def benign_sphere_attack(eot: bool = False) -> RoofObjectAttack:
+    """:func:`~robustbench3d.attacks.object.benign_sphere` on every target car (EOT jitter if ``eot``)."""
+    from robustbench3d.attacks.object import benign_sphere
+    from robustbench3d.attacks.roof import RoofObjectAttack
+
+    return RoofObjectAttack(benign_sphere(), identity={"attack": "benign-sphere"}, eot=eot)
+
+
+@register_attack("random-shape", summary="control: a seeded random smooth shape with random colours (param seed)")
+def random_shape_attack(seed: int = 0, eot: bool = False) -> RoofObjectAttack:
+    """:func:`~robustbench3d.attacks.object.random_shape` of ``seed`` on every target car."""
+    from robustbench3d.attacks.object import random_shape
+    from robustbench3d.attacks.roof import RoofObjectAttack
+
+    try:
+        obj = random_shape(seed)
+    except ValueError as exc:
+        raise AttackSpecError(str(exc)) from None
+    return RoofObjectAttack(obj, identity={"attack": "random-shape", "seed": seed}, eot=eot)
+
+
+@register_attack("object-file", summary="the object in a PLY object file (param path) on every target car")
+def object_file_attack(path: str, eot: bool = False) -> RoofObjectAttack:
+    """The object of the file ``path`` (checked by :func:`~robustbench3d.attacks.objectfile.read_object_file`)."""
+    from robustbench3d.attacks.objectfile import read_object_file
+    from robustbench3d.attacks.roof import RoofObjectAttack
+
+    loaded = read_object_file(path)
+    return RoofObjectAttack(loaded.obj, identity=loaded.made_by, sha256=loaded.sha256, eot=eot)
+
+
+class ObjectFileFactory:
+    """Factory of the attack of one object file; its registry identity names the resolved path, so
+    registering the same file twice under a name is a no-op and another file under a taken name a collision."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path).expanduser().resolve()
+        self.__module__ = __name__
+        self.__qualname__ = f"ObjectFileFactory[{self.path}]"
+
+    def __call__(self, *, eot: bool = False) -> RoofObjectAttack:
+        return object_file_attack(str(self.path), eot=eot)
+
+
+def resolve_attack_reference(reference: str) -> str:
+    """A registered attack name for a ``run --attacks`` entry: names pass through; an entry ending in
+    ``.ply`` is an object file, registered for this run under its sanitised file stem (returned)."""
+    from robustbench3d.victims.onnx.registration import sanitise_name
+
+    if not reference.lower().endswith(".ply"):
+        return reference
+    path = Path(reference).expanduser()
+    if not path.is_file():
+        raise RobustBenchError(f"--attacks {reference}: no such object file")
+    name = sanitise_name(path.stem)
+    if not name:
+        raise RobustBenchError(f"--attacks {reference}: no attack name can be derived from the file name; "
+                               "rename the file (letters and digits that fold to ASCII)")
+    ATTACKS.names()  # discover the registry's own entries first: they take precedence
+    try:
+        ATTACKS.register(name, AttackSpec(factory=ObjectFileFactory(path), summary=f"object file {path.resolve()}"),
+                         origin="object file")
+    except RegistryError:
+        raise RobustBenchError(f"--attacks {reference}: the file's name {name!r} is already a registered attack; "
+                               "rename the file") from None
+    return name
+
+
+def resolve_attack_references(references: list[str], attack_args: dict[str, Any]) -> tuple[list[str], dict[str, Any]]:
+    """Registered names for ``run --attacks`` entries and the keys of its ``--attack-arg`` mapping
+    (an object file's path is replaced by its name in both; see :func:`resolve_attack_reference`)."""
+    return ([resolve_attack_reference(a) for a in references],
+            {resolve_attack_reference(k): v for k, v in attack_args.items()})

@@ -26,13 +26,14 @@ listed in ``meta.skipped``, as is AOS when any detection has alpha = -10.
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from robustbench3d.eval.difficulty import det_status, detection_height_px, gt_status
 from robustbench3d.eval.loading import load_dirs
-from robustbench3d.eval.matching import CandidatePairs, collect_tp_scores, count_at_thresholds
+from robustbench3d.eval.matching import CandidatePairs, ThresholdCounts, collect_tp_scores, count_at_thresholds
 from robustbench3d.eval.overlaps import PairOverlaps, pair_overlaps
 from robustbench3d.eval.precision import average_precision, interpolate, ratio, score_thresholds
 from robustbench3d.eval.rules import (
@@ -72,7 +73,26 @@ def _usable_boxes(dt: ObjectTable, own: np.ndarray) -> dict[str, bool]:
     }
 
 
-class _ClassEvaluation:
+@dataclass(frozen=True)
+class ThresholdStats:
+    """Pass-2 results of one class and overlap kind (configurations: difficulty x sampled threshold).
+
+    Attributes:
+        pairs: the GT-detection candidate pairs (indices into the class's GT and detection rows).
+        thresholds: per difficulty the sampled score thresholds (up to 41, descending).
+        config_difficulty, config_threshold: (K,) each configuration's difficulty index and threshold.
+        counts: TP totals per configuration; fp: (K,) false positives per configuration.
+    """
+
+    pairs: CandidatePairs
+    thresholds: list[np.ndarray]
+    config_difficulty: np.ndarray
+    config_threshold: np.ndarray
+    counts: ThresholdCounts
+    fp: np.ndarray
+
+
+class ClassEvaluation:
     """Everything of one class that does not depend on the overlap kind."""
 
     def __init__(self, gt: ObjectTable, dt: ObjectTable, cls: str):
@@ -89,8 +109,8 @@ class _ClassEvaluation:
         self.score = dt.score[self.det_rows]
         self.n_gt = (self.gt_status == 0).sum(axis=1)
 
-    def curves(self, pairs: PairOverlaps, dontcare: PairOverlaps, kind: str, with_aos: bool) -> dict:
-        """Interpolated precision (and AOS) samples per difficulty for one overlap kind."""
+    def threshold_counts(self, pairs: PairOverlaps, dontcare: PairOverlaps, kind: str) -> ThresholdStats:
+        """Both matching passes for one overlap kind: TP and FP at every sampled score threshold."""
         thr = MIN_OVERLAP[kind][self.cls]
         ov = pairs.values[kind]
         keep = (ov > thr) & np.isin(pairs.gt, self.gt_rows) & np.isin(pairs.det, self.det_rows)
@@ -113,6 +133,12 @@ class _ClassEvaluation:
             at = cfg_diff == d
             fp[at] = len(scores) - np.searchsorted(scores, cfg_thr[at], side="left")
         fp -= counts.assigned_counting
+        return ThresholdStats(cand, thresholds, cfg_diff, cfg_thr, counts, fp)
+
+    def curves(self, pairs: PairOverlaps, dontcare: PairOverlaps, kind: str, with_aos: bool) -> dict:
+        """Interpolated precision (and AOS) samples per difficulty for one overlap kind."""
+        st = self.threshold_counts(pairs, dontcare, kind)
+        thresholds, cfg_diff, counts, fp = st.thresholds, st.config_difficulty, st.counts, st.fp
         precision = ratio(counts.tp, counts.tp + fp)
         similarity = ratio(counts.similarity, counts.tp + fp)
         out: dict = {"n_thresholds": [len(t) for t in thresholds],
@@ -120,6 +146,21 @@ class _ClassEvaluation:
         if with_aos:
             out["aos"] = [interpolate(similarity[cfg_diff == d]) for d in range(3)]
         return out
+
+
+def class_overlaps(gt: ObjectTable, dt: ObjectTable, classes: Sequence[str], kinds: Iterable[str]
+                   ) -> tuple[PairOverlaps, PairOverlaps]:
+    """Overlaps of the GT-detection pairs the evaluation of ``classes`` looks at (GT of the classes and
+    their neighbours x the classes' detections and all too-small ones), and of the classes' detections
+    with DontCare regions (intersection over the detection)."""
+    gt_types = set(classes) | {n for c in classes for n in NEIGHBOURS[c]}
+    gt_rows = np.flatnonzero(np.isin(gt.type, _codes(gt_types)))
+    own_dets = np.isin(dt.type, _codes(classes))
+    det_rows = np.flatnonzero(own_dets | (detection_height_px(dt) < max(MIN_HEIGHT)))
+    pairs = pair_overlaps(gt, dt, gt_rows, det_rows, set(kinds))
+    dontcare = pair_overlaps(gt, dt, np.flatnonzero(gt.of_type("DontCare")), np.flatnonzero(own_dets), set(kinds),
+                             "det")
+    return pairs, dontcare
 
 
 def evaluate_tables(gt: ObjectTable, dt: ObjectTable, classes: Sequence[str] | None = ("Car",),
@@ -146,12 +187,7 @@ def evaluate_tables(gt: ObjectTable, dt: ObjectTable, classes: Sequence[str] | N
     kinds = {OVERLAP_OF_METRIC[m] for m in metrics}
     orientation_ok = not bool(np.any(dt.alpha == INVALID_ALPHA))
 
-    gt_types = set(classes) | {n for c in classes for n in NEIGHBOURS[c]}
-    gt_rows = np.flatnonzero(np.isin(gt.type, _codes(gt_types)))
-    own_dets = np.isin(dt.type, _codes(classes))
-    det_rows = np.flatnonzero(own_dets | (detection_height_px(dt) < max(MIN_HEIGHT)))
-    pairs = pair_overlaps(gt, dt, gt_rows, det_rows, kinds)
-    dontcare = pair_overlaps(gt, dt, np.flatnonzero(gt.of_type("DontCare")), np.flatnonzero(own_dets), kinds, "det")
+    pairs, dontcare = class_overlaps(gt, dt, classes, kinds)
 
     result: dict = {}
     skipped: list[dict] = []
@@ -160,7 +196,7 @@ def evaluate_tables(gt: ObjectTable, dt: ObjectTable, classes: Sequence[str] | N
     n_thresholds: dict = {}
     gt_counted: dict = {}
     for cls in classes:
-        ce = _ClassEvaluation(gt, dt, cls)
+        ce = ClassEvaluation(gt, dt, cls)
         gt_counted[cls] = {diff: int(ce.n_gt[d]) for d, diff in enumerate(DIFFICULTIES)}
         result[cls], curves[cls], n_thresholds[cls] = _class_result(
             ce, dt, metrics, pairs, dontcare, orientation_ok, skipped)
@@ -173,7 +209,7 @@ def evaluate_tables(gt: ObjectTable, dt: ObjectTable, classes: Sequence[str] | N
     return result
 
 
-def _class_result(ce: _ClassEvaluation, dt: ObjectTable, metrics: tuple[str, ...], pairs: PairOverlaps,
+def _class_result(ce: ClassEvaluation, dt: ObjectTable, metrics: tuple[str, ...], pairs: PairOverlaps,
                   dontcare: PairOverlaps, orientation_ok: bool, skipped: list[dict]) -> tuple[dict, dict, dict]:
     """AP tables, curves and threshold counts of one class; appends skipped metrics to ``skipped``."""
     own = dt.of_type(ce.cls)

@@ -135,6 +135,32 @@ def collect_tp_scores(pairs: CandidatePairs, gt_status: np.ndarray, det_status: 
     return [score[a.det[tp & (a.config == k)]] for k in range(n_diff)]
 
 
+def assign_at_thresholds(pairs: CandidatePairs, config_difficulty: np.ndarray, config_threshold: np.ndarray,
+                         det_status: np.ndarray, score: np.ndarray) -> Assignments:
+    """Pass 2's assignment for every configuration (difficulty x score threshold): each GT, in file
+    order, takes the unassigned counting detection with the largest overlap, else the first ignored
+    one; detections scoring below the configuration's threshold are removed (arguments as in
+    :func:`count_at_thresholds`)."""
+    paired = np.unique(pairs.det)
+    status = det_status[:, paired].T[:, config_difficulty]  # (Dp, K)
+    usable = (status != -1) & (score[paired][:, None] >= config_threshold[None, :])
+    counting_status = status == 0
+
+    def key_of(loc: np.ndarray, overlap: np.ndarray, assigned: np.ndarray) -> np.ndarray:
+        ok = usable[loc] & ~assigned[loc]
+        # Counting candidates rank by overlap (all > threshold > 0); ignored ones below them.
+        return np.where(ok, np.where(counting_status[loc], overlap[:, None], -0.5), -np.inf)
+
+    return _greedy(pairs, len(config_difficulty), key_of)
+
+
+def true_positives(a: Assignments, config_difficulty: np.ndarray, gt_status: np.ndarray,
+                   det_status: np.ndarray) -> np.ndarray:
+    """(len(a.gt),) bool: which assigned pairs are true positives (counting GT and counting detection)."""
+    d = config_difficulty[a.config]
+    return (gt_status[d, a.gt] == 0) & (det_status[d, a.det] == 0)
+
+
 @dataclass(frozen=True)
 class ThresholdCounts:
     """Pass-2 totals per configuration (difficulty x score threshold)."""
@@ -157,20 +183,11 @@ def count_at_thresholds(pairs: CandidatePairs, config_difficulty: np.ndarray, co
         fp_candidate: (D,) bool, detections that count as FP when unassigned (not in DontCare).
     """
     n_config = len(config_difficulty)
-    paired = np.unique(pairs.det)
-    status = det_status[:, paired].T[:, config_difficulty]  # (Dp, K)
-    usable = (status != -1) & (score[paired][:, None] >= config_threshold[None, :])
-    counting_status = status == 0
-
-    def key_of(loc: np.ndarray, overlap: np.ndarray, assigned: np.ndarray) -> np.ndarray:
-        ok = usable[loc] & ~assigned[loc]
-        # Counting candidates rank by overlap (all > threshold > 0); ignored ones below them.
-        return np.where(ok, np.where(counting_status[loc], overlap[:, None], -0.5), -np.inf)
-
-    a = _greedy(pairs, n_config, key_of)
-    tp = (gt_status[config_difficulty[a.config], a.gt] == 0) & (det_status[config_difficulty[a.config], a.det] == 0)
+    a = assign_at_thresholds(pairs, config_difficulty, config_threshold, det_status, score)
+    counting_status = det_status[:, a.paired_dets].T[:, config_difficulty] == 0
+    tp = true_positives(a, config_difficulty, gt_status, det_status)
     sim = (1.0 + np.cos(gt_alpha[a.gt[tp]] - det_alpha[a.det[tp]])) / 2.0
-    counting = a.assigned & counting_status & fp_candidate[paired][:, None]
+    counting = a.assigned & counting_status & fp_candidate[a.paired_dets][:, None]
     return ThresholdCounts(
         tp=np.bincount(a.config[tp], minlength=n_config).astype(np.int64),
         similarity=np.bincount(a.config[tp], weights=sim, minlength=n_config),

@@ -25,6 +25,7 @@ BENCHMARKS: dict[str, str] = {
     "synth": "robustbench3d.synth.bench:run",
     "onnx": "robustbench3d.victims.onnx.bench:run",
     "victim": "robustbench3d.victims.bench:run",
+    "attack": "robustbench3d.attacks.bench:run",
 }
 
 

@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "data stats": ("robustbench3d.dataset_stats", "LiDAR/label statistics of KITTI-layout datasets, side by side"),
     "eval": ("robustbench3d.eval.cli", "score KITTI result files against ground-truth labels"),
     "show": ("robustbench3d.show", "draw a frame: image with 3D boxes and a bird's-eye view of the scan"),
+    "attack apply": ("robustbench3d.attack_apply", "write an attacked copy of a dataset split (KITTI layout + meshes)"),
+    "attack check": ("robustbench3d.attack_check", "check an attacked dataset geometrically against its clean one"),
     "victims list": ("robustbench3d.victims.list_command", "list registered victims and their capabilities"),
     "victims add-onnx": ("robustbench3d.victims.onnx.add_command", "register an ONNX victim directory under a name"),
     "victims remove": ("robustbench3d.victims.onnx.remove_command", "remove a victim added with victims add-onnx"),

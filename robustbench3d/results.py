@@ -13,6 +13,7 @@ it is the single source later leaderboards are built from.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -31,6 +32,7 @@ SCHEMA_VERSION = 1
 SCHEMA_RESOURCE = "summary.schema.json"
 CSV_COLUMNS: tuple[str, ...] = (
     "victim", "attack", "proposals", "class", "metric", "iou", "recall_points", "difficulty", "ap",
+    "clean_ap", "ap_drop", "relative_drop", "attack_success_rate",
 )
 #: Recall sampling name -> number of recall points (``R40`` -> 40, ``R11`` -> 11), in report order.
 RECALL_POINTS: dict[str, int] = {name: len(idx) for name, idx in RECALL_SAMPLES.items()}
@@ -208,20 +210,66 @@ class CellResult:
             raise LookupError(f"cell {self.victim} / {self.attack} / {self.proposals} is {self.status}: no AP")
         return result.ap(cls, metric, recall, difficulty)
 
+    @property
+    def effect(self) -> Mapping[str, Any] | None:
+        """The comparison with the clean cell (``attack_effect``, :mod:`robustbench3d.runner.effect`), or
+        None (the clean cell itself, a cell that is not ``ok``, or no ``ok`` clean cell)."""
+        return self.cell.get("attack_effect")
+
+    def _effect_value(self, table: str, cls: str, metric: str, recall: str, difficulty: str) -> float | None:
+        effect = self.effect
+        if effect is None:
+            raise LookupError(f"cell {self.victim} / {self.attack} / {self.proposals} has no clean-cell comparison")
+        try:
+            return effect[table][cls][metric][recall][difficulty]
+        except KeyError:
+            raise LookupError(f"no {table} for class {cls!r} metric {metric!r} {recall} {difficulty}") from None
+
+    def clean_ap(self, cls: str = "Car", metric: str = "bev", recall: str = "R40",
+                 difficulty: str = "moderate") -> float:
+        """AP in percent of the clean cell this attacked cell is compared with (:class:`LookupError` if none)."""
+        value = self._effect_value("clean", cls, metric, recall, difficulty)
+        assert value is not None
+        return value
+
+    def drop(self, cls: str = "Car", metric: str = "bev", recall: str = "R40", difficulty: str = "moderate",
+             relative: bool = False) -> float | None:
+        """Clean AP - attacked AP in percentage points, or with ``relative`` that drop / clean AP (a
+        fraction; None where the clean AP is 0). :class:`LookupError` without a clean-cell comparison."""
+        return self._effect_value("relative_drop" if relative else "drop", cls, metric, recall, difficulty)
+
+    @property
+    def attack_success_rate(self) -> float | None:
+        """Share of the Cars matched clean that the attacked cell misses (see ``attack_effect.success``);
+        None without a comparison or when the clean cell matches no Car."""
+        effect = self.effect
+        return None if effect is None else effect["success"]["rate"]
+
 
 def long_rows(cells: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per AP value of every ``ok`` cell, in cell order, then class, metric, recall
     sampling (R40 before R11) and difficulty. ``iou`` is the metric's minimum overlap,
-    ``recall_points`` 40 or 11, ``ap`` in percent."""
+    ``recall_points`` 40 or 11, ``ap`` in percent. Attacked cells compared with a clean cell also fill
+    ``clean_ap``, ``ap_drop`` (percentage points), ``relative_drop`` (fraction) and the cell's
+    ``attack_success_rate`` (repeated on each of its rows); these are empty otherwise, as is a
+    relative drop from a clean AP of 0."""
     rows = []
     for cell in map(CellResult, cells):
         result = cell.result
         if result is None:
             continue
         for v in result.values():
-            rows.append({"victim": cell.victim, "attack": cell.attack, "proposals": cell.proposals, "class": v.cls,
-                         "metric": v.metric, "iou": result.iou(v.cls, v.metric),
-                         "recall_points": RECALL_POINTS[v.recall], "difficulty": v.difficulty, "ap": v.ap})
+            row = {"victim": cell.victim, "attack": cell.attack, "proposals": cell.proposals, "class": v.cls,
+                   "metric": v.metric, "iou": result.iou(v.cls, v.metric),
+                   "recall_points": RECALL_POINTS[v.recall], "difficulty": v.difficulty, "ap": v.ap,
+                   "clean_ap": None, "ap_drop": None, "relative_drop": None, "attack_success_rate": None}
+            if cell.effect is not None:
+                where = (v.cls, v.metric, v.recall, v.difficulty)
+                with contextlib.suppress(LookupError):
+                    row.update(clean_ap=cell.clean_ap(*where), ap_drop=cell.drop(*where),
+                               relative_drop=cell.drop(*where, relative=True),
+                               attack_success_rate=cell.attack_success_rate)
+            rows.append(row)
     return rows
 
 
@@ -231,7 +279,7 @@ def long_csv_text(rows: Sequence[dict[str, Any]]) -> str:
     writer = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
     writer.writeheader()
     for row in rows:
-        writer.writerow({k: repr(v) if isinstance(v, float) else v for k, v in row.items()})
+        writer.writerow({k: repr(v) if isinstance(v, float) else "" if v is None else v for k, v in row.items()})
     return buf.getvalue()
 
 

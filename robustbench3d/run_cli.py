@@ -38,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--victims", required=True, metavar="NAME[,NAME...]",
                         help="registered victims, or ONNX victim directories (registered under their directory name)")
     parser.add_argument("--attacks", default="none", metavar="NAME[,NAME...]",
-                        help="registered attacks (default: none, the clean control)")
+                        help="registered attacks, or object files NAME.ply (registered under NAME) "
+                             "(default: none, the clean control)")
     parser.add_argument("--proposals", default="detector", metavar="SRC[,SRC...]",
                         help="2D proposal sources: detector (the victim's own) and/or gt (ground-truth boxes); "
                              "a victim that does not support a source gets a skipped cell (default: detector)")
@@ -65,6 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
+    from robustbench3d.attacks.controls import resolve_attack_references
     from robustbench3d.fileio import check_output_dir, remove_created_dir
     from robustbench3d.runner import RunConfig, run_benchmark, summary_table
     from robustbench3d.victims import resolve_victim_references
@@ -74,12 +76,14 @@ def run(args: argparse.Namespace) -> int:
 
     victims, victim_args = resolve_victim_references(_names(args.victims),
                                                      parse_factory_args(args.victim_arg, "--victim-arg"))
+    attacks, attack_args = resolve_attack_references(_names(args.attacks),
+                                                     parse_factory_args(args.attack_arg, "--attack-arg"))
     config = RunConfig(
-        victims=tuple(victims), attacks=tuple(_names(args.attacks)),
+        victims=tuple(victims), attacks=tuple(attacks),
         proposals=tuple(_names(args.proposals)), out=args.out, data=args.data, split=args.split,
         max_frames=args.max_frames, seed=args.seed, batch_size=args.batch_size,
         victim_args=victim_args,
-        attack_args=parse_factory_args(args.attack_arg, "--attack-arg"),
+        attack_args=attack_args,
         workers=args.workers, progress=not args.no_progress,
     )
     try:

@@ -3,6 +3,10 @@
 Top: the camera-2 image with each labelled object's 3D box projected (near-plane clipped) and
 DontCare regions outlined. Bottom: a bird's-eye view of the scan in the velodyne frame (x forward
 = up in the picture, y left = left), points coloured by height, with the boxes' footprints.
+
+With ``--attack OBJECT`` (a registered attack or an object file) the frame is drawn clean (left) and
+attacked (right), as ``attack apply`` attacks it (same seed and placement): in the attacked bird's-eye
+view the object's LiDAR returns are drawn in yellow (no class or height colour), enlarged to 3 x 3 px.
 """
 
 from __future__ import annotations
@@ -22,10 +26,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="PNG file to write")
     parser.add_argument("--pred", help="optional result directory; its detections are drawn in red")
     parser.add_argument("--bev-range", type=float, default=70.0, help="forward range of the BEV panel, m")
+    parser.add_argument("--attack", metavar="OBJECT",
+                        help="also draw the frame attacked by OBJECT (registered attack or NAME.ply), side by side")
+    parser.add_argument("--seed", type=int, default=0, help="attack seed, as in `run`/`attack apply` (default 0)")
+
+#: Colour of the attack object's LiDAR returns in the bird's-eye view.
+OBJECT_POINT_COLOUR = (255, 255, 0)
 
 
-def render(frame, detections=None, bev_range: float = 70.0):
-    """Return an (H, W, 3) uint8 picture of ``frame`` (a :class:`~robustbench3d.kitti.Frame`)."""
+def render(frame, detections=None, bev_range: float = 70.0, highlight=None):
+    """Return an (H, W, 3) uint8 picture of ``frame`` (a :class:`~robustbench3d.kitti.Frame`);
+    ``highlight`` (K, >=3) velodyne points are drawn in :data:`OBJECT_POINT_COLOUR` over the BEV."""
     import numpy as np
     from PIL import Image, ImageDraw
 
@@ -61,6 +72,14 @@ def render(frame, detections=None, bev_range: float = 70.0):
     t = np.clip((z[ok] + 2.0) / 3.0, 0, 1)
     colours = np.stack([80 + 175 * t, 80 + 175 * (1 - np.abs(2 * t - 1)), 255 - 175 * t], axis=1).astype(np.uint8)
     bev[row[ok], col[ok]] = colours
+    if highlight is not None and len(highlight):
+        hc = ((half - highlight[:, 1]) * scale).astype(np.int64)
+        hr = ((bev_range - highlight[:, 0]) * scale).astype(np.int64)
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                r, c = hr + dr, hc + dc
+                inside = (c >= 0) & (c < width) & (r >= 0) & (r < bev_h)
+                bev[r[inside], c[inside]] = OBJECT_POINT_COLOUR
     bev_img = Image.fromarray(bev)
     bdraw = ImageDraw.Draw(bev_img)
     for colour, c in drawn:
@@ -104,6 +123,8 @@ def _clip_segment(a, b, near: float):
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from robustbench3d.fileio import check_output_file
     from robustbench3d.kitti import KittiDataset, read_labels
     from robustbench3d.kitti.image import write_image
@@ -117,6 +138,34 @@ def run(args: argparse.Namespace) -> int:
 
         path = Path(args.pred) / f"{args.frame}.txt"
         dets = read_labels(path, scored=True) if path.exists() else None
-    write_image(args.out, render(frame, dets, args.bev_range))
+    picture = render(frame, dets, args.bev_range)
+    if args.attack:
+        picture = np.concatenate([picture, _attacked_picture(ds, frame, args.attack, args.seed, dets,
+                                                             args.bev_range)], axis=1)
+    write_image(args.out, picture)
     print(args.out)
     return 0
+
+
+def attacked_frame(ds, frame, reference: str, seed: int):
+    """(attacked frame, (K, 4) object LiDAR returns) of ``frame`` as ``attack apply`` makes it."""
+    import numpy as np
+
+    from robustbench3d.attack_apply import resolve_attack
+    from robustbench3d.attacks.base import target_cars
+    from robustbench3d.runner.cell import attack_rng
+
+    _, attack = resolve_attack(reference)
+    attack.bind_dataset(ds)
+    targets = target_cars(frame.labels)
+    if len(targets) == 0:
+        return frame, np.zeros((0, 4), np.float32)
+    attacked = attack.apply(frame, targets, attack_rng(seed, frame.frame_id))
+    clean_rows = np.ascontiguousarray(frame.scan, "<f4").view(np.dtype((np.void, 16))).reshape(-1)
+    rows = np.ascontiguousarray(attacked.scan, "<f4").view(np.dtype((np.void, 16))).reshape(-1)
+    return attacked, attacked.scan[~np.isin(rows, clean_rows)]
+
+
+def _attacked_picture(ds, frame, reference: str, seed: int, dets, bev_range: float):
+    attacked, added = attacked_frame(ds, frame, reference, seed)
+    return render(attacked, dets, bev_range, highlight=added)

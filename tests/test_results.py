@@ -152,7 +152,8 @@ def test_long_rows_one_per_ap_value_of_ok_cells():
     assert len(rows) == 2 * 2 * 3  # metrics x recall samplings x difficulties; the skipped cell adds none
     first = rows[0]
     assert first == {"victim": "lidar-cluster", "attack": "none", "proposals": "detector", "class": "Car",
-                     "metric": "bev", "iou": 0.7, "recall_points": 40, "difficulty": "easy", "ap": 85.5}
+                     "metric": "bev", "iou": 0.7, "recall_points": 40, "difficulty": "easy", "ap": 85.5,
+                     "clean_ap": None, "ap_drop": None, "relative_drop": None, "attack_success_rate": None}
     by_key = {(r["metric"], r["recall_points"], r["difficulty"]): r["ap"] for r in rows}
     assert by_key[("bev", 11, "hard")] == 76.5
     assert by_key[("3d", 40, "moderate")] == 60.0

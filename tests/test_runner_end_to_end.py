@@ -242,11 +242,15 @@ def test_each_attack_is_built_once_and_the_described_instance_is_applied(dataset
     CountedAttack.created.clear()
     report = run_benchmark(RunConfig(victims=("lidar-cluster", "test-broken-victim"), attacks=("test-counted-attack",),
                                      proposals=("detector",), out=tmp_path / "run", data=dataset, progress=False),
-                           lambda line: None)  # 4 frames in one batch: the broken victim's one call succeeds
-    assert [c["status"] for c in report.cells] == ["ok", "ok"]
+                           lambda line: None)  # 4 frames in one batch: one detect call per cell
+    # The clean cell 'none' of each victim is added (and runs first): the broken victim's second call,
+    # in its attacked cell, fails.
+    assert [(c["attack"], c["status"]) for c in report.cells] == [
+        ("none", "ok"), ("test-counted-attack", "ok"), ("none", "ok"), ("test-counted-attack", "error")]
+    counted = [c for c in report.cells if c["attack"] == "test-counted-attack"]
     assert len(CountedAttack.created) == 1  # one instance for the whole run ...
     (attack,) = CountedAttack.created
-    assert [c["provenance"]["config"]["attack"]["object"] for c in report.cells] == [{"instance": 1}] * 2
+    assert [c["provenance"]["config"]["attack"]["object"] for c in counted] == [{"instance": 1}] * 2
     assert attack.prepared == ["LidarClusterDetector", "BrokenDetector"]  # ... prepared for each cell
     assert attack.applied == 2 * FRAMES  # ... and it is the one that attacked every frame of both cells
 

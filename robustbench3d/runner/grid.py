@@ -12,6 +12,9 @@ A cell is finished when its ``cell.json`` exists (written atomically, last). A r
 finished ``ok`` or ``skipped`` cell whose configuration fingerprint is unchanged (and whose result
 files are all there); anything else is (re)computed. ``error`` cells are always retried.
 A victim that cannot be created (e.g. missing weights) or fails makes error cells; the run goes on.
+A run with attacked cells also runs (or reuses) the clean control ``none`` of each victim x proposal
+source, and every attacked cell records its AP drop and attack success rate against it
+(``attack_effect``, :mod:`robustbench3d.runner.effect`).
 Each attack is created once per run: the instance whose ``describe()`` enters the fingerprints is
 the one every cell prepares and applies.
 
@@ -48,6 +51,7 @@ from robustbench3d.runner.cell import (
 )
 from robustbench3d.runner.collect import earlier_cells
 from robustbench3d.runner.config import CellKey, RunConfig, fingerprint, grid
+from robustbench3d.runner.effect import CLEAN_ATTACK, attach_effects, with_clean_cells
 from robustbench3d.runner.records import (
     attack_record,
     cell_config,
@@ -178,6 +182,9 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
     """
     log = print_fn or (lambda line: print(line, file=sys.stderr, flush=True))
     _check_names(config)
+    if with_clean_cells(config) is not config:
+        config = with_clean_cells(config)
+        log(f"adding the clean control {CLEAN_ATTACK!r}: attacked cells are compared with it (run or reused)")
     attacks = {name: _create_attack(name, config) for name in config.attacks}  # one instance per run
     attack_records = {name: attack_record(name, dict(config.attack_args.get(name, {})), attack)
                       for name, attack in attacks.items()}
@@ -193,6 +200,8 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
             f"{identity['split_frames']} frames (labels sha256 {identity['sha256'][:12]})")
         inputs = CellInputs(kitti=dataset.kitti(), gt=gt, seed=config.seed, batch_size=config.batch_size,
                             classes=config.classes, progress=config.progress)
+        for attack in attacks.values():  # e.g. exact occlusion on a generated dataset
+            attack.bind_dataset(inputs.kitti)
         evaluation = evaluation_record(config.classes)
         run = _RunContext(config, inputs, identity, host_provenance(), log)
         report = RunReport(out=out, dataset=identity)
@@ -215,9 +224,20 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
             log(f"the summary also lists {len(report.earlier)} finished cell(s) of earlier runs in {out}")
         for line in report.left_out:
             log(f"left out of the summary: {line}")
+        _record_effects(report, out / "cells", inputs)
         summary = write_validated(out / SUMMARY_FILE, report.summary)
         write_long_csv(out / CSV_FILE, summary)
     return report
+
+
+def _record_effects(report: RunReport, cells_dir: Path, inputs: CellInputs) -> None:
+    """Compare every attacked cell of the summary with its clean cell (:mod:`.effect`); rewrite the
+    ``cell.json`` of each cell whose comparison changed (atomically, the cell stays finished)."""
+    cells = report.summary
+    for i in attach_effects(cells, cells_dir, inputs.gt.labels, inputs.gt.frame_ids):
+        cell = cells[i]
+        key = CellKey(cell["victim"], cell["attack"], cell["proposals"])
+        write_validated(cells_dir / key.dirname / CELL_FILE, cell, cell_only=True)
 
 
 def _describe(outcome: CellOutcome) -> str:

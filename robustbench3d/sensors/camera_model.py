@@ -30,10 +30,25 @@ The steps, in the generator's order:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
+
+
+@dataclass(frozen=True)
+class Lighting:
+    """Sun and sky of a frame (directions in the velodyne frame, colours linear RGB)."""
+
+    sun_direction: np.ndarray  # unit vector towards the sun
+    sun_color: np.ndarray
+    sky_zenith: np.ndarray
+    sky_horizon: np.ndarray
+    ambient: float  # sky-light strength relative to the sun
+    haze_distance: float  # m, e-folding distance of aerial perspective
+    exposure: float
+
 
 #: Shadow rays start this far off the surface, along the (camera-facing) normal, m.
 SHADOW_RAY_OFFSET_M = 0.03

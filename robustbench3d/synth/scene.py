@@ -18,6 +18,7 @@ import numpy as np
 
 from robustbench3d.geometry import roty, wrap_angle
 from robustbench3d.kitti.calib import Calibration
+from robustbench3d.sensors.camera_model import Lighting  # defined with the shading model; re-exported here
 from robustbench3d.synth import materials as mt
 from robustbench3d.synth.calibs import CameraDay
 from robustbench3d.synth.materials import Mat
@@ -52,19 +53,6 @@ class SceneObject:
     @property
     def labelled(self) -> bool:
         return self.kind in LABELLED_KINDS
-
-
-@dataclass(frozen=True)
-class Lighting:
-    """Sun and sky of a frame (directions in the velodyne frame, colours linear RGB)."""
-
-    sun_direction: np.ndarray  # unit vector towards the sun
-    sun_color: np.ndarray
-    sky_zenith: np.ndarray
-    sky_horizon: np.ndarray
-    ambient: float  # sky-light strength relative to the sun
-    haze_distance: float  # m, e-folding distance of aerial perspective
-    exposure: float
 
 
 @dataclass(frozen=True, eq=False)

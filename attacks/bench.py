@@ -1,0 +1,212 @@
+"""``robustbench3d bench attack``: cost of rendering a roof object into both sensors, one torch thread.
+
+Rows (median wall time; CPU time beside it because the machine may be shared):
+
+* object -> LiDAR forward + backward (:func:`~robustbench3d.sensors.lidar_render.render_lidar_torch`, loss = sum
+  of squared hit points, gradient w.r.t. the 162 vertices), one object on a car roof at 10 m in a generated
+  scan (target 5 ms), and the full :func:`~robustbench3d.sensors.lidar_render.render_lidar`;
+* per distance the LiDAR's ray-triangle tests against the brute force over the whole scan pattern
+  (every ray x every face; target <= 1 %);
+* camera crop forward + backward (:func:`~robustbench3d.sensors.camera_render.render_camera_torch`, loss = sum
+  of the image, gradients w.r.t. vertices and colours), the object 10 m ahead of camera 2, 3 x 3 samples per
+  pixel, float64 and float32 geometry (target 5 ms);
+* the camera's candidate (sample, face) pairs against every sample of the image x every face (target <= 1 %).
+
+:func:`occlusion_agreement` (not run by the benchmark: it generates frames) measures the LiDAR occlusion
+approximation of :mod:`robustbench3d.sensors.camera_depth` against the exact scene depth.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from robustbench3d.attacks.object import RADIUS
+
+TARGET_MS = 5.0
+TARGET_TEST_SHARE = 0.01
+ROOF_Z_M = -1.73 + 1.50  # roof of a 1.50 m high car, velodyne frame
+
+
+def _scan() -> np.ndarray:
+    """A generated scan (seed 0, frame 0)."""
+    from robustbench3d.synth.frame import frame_generators
+    from robustbench3d.synth.layout import sample_scene
+    from robustbench3d.synth.lidar import simulate_scan
+    from robustbench3d.synth.raytrace import SceneGeometry
+
+    scene_rng, lidar_rng, _ = frame_generators(0, 0)
+    scene = sample_scene(scene_rng)
+    return simulate_scan(scene, SceneGeometry(scene), lidar_rng)[0]
+
+
+def _sphere() -> tuple[np.ndarray, np.ndarray]:
+    from robustbench3d.sensors.mesh import icosphere
+
+    return icosphere(2, RADIUS)
+
+
+def _time(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
+    """Median wall and CPU milliseconds of ``fn`` (after one warm-up call)."""
+    fn()
+    wall, cpu = [], []
+    for _ in range(repeats):
+        w, c = time.perf_counter(), time.process_time()
+        fn()
+        wall.append(time.perf_counter() - w)
+        cpu.append(time.process_time() - c)
+    return 1e3 * statistics.median(wall), 1e3 * statistics.median(cpu)
+
+
+def _lidar_rows(repeats: int) -> list[dict]:
+    from robustbench3d.sensors.lidar_render import prepare_scan, render_lidar, render_lidar_torch, trace_meshes
+
+    prep = prepare_scan(_scan())
+    v0, f = _sphere()
+
+    def placed(dist: float) -> np.ndarray:
+        return v0 + np.array([dist, 0.3, ROOF_Z_M + RADIUS])
+
+    v = placed(10.0)
+    vt = torch.tensor(v, requires_grad=True)
+
+    def fwd_bwd() -> None:
+        pts, _ = render_lidar_torch(prep, [(vt, f, None)])
+        vt.grad = None
+        pts.pow(2).sum().backward()
+
+    n_pts = len(render_lidar_torch(prep, [(v, f, None)])[0])
+    wall, cpu = _time(fwd_bwd, repeats)
+    rows = [{"case": "object -> LiDAR fwd+bwd, car at 10 m", "points": n_pts, "median_ms": round(wall, 2),
+             "cpu_ms": round(cpu, 2), "target": f"<= {TARGET_MS:g} ms", "met": wall <= TARGET_MS}]
+    wall, cpu = _time(lambda: render_lidar(prep, [(v, f, np.full_like(v, 0.5))]), repeats)
+    rows.append({"case": "render_lidar (scan + reflectance), 10 m", "points": n_pts, "median_ms": round(wall, 2),
+                 "cpu_ms": round(cpu, 2)})
+    brute = len(prep.pattern.rays) * len(f)
+    for dist in (5.0, 10.0, 20.0, 40.0):
+        tr = trace_meshes(prep, [(placed(dist), f, None)])
+        share = tr.tests / brute
+        rows.append({"case": f"LiDAR ray-triangle tests, car at {dist:g} m", "points": len(tr.ray),
+                     "tests": tr.tests, "brute_force": brute, "share": round(share, 5),
+                     "target": f"<= {TARGET_TEST_SHARE:.0%}", "met": share <= TARGET_TEST_SHARE})
+    return rows
+
+
+def bench_camera_crop(distance_m: float = 10.0, supersample: int = 3, dtype: torch.dtype = torch.float64,
+                      repeats: int = 15) -> dict[str, float]:
+    """Median wall and CPU ms of one camera crop render, forward + backward (loss = sum of the image), of a
+    level-2 icosphere (r = 0.40 m, random vertex colours) ``distance_m`` ahead of camera 2 of KITTI 2011_09_26
+    over a random photo (float32), geometry in ``dtype``; with the samples rendered and the candidate pairs tested."""
+    from robustbench3d.sensors.camera_render import camera_ray_tests, render_camera_torch
+    from robustbench3d.synth.calibs import DAY_0926
+
+    calib = DAY_0926.calib
+    w, h = DAY_0926.image_size
+    rng = np.random.default_rng(0)
+    v, f = _sphere()
+    v = v + np.array([0.5, 0.0, distance_m])
+    verts = torch.tensor(v, dtype=dtype, requires_grad=True)
+    colors = torch.tensor(rng.random((len(v), 3)), dtype=dtype, requires_grad=True)
+    photo = torch.tensor(rng.random((h, w, 3)), dtype=torch.float32)
+
+    def fwd_bwd() -> None:
+        out = render_camera_torch(photo, calib, [(verts, f, colors)], supersample=supersample)
+        out.sum().backward()
+        verts.grad = colors.grad = None
+
+    wall, cpu = _time(fwd_bwd, repeats)
+    samples, pairs = camera_ray_tests(calib, [(v, f, colors.detach())], (w, h), supersample)
+    return {"median_ms": wall, "cpu_ms": cpu, "samples": float(samples), "tests": float(pairs),
+            "brute_force": float(w * h * supersample ** 2 * len(f))}
+
+
+def _camera_rows(repeats: int) -> list[dict]:
+    rows = []
+    for dtype in (torch.float64, torch.float32):
+        r = bench_camera_crop(dtype=dtype, repeats=repeats)
+        rows.append({"case": f"camera crop fwd+bwd, car at 10 m, 3x3 samples, {str(dtype)[6:]}",
+                     "points": int(r["samples"]), "median_ms": round(r["median_ms"], 2),
+                     "cpu_ms": round(r["cpu_ms"], 2),
+                     "target": f"<= {TARGET_MS:g} ms", "met": r["median_ms"] <= TARGET_MS})
+    share = r["tests"] / r["brute_force"]
+    rows.append({"case": "camera ray-triangle tests (pairs), car at 10 m", "points": int(r["samples"]),
+                 "tests": int(r["tests"]), "brute_force": int(r["brute_force"]), "share": round(share, 5),
+                 "target": f"<= {TARGET_TEST_SHARE:.0%}", "met": share <= TARGET_TEST_SHARE})
+    return rows
+
+
+def run(quick: bool) -> list[dict]:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        repeats = 20 if quick else 100
+        return _lidar_rows(repeats) + _camera_rows(repeats)
+    finally:
+        torch.set_num_threads(threads)
+
+
+@dataclass(frozen=True)
+class OcclusionAgreement:
+    """Visibility verdicts of object pixels, exact scene depth vs the LiDAR approximation.
+
+    Attributes:
+        object_pixels: pixels covered by an object when nothing hides it (pixel-centre samples).
+        hidden_exact: of those, hidden by the exact scene depth.
+        hidden_lidar: hidden by the LiDAR depth map.
+        differ: pixels whose verdicts differ (hidden by one source only).
+        missed: hidden by the exact depth only.
+    """
+
+    object_pixels: int
+    hidden_exact: int
+    hidden_lidar: int
+    differ: int
+    missed: int
+
+    @property
+    def differ_fraction(self) -> float:
+        return self.differ / max(self.object_pixels, 1)
+
+
+def roof_spheres(labels: object) -> list[np.ndarray]:
+    """Rect vertices of a level-2 icosphere (r = 0.40 m) resting on the roof centre of every Car label
+    (a plain stand-in for the attack's placement: centre = location - (0, h + r, 0))."""
+    v, _ = _sphere()
+    out = []
+    for i in np.flatnonzero(np.asarray(labels.type) == "Car"):
+        centre = labels.location[i] - np.array([0.0, labels.dimensions[i][0] + RADIUS, 0.0])
+        out.append(v + centre)
+    return out
+
+
+def occlusion_agreement(seed: int, indices: list[int], **lidar_kwargs: float) -> OcclusionAgreement:
+    """Render roof spheres on every car of procedural frames (seed, index), pixel centres only, with the
+    exact scene depth and with :func:`~robustbench3d.sensors.camera_depth.lidar_depth_map` of the frame's scan
+    (``lidar_kwargs`` passed on), and count the object pixels whose visibility differs."""
+    from robustbench3d.sensors.camera_depth import lidar_depth_map
+    from robustbench3d.sensors.camera_render import render_camera
+    from robustbench3d.synth.frame import generate_frame
+    from robustbench3d.synth.scene_depth import synth_scene_depth
+
+    totals = np.zeros(5, np.int64)
+    _, faces = _sphere()
+    for index in indices:
+        frame = generate_frame(seed, index)
+        meshes = [(v, faces, np.full(v.shape, 0.5)) for v in roof_spheres(frame.labels)]
+        if not meshes:
+            continue
+        h, w, _ = frame.image.shape
+        black = np.zeros((h, w, 3), np.uint8)
+        free = render_camera(black, frame.calib, meshes, supersample=1).alpha > 0
+        exact = render_camera(black, frame.calib, meshes, supersample=1,
+                              scene_depth=synth_scene_depth(seed, index)).alpha > 0
+        approx = render_camera(black, frame.calib, meshes, supersample=1,
+                               scene_depth=lidar_depth_map(frame.scan, frame.calib, (w, h), **lidar_kwargs)).alpha > 0
+        totals += [free.sum(), (free & ~exact).sum(), (free & ~approx).sum(), (free & (exact != approx)).sum(),
+                   (free & ~exact & approx).sum()]
+    return OcclusionAgreement(*(int(x) for x in totals))

@@ -1,0 +1,308 @@
+"""The roof object: a deformable, per-vertex coloured icosphere, its box constraint and its smoothness.
+
+Object frame (metres): centre at the origin, axes those of the car it sits on (the KITTI box's local
+frame, :func:`robustbench3d.geometry.box_corners`): x along the car's length (its heading), y down,
+z along its width. The template is the level-2 icosphere of radius :data:`RADIUS` (162 vertices,
+320 faces, :func:`robustbench3d.sensors.mesh.icosphere`); an object is that template displaced per
+vertex, with a per-vertex RGB colour in [0, 1].
+
+Box constraint: every vertex stays inside the axis-aligned box ``|v| <= bounds`` (default the
+initial sphere's bounding box, +-0.4 m). Two implementations:
+
+* tanh reparametrisation (:func:`tanh_vertices`, :meth:`RoofObject.torch_vertices`), used by the
+  optimisation and by :func:`random_shape`: ``v = b * tanh(atanh((1 - eps) * v0 / b) + delta)``,
+  smooth and inside the box for every ``delta``;
+* projection (:func:`clamp_to_box`), a clamp for projected-gradient steps.
+  :class:`RoofObject` itself projects nothing: it refuses vertices outside the box.
+
+A :class:`RoofObject` holds its arrays at the precision of the object file (vertices float32
+values rounded towards the centre so they stay in the box, colours multiples of 1/255), so writing
+and reading it back (:mod:`robustbench3d.attacks.objectfile`) is exact. The template is stored the
+same way, so the undeformed sphere has displacement exactly 0.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from robustbench3d.sensors.mesh import icosphere
+
+if TYPE_CHECKING:
+    import torch
+
+RADIUS = 0.40
+LEVEL = 2
+N_VERTICES = 162
+N_FACES = 320
+#: Half extents (m) of the default box: the bounding box of the initial sphere.
+BOUNDS = (RADIUS, RADIUS, RADIUS)
+#: The (1 - eps) shrink inside atanh, so that template vertices on the box faces map to finite values.
+TANH_EPS = 1e-3
+#: The benign sphere's colour (8-bit mid grey).
+NEUTRAL_GREY = 128 / 255
+
+
+def to_file_precision(vertices: np.ndarray) -> np.ndarray:
+    """(V, 3) float64 copy of ``vertices`` rounded to float32 values, each rounded towards 0 where
+    rounding to nearest would move it outwards (so a vertex inside the box stays inside)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    q32 = v.astype(np.float32)
+    out = np.abs(q32.astype(np.float64)) > np.abs(v)
+    q32[out] = np.nextafter(q32[out], np.float32(0))
+    return q32.astype(np.float64)
+
+
+def colors_to_file_precision(colors: np.ndarray) -> np.ndarray:
+    """(V, 3) float64 colours rounded to multiples of 1/255 (8 bits per channel)."""
+    return np.round(np.asarray(colors, dtype=np.float64) * 255.0) / 255.0
+
+
+@lru_cache(maxsize=1)
+def _template() -> tuple[np.ndarray, np.ndarray]:
+    v, f = icosphere(LEVEL, RADIUS)
+    v = to_file_precision(v)
+    v.flags.writeable = f.flags.writeable = False
+    return v, f
+
+
+def template_vertices() -> np.ndarray:
+    """(162, 3) read-only template vertices (icosphere(2, 0.40) at file precision), m."""
+    return _template()[0]
+
+
+def template_faces() -> np.ndarray:
+    """(320, 3) read-only int64 template faces (counter-clockwise seen from outside)."""
+    return _template()[1]
+
+
+def check_bounds(bounds: object) -> np.ndarray:
+    """``bounds`` as a (3,) float64 array of finite positive half extents; ValueError otherwise."""
+    b = np.asarray(bounds, dtype=np.float64)
+    if b.shape != (3,) or not np.all(np.isfinite(b)) or np.any(b <= 0):
+        raise ValueError(f"field 'bounds': expected three finite half extents > 0 (m), got {bounds!r}")
+    return b
+
+
+def object_problems(vertices: np.ndarray, colors: np.ndarray, bounds: np.ndarray,
+                    tolerance: float = 0.0) -> list[tuple[str, str]]:
+    """What is wrong with an object's arrays, as (field, problem) pairs (empty if nothing); vertices
+    may leave the box by ``tolerance`` m."""
+    problems: list[tuple[str, str]] = []
+    for name, arr in (("vertices", vertices), ("colors", colors)):
+        if arr.shape != (N_VERTICES, 3):
+            problems.append((name, f"expected shape ({N_VERTICES}, 3), got {arr.shape}"))
+        elif not np.all(np.isfinite(arr)):
+            bad = int(np.argwhere(~np.isfinite(arr))[0, 0])
+            problems.append((name, f"non-finite value (NaN or inf) at vertex {bad}"))
+    if problems:
+        return problems
+    outside = np.any(np.abs(vertices) > bounds + tolerance, axis=1)
+    if outside.any():
+        k = int(np.argmax(outside))
+        problems.append(("vertices", f"{int(outside.sum())} vertices outside the box +-{tuple(bounds.tolist())} m "
+                                     f"around the centre (first: vertex {k} at {tuple(vertices[k].tolist())})"))
+    bad_color = np.any((colors < 0) | (colors > 1), axis=1)
+    if bad_color.any():
+        k = int(np.argmax(bad_color))
+        problems.append(("colors", f"{int(bad_color.sum())} colours outside [0, 1] "
+                                   f"(first: vertex {k} with {tuple(colors[k].tolist())})"))
+    return problems
+
+
+class RoofObject:
+    """One universal roof object (object frame, see the module doc).
+
+    Build it from a displacement of the template (``RoofObject(displacement, colors)``) or from
+    vertex positions (:meth:`from_vertices`). Vertices outside the box or colours outside [0, 1]
+    raise ValueError (project first with :func:`clamp_to_box`, or use :func:`tanh_vertices`).
+    The arrays are stored read-only at file precision (see the module doc).
+    """
+
+    __slots__ = ("_bounds", "_colors", "_vertices")
+
+    def __init__(self, displacement: np.ndarray | None = None, colors: np.ndarray | None = None,
+                 bounds: object = BOUNDS) -> None:
+        d = np.zeros((N_VERTICES, 3)) if displacement is None else np.asarray(displacement, dtype=np.float64)
+        if d.shape != (N_VERTICES, 3):
+            raise ValueError(f"RoofObject: field 'displacement': expected shape ({N_VERTICES}, 3), got {d.shape}")
+        self._init(template_vertices() + d, colors, bounds)
+
+    @classmethod
+    def from_vertices(cls, vertices: np.ndarray, colors: np.ndarray | None = None,
+                      bounds: object = BOUNDS) -> RoofObject:
+        """The object whose (162, 3) object-frame vertices are ``vertices`` (m)."""
+        obj = cls.__new__(cls)
+        obj._init(np.asarray(vertices, dtype=np.float64), colors, bounds)
+        return obj
+
+    def _init(self, vertices: np.ndarray, colors: np.ndarray | None, bounds: object) -> None:
+        b = check_bounds(bounds)
+        c = np.full((N_VERTICES, 3), NEUTRAL_GREY) if colors is None else np.asarray(colors, dtype=np.float64)
+        problems = object_problems(vertices, c, b)
+        if problems:
+            field, problem = problems[0]
+            raise ValueError(f"RoofObject: field '{field}': {problem}")
+        self._vertices = to_file_precision(vertices)
+        self._colors = colors_to_file_precision(c)
+        self._bounds = b
+        for arr in (self._vertices, self._colors, self._bounds):
+            arr.flags.writeable = False
+
+    @property
+    def template(self) -> np.ndarray:
+        return template_vertices()
+
+    @property
+    def faces(self) -> np.ndarray:
+        return template_faces()
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(3,) half extents of the allowed box, m."""
+        return self._bounds
+
+    @property
+    def colors(self) -> np.ndarray:
+        """(162, 3) RGB in [0, 1] (multiples of 1/255)."""
+        return self._colors
+
+    @property
+    def displacement(self) -> np.ndarray:
+        """(162, 3) vertex offsets from the template, m."""
+        return self._vertices - template_vertices()
+
+    def vertices(self) -> np.ndarray:
+        """(162, 3) float64 object-frame vertices (a fresh array), inside the box."""
+        return self._vertices.copy()
+
+    def torch_vertices(self, delta: torch.Tensor | None = None, eps: float = TANH_EPS) -> torch.Tensor:
+        """The tanh parametrisation started at this object: ``b * tanh(atanh((1 - eps) v / b) + delta)``
+        (float64, differentiable in ``delta`` (162, 3); ``delta=None`` is zeros). Always inside the box."""
+        import torch
+
+        base = torch.from_numpy(np.arctanh((1.0 - eps) * self._vertices / self._bounds))
+        d = torch.zeros_like(base) if delta is None else delta.to(torch.float64)
+        return torch.from_numpy(self._bounds.copy()) * torch.tanh(base + d)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, RoofObject):
+            return NotImplemented
+        return (np.array_equal(self._vertices, other._vertices) and np.array_equal(self._colors, other._colors)
+                and np.array_equal(self._bounds, other._bounds))
+
+    __hash__ = None  # type: ignore[assignment]  # mutable-looking arrays: not hashable
+
+    def __repr__(self) -> str:
+        return (f"RoofObject(max |displacement| {float(np.abs(self.displacement).max()):.4f} m, "
+                f"bounds {tuple(self._bounds.tolist())})")
+
+
+def tanh_vertices(delta: torch.Tensor, start: np.ndarray | None = None, bounds: object = BOUNDS,
+                  eps: float = TANH_EPS) -> torch.Tensor:
+    """Box-constrained vertices ``b * tanh(atanh((1 - eps) * v0 / b) + delta)`` (torch, dtype of
+    ``delta``); ``start`` ``v0`` defaults to the template. Inside ``|v| <= b`` for every finite delta."""
+    import torch
+
+    b = check_bounds(bounds)
+    v0 = template_vertices() if start is None else np.asarray(start, dtype=np.float64)
+    base = torch.tensor(np.arctanh((1.0 - eps) * v0 / b), dtype=delta.dtype)
+    return torch.tensor(b, dtype=delta.dtype) * torch.tanh(base + delta)
+
+
+def clamp_to_box(vertices: np.ndarray | torch.Tensor, bounds: object = BOUNDS) -> np.ndarray | torch.Tensor:
+    """The projection: each coordinate clamped to ``[-b, b]`` (numpy or torch; torch keeps gradients
+    inside the box and zeroes them on clamped coordinates)."""
+    b = check_bounds(bounds)
+    if isinstance(vertices, np.ndarray):
+        return np.clip(vertices, -b, b)
+    import torch
+
+    bt = torch.tensor(b, dtype=vertices.dtype)
+    return torch.clamp(vertices, -bt, bt)
+
+
+# ---- uniform Laplacian -----------------------------------------------------------------------
+
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """(E, 2) unique undirected edges (i < j) of a triangle mesh, sorted."""
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def uniform_laplacian(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(V, V) dense uniform Laplacian as PyTorch3D builds it: ``L[i, j] = 1/deg(i)`` for each
+    neighbour j, ``L[i, i] = -1`` (a row of zeros for an isolated vertex)."""
+    e = mesh_edges(faces)
+    adj = np.zeros((n_vertices, n_vertices))
+    adj[e[:, 0], e[:, 1]] = adj[e[:, 1], e[:, 0]] = 1.0
+    deg = adj.sum(axis=1)
+    lap = adj / np.where(deg > 0, deg, 1.0)[:, None]
+    lap[np.arange(n_vertices), np.arange(n_vertices)] = np.where(deg > 0, -1.0, 0.0)
+    return lap
+
+
+@lru_cache(maxsize=1)
+def _template_laplacian() -> np.ndarray:
+    lap = uniform_laplacian(template_faces(), N_VERTICES)
+    lap.flags.writeable = False
+    return lap
+
+
+def laplacian_smoothness(vertices: np.ndarray, faces: np.ndarray | None = None) -> float:
+    """Mean over vertices of ``|mean of the 1-ring neighbours - vertex|`` (PyTorch3D's uniform
+    ``mesh_laplacian_smoothing``), m; ``faces`` default to the template's."""
+    v = np.asarray(vertices, dtype=np.float64)
+    lap = _template_laplacian() if faces is None else uniform_laplacian(faces, len(v))
+    return float(np.linalg.norm(lap @ v, axis=1).mean())
+
+
+def laplacian_smoothness_torch(vertices: torch.Tensor, faces: np.ndarray | None = None) -> torch.Tensor:
+    """Torch twin of :func:`laplacian_smoothness` (scalar, differentiable in ``vertices``; the
+    Laplacian is a constant). A vertex at exactly its neighbours' mean contributes gradient 0."""
+    import torch
+
+    lap_np = _template_laplacian() if faces is None else uniform_laplacian(faces, vertices.shape[0])
+    r = torch.tensor(lap_np, dtype=vertices.dtype) @ vertices
+    sq = (r * r).sum(dim=1)
+    nonzero = sq > 0
+    norm = torch.where(nonzero, torch.sqrt(torch.where(nonzero, sq, torch.ones_like(sq))), torch.zeros_like(sq))
+    return norm.mean()
+
+
+# ---- the controls' objects -------------------------------------------------------------------
+
+def benign_sphere() -> RoofObject:
+    """The undeformed sphere in neutral grey."""
+    return RoofObject()
+
+
+def _low_order_basis(directions: np.ndarray) -> np.ndarray:
+    """(V, 8) real spherical-harmonic-like polynomials of degree 1 and 2 of unit ``directions``."""
+    x, y, z = directions.T
+    return np.stack([x, y, z, x * y, y * z, z * x, x * x - y * y, 3 * z * z - 1], axis=1)
+
+
+def random_shape(seed: int, amplitude: float = 0.3) -> RoofObject:
+    """A seeded random smooth deformation inside the default box, with random colours.
+
+    The deformation is the tanh parametrisation with ``delta`` a random combination of the 8
+    degree-1 and degree-2 spherical-harmonic-like polynomials of each template vertex's direction
+    (coefficients normal with sd ``amplitude``), so it is smooth over the sphere and inside the box;
+    colours are uniform in [0, 1] per vertex and channel.
+    """
+    import torch
+
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"random_shape: field 'seed': must be an integer >= 0, got {seed!r}")
+    rng = np.random.default_rng(int(seed))
+    coeffs = rng.normal(0.0, amplitude, size=(8, 3))
+    colors = rng.random((N_VERTICES, 3))
+    v0 = template_vertices()
+    delta = _low_order_basis(v0 / np.linalg.norm(v0, axis=1, keepdims=True)) @ coeffs
+    with torch.no_grad():
+        vertices = tanh_vertices(torch.from_numpy(delta)).numpy()
+    return RoofObject.from_vertices(vertices, colors)

@@ -1,0 +1,222 @@
+"""The roof-object file: a PLY mesh with per-vertex RGB plus a JSON sidecar.
+
+``NAME.ply`` is a standard binary PLY written by trimesh (``process=False``, so the vertex and face
+order is the template's): float32 vertex positions in the object frame (m), uchar RGBA colours (alpha
+255, ignored on reading), the template's 320 faces. Reading also accepts float colour properties (in
+[0, 1]) and float64 positions (both are then rounded to the object's precision).
+
+``NAME.json`` (the sidecar, same stem) records the format (:data:`FORMAT`), the PLY's sha256, the
+template (icosphere level and radius), the object frame, the placement rule, the box bounds and how
+the object was made (``made_by``: attack, seed, config).
+
+:class:`~robustbench3d.attacks.object.RoofObject` keeps its arrays at exactly this precision, so
+``load_object(save_object(path, obj))`` equals ``obj`` bit for bit. Both files are written
+atomically (PLY first, then the sidecar): an interrupted save leaves either the old pair or a
+sidecar whose hash no longer matches, which :func:`load_object` refuses.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robustbench3d.attacks.object import (
+    LEVEL,
+    N_FACES,
+    N_VERTICES,
+    RADIUS,
+    RoofObject,
+    check_bounds,
+    object_problems,
+    template_faces,
+)
+from robustbench3d.attacks.placement import PLACEMENT_RULE
+from robustbench3d.errors import DataFormatError
+from robustbench3d.fileio import atomic_write_bytes, atomic_write_text, read_data_bytes, read_data_text
+
+FORMAT = "robustbench3d.roof_object/1"
+#: Vertices may leave the box by this much in a file (m) and are clamped onto it: float32 rounds a
+#: coordinate of exactly 0.4 m (a sphere written by another tool) to 0.4 + 6e-9.
+BOUNDS_TOLERANCE_M = 1e-6
+OBJECT_FRAME = ("object frame: centre at the origin; x along the car's length (heading), y down, z along its "
+                "width (the KITTI box's local frame); metres")
+PLACEMENT_DESCRIPTION = ("resting on the roof centre (label location - (0, h, 0), rect frame), yawed with the "
+                         "car (rotation_y about rect y), lifted so the lowest vertex touches the roof")
+
+
+@dataclass(frozen=True)
+class ObjectFile:
+    """A loaded object file: the object, its PLY's sha256 and the sidecar's contents."""
+
+    path: Path
+    obj: RoofObject
+    sha256: str
+    sidecar: dict[str, Any]
+
+    @property
+    def made_by(self) -> dict[str, Any]:
+        return dict(self.sidecar.get("made_by") or {})
+
+
+def sidecar_path(ply_path: str | Path) -> Path:
+    """``NAME.json`` next to ``NAME.ply``."""
+    return Path(ply_path).with_suffix(".json")
+
+
+def ply_bytes(obj: RoofObject) -> bytes:
+    """The PLY file content of ``obj`` (binary, float32 positions, uchar RGBA)."""
+    import trimesh
+
+    rgba = np.empty((N_VERTICES, 4), dtype=np.uint8)
+    rgba[:, :3] = np.round(obj.colors * 255.0).astype(np.uint8)
+    rgba[:, 3] = 255
+    mesh = trimesh.Trimesh(vertices=obj.vertices(), faces=obj.faces, vertex_colors=rgba, process=False)
+    return mesh.export(file_type="ply", encoding="binary")
+
+
+def object_sha256(obj: RoofObject) -> str:
+    """sha256 of :func:`ply_bytes` (the identity of an object that has no file)."""
+    return hashlib.sha256(ply_bytes(obj)).hexdigest()
+
+
+def sidecar_dict(ply_name: str, sha256: str, bounds: np.ndarray, made_by: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The sidecar of the PLY file ``ply_name`` with content hash ``sha256``."""
+    return {
+        "format": FORMAT,
+        "ply": ply_name,
+        "ply_sha256": sha256,
+        "template": {"kind": "icosphere", "level": LEVEL, "radius": RADIUS, "vertices": N_VERTICES, "faces": N_FACES},
+        "frame": OBJECT_FRAME,
+        "placement": {"rule": PLACEMENT_RULE, "description": PLACEMENT_DESCRIPTION},
+        "bounds": [float(b) for b in bounds],
+        "box_constraint": "every vertex v satisfies |v_i| <= bounds_i in the object frame",
+        "made_by": dict(made_by or {}),
+    }
+
+
+def write_sidecar(ply_path: str | Path, bounds: object, made_by: Mapping[str, Any] | None = None) -> Path:
+    """Write the sidecar of an existing PLY file (its sha256 computed from the file); returns its path."""
+    ply_path = Path(ply_path)
+    sha = hashlib.sha256(ply_path.read_bytes()).hexdigest()
+    side = sidecar_path(ply_path)
+    data = sidecar_dict(ply_path.name, sha, check_bounds(bounds), made_by)
+    atomic_write_text(side, json.dumps(data, indent=2, sort_keys=True) + "\n")
+    return side
+
+
+def save_object(path: str | Path, obj: RoofObject, made_by: Mapping[str, Any] | None = None) -> Path:
+    """Write ``obj`` to ``path`` (must end in ``.ply``) and its sidecar; returns the PLY path.
+
+    ``made_by``: JSON-serialisable description of how the object was made (attack, seed, config).
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".ply":
+        raise ValueError(f"{path}: an object file must end in .ply")
+    json.dumps(dict(made_by or {}))  # refuse a non-serialisable description before writing anything
+    atomic_write_bytes(path, ply_bytes(obj))
+    write_sidecar(path, obj.bounds, made_by)
+    return path
+
+
+def _read_sidecar(ply_path: Path) -> dict[str, Any]:
+    side = sidecar_path(ply_path)
+    text = read_data_text(side, missing=f"sidecar of {ply_path.name} not found; an object PLY needs its JSON "
+                                        "sidecar NAME.json (written by save_object)")
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise DataFormatError(side, f"not valid JSON ({exc.msg})", line=exc.lineno) from None
+    if not isinstance(data, dict):
+        raise DataFormatError(side, "expected a JSON object")
+    if data.get("format") != FORMAT:
+        raise DataFormatError(side, f"expected {FORMAT!r}, got {data.get('format')!r}", field="format")
+    sha = data.get("ply_sha256")
+    if not isinstance(sha, str) or len(sha) != 64:
+        raise DataFormatError(side, "expected the PLY's sha256 (64 hex digits)", field="ply_sha256")
+    template = data.get("template")
+    if not isinstance(template, dict) or template.get("level") != LEVEL or template.get("radius") != RADIUS:
+        raise DataFormatError(side, f"expected {{'level': {LEVEL}, 'radius': {RADIUS}, ...}} (the icosphere "
+                                    f"template), got {template!r}", field="template")
+    placement = data.get("placement")
+    if not isinstance(placement, dict) or placement.get("rule") != PLACEMENT_RULE:
+        raise DataFormatError(side, f"expected rule {PLACEMENT_RULE!r}, got {placement!r}", field="placement")
+    try:
+        data["bounds"] = check_bounds(data.get("bounds")).tolist()
+    except (ValueError, TypeError):
+        raise DataFormatError(side, f"expected three finite half extents > 0 (m), got {data.get('bounds')!r}",
+                              field="bounds") from None
+    if not isinstance(data.get("made_by", {}), dict):
+        raise DataFormatError(side, "expected a JSON object", field="made_by")
+    return data
+
+
+def _parse_ply(path: Path, raw: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices, faces, colours in [0, 1]) of a PLY file's bytes."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(io.BytesIO(raw), file_type="ply", process=False)
+    except Exception as exc:  # trimesh raises many types on bad bytes
+        raise DataFormatError(path, f"not a readable PLY mesh ({type(exc).__name__}: {exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise DataFormatError(path, f"expected one triangle mesh, got a {type(mesh).__name__}")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    colors = _raw_colors(mesh)
+    if colors is None:
+        if mesh.visual.kind != "vertex":
+            raise DataFormatError(path, "no per-vertex colours (expected red, green, blue vertex properties)",
+                                  field="colors")
+        colors = np.asarray(mesh.visual.vertex_colors, dtype=np.float64)[:, :3] / 255.0
+    return vertices, faces, colors
+
+
+def _raw_colors(mesh: Any) -> np.ndarray | None:
+    """(V, 3) colours in the file's own scale, before trimesh converts them to clipped uint8: integer
+    properties / 255, float properties as they are; None if the raw PLY properties are unavailable."""
+    raw = (mesh.metadata.get("_ply_raw") or {}).get("vertex") or {}
+    props, data = raw.get("properties") or {}, raw.get("data")
+    if data is None or not all(ch in props for ch in ("red", "green", "blue")):
+        return None
+    channels = []
+    for ch in ("red", "green", "blue"):
+        values = np.asarray(data[ch], dtype=np.float64).reshape(-1)
+        channels.append(values / 255.0 if np.dtype(props[ch]).kind in "ui" else values)
+    return np.stack(channels, axis=1)
+
+
+def read_object_file(path: str | Path) -> ObjectFile:
+    """Load and check an object file and its sidecar (:class:`DataFormatError` naming the file)."""
+    path = Path(path)
+    raw = read_data_bytes(path, missing="object file not found")
+    sidecar = _read_sidecar(path)
+    sha = hashlib.sha256(raw).hexdigest()
+    if sha != sidecar["ply_sha256"]:
+        raise DataFormatError(path, f"sha256 {sha} does not match {sidecar['ply_sha256']} recorded in its sidecar "
+                                    f"{sidecar_path(path).name} (the PLY or the sidecar was changed)")
+    vertices, faces, colors = _parse_ply(path, raw)
+    if vertices.shape != (N_VERTICES, 3):
+        raise DataFormatError(path, f"expected {N_VERTICES} vertices (icosphere level {LEVEL}), got {len(vertices)}",
+                              field="vertices")
+    if not np.array_equal(faces, template_faces()):
+        raise DataFormatError(path, f"faces are not the template's ({N_FACES} faces of icosphere level {LEVEL} in "
+                                    f"template order); got {len(faces)} faces", field="faces")
+    bounds = np.asarray(sidecar["bounds"], dtype=np.float64)
+    problems = object_problems(vertices, colors, bounds, tolerance=BOUNDS_TOLERANCE_M)
+    if problems:
+        field, problem = problems[0]
+        raise DataFormatError(path, problem, field=field)
+    obj = RoofObject.from_vertices(np.clip(vertices, -bounds, bounds), colors, bounds)
+    return ObjectFile(path=path, obj=obj, sha256=sha, sidecar=sidecar)
+
+
+def load_object(path: str | Path) -> RoofObject:
+    """The :class:`RoofObject` stored in ``path`` (see :func:`read_object_file`)."""
+    return read_object_file(path).obj

@@ -1,0 +1,301 @@
+"""Render meshes into a LiDAR scan: culled, differentiable HDL-64E ray casting with occlusion both ways.
+
+Frame: velodyne (x forward, y left, z up; m). Rays: the scan's own beam pattern
+(:mod:`robustbench3d.sensors.lidar_beams`: the generator's rays on generated scans, per-laser measured phases
+on real KITTI scans); of each laser only the rays passing within the mesh's bounding sphere (plus one azimuth
+step) are cast (:func:`~robustbench3d.sensors.raycast.cast_rays`). Per ray the nearest surface over all meshes
+wins. A scan point is on a ray when it belongs to the same laser and lies within half a firing step
+(0.09 deg) of its azimuth; its range is measured from that laser's origin. On a ray hitting a mesh at t:
+
+* original points farther than t are removed (the mesh blocks them, whether or not it returns);
+* if an original point is nearer than t, the mesh is hidden there (no point added);
+* otherwise a return is added when t is inside the range gate (1 m, 120 m], with reflectance from
+  :mod:`robustbench3d.sensors.lidar_model` (material car paint, albedo = the vertex colours interpolated at
+  the hit, incidence angle, range), optionally dropped (``dropout``) and moved along the ray (``range_noise_m``).
+
+Without ``rng`` everything is deterministic; random draws come only from ``rng``: first the dropout
+(one uniform per candidate return), then the range noise (one normal per kept return).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from robustbench3d.sensors import lidar_model as lm
+from robustbench3d.sensors.lidar_beams import BeamPattern, estimate_pattern, scan_ring_ids
+from robustbench3d.sensors.materials import Mat
+from robustbench3d.sensors.mesh import face_normals
+from robustbench3d.sensors.raycast import cast_rays
+
+#: Albedo of meshes given without colours (linear RGB).
+DEFAULT_ALBEDO = 0.5
+#: Material of the rendered meshes (reflectivity tinted by the albedo's luminance).
+MESH_MATERIAL = Mat.PAINT
+
+MeshInput = tuple[object, object, object]
+
+__all__ = ["LidarRenderResult", "MeshInput", "PreparedScan", "TracedHits", "prepare_scan", "render_lidar",
+           "render_lidar_torch", "trace_meshes"]
+
+
+@dataclass(frozen=True)
+class PreparedScan:
+    """A scan with its beam pattern and each point's ray (reuse it to render the same frame many times).
+
+    Attributes:
+        scan: (N, 4) float32 x, y, z, reflectance.
+        pattern: the scan's :class:`~robustbench3d.sensors.lidar_beams.BeamPattern`.
+        ring: (N,) int64 laser of each point.
+        point_ray: (N,) int64 index into ``pattern.rays`` of the ray each point lies on, -1 if none.
+        range_m: (N,) distance of each point from its laser's origin, m.
+        by_ray: (N,) point indices sorted by ``point_ray`` (the points without a ray, -1, first).
+        sorted_ray: (N,) ``point_ray[by_ray]``.
+    """
+
+    scan: np.ndarray
+    pattern: BeamPattern
+    ring: np.ndarray
+    point_ray: np.ndarray
+    range_m: np.ndarray
+    by_ray: np.ndarray
+    sorted_ray: np.ndarray
+
+    def points_on(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For ray indices (K,): (which of the K, point index) pairs of the points lying on them."""
+        lo = np.searchsorted(self.sorted_ray, rays, "left")
+        hi = np.searchsorted(self.sorted_ray, rays, "right")
+        n = hi - lo
+        owner = np.repeat(np.arange(len(rays)), n)
+        pos = np.repeat(lo - np.concatenate([[0], np.cumsum(n)[:-1]]), n) + np.arange(n.sum())
+        return owner, self.by_ray[pos]
+
+
+def prepare_scan(scan: np.ndarray, ring_ids: np.ndarray | None = None,
+                 pattern: BeamPattern | None = None) -> PreparedScan:
+    """Laser ids (given, else :func:`~robustbench3d.sensors.lidar_beams.scan_ring_ids`), beam pattern (given,
+    else estimated from the scan) and each point's ray."""
+    pts = np.asarray(scan)
+    if pts.ndim != 2 or pts.shape[1] != 4:
+        raise ValueError(f"render_lidar: field 'scan': expected shape (N, 4), got {pts.shape}")
+    pts = pts.astype(np.float32, copy=False)
+    if ring_ids is None:
+        ring = scan_ring_ids(pts)
+    else:
+        ring = np.asarray(ring_ids, dtype=np.int64).reshape(-1)
+        if len(ring) != len(pts):
+            raise ValueError(f"render_lidar: field 'ring_ids': {len(ring)} ids for {len(pts)} points")
+    if pattern is None:
+        pattern = estimate_pattern(pts, ring)
+    xyz = pts[:, :3].astype(np.float64)
+    az = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
+    point_ray = pattern.nearest_ray(ring, az)
+    h0 = np.where((ring >= 0) & (ring < pattern.sensor.num_lasers),
+                  pattern.sensor.origin_z[np.clip(ring, 0, pattern.sensor.num_lasers - 1)], 0.0)
+    rng_m = np.sqrt(xyz[:, 0] ** 2 + xyz[:, 1] ** 2 + (xyz[:, 2] - h0) ** 2)
+    by_ray = np.argsort(point_ray, kind="stable")
+    return PreparedScan(pts, pattern, ring, point_ray, rng_m, by_ray, point_ray[by_ray])
+
+
+@dataclass(frozen=True)
+class TracedHits:
+    """Nearest mesh hit per ray, after occlusion by the scan (no range gate, noise or dropout yet).
+
+    Attributes:
+        ray: (K,) int64 ray index into ``pattern.rays`` of each ray hitting a mesh (nearest over meshes).
+        mesh: (K,) int64 mesh index; face: (K,) int64 face index.
+        t, u, v: (K,) torch float64 distance (m) and barycentrics, differentiable w.r.t. that mesh's vertices.
+        hidden: (K,) bool, a nearer original return lies on the ray.
+        removed_index: (P,) int64 scan points on the hit rays beyond the mesh, increasing.
+        tests: ray-triangle tests made.
+    """
+
+    ray: np.ndarray
+    mesh: np.ndarray
+    face: np.ndarray
+    t: torch.Tensor
+    u: torch.Tensor
+    v: torch.Tensor
+    hidden: np.ndarray
+    removed_index: np.ndarray
+    tests: int
+
+
+def _mesh_tensors(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.ndarray]]:
+    out = []
+    for i, m in enumerate(meshes):
+        if len(m) != 3:
+            raise ValueError(f"render_lidar: field 'meshes[{i}]': expected (vertices, faces, albedo_rgb or None)")
+        v, f, _ = m
+        vt = v if isinstance(v, torch.Tensor) else torch.as_tensor(np.asarray(v, dtype=np.float64))
+        if vt.dtype != torch.float64:
+            vt = vt.to(torch.float64)
+        fa = np.array(f, dtype=np.int64)  # a copy: read-only inputs are fine for torch.from_numpy
+        if vt.dim() != 2 or vt.shape[1] != 3 or fa.ndim != 2 or fa.shape[1] != 3:
+            raise ValueError(f"render_lidar: field 'meshes[{i}]': vertices must be (V, 3) and faces (F, 3)")
+        if len(fa) and (fa.min() < 0 or fa.max() >= len(vt)):
+            raise ValueError(f"render_lidar: field 'meshes[{i}]': face indices outside [0, {len(vt)})")
+        if not bool(torch.isfinite(vt.detach()).all()):
+            raise ValueError(f"render_lidar: field 'meshes[{i}]': vertices contain NaN or inf")
+        out.append((vt, fa))
+    return out
+
+
+def trace_meshes(prep: PreparedScan, meshes: Sequence[MeshInput]) -> TracedHits:
+    """Cast the culled rays of ``prep``'s pattern at each mesh, keep the nearest hit per ray, and apply the
+    occlusion by the scan's points (see the module docstring)."""
+    rays = prep.pattern.rays
+    hits: list[tuple[np.ndarray, int, np.ndarray, torch.Tensor, torch.Tensor, torch.Tensor]] = []
+    tests = 0
+    for i, (vt, fa) in enumerate(_mesh_tensors(meshes)):
+        if len(fa) == 0:
+            continue
+        vn = vt.detach().numpy()
+        center = 0.5 * (vn.min(axis=0) + vn.max(axis=0))
+        idx = prep.pattern.cull(center, float(np.linalg.norm(vn - center, axis=1).max()))
+        if len(idx) == 0:
+            continue
+        rh = cast_rays(vt, torch.from_numpy(fa), torch.from_numpy(rays.directions[idx]),
+                       torch.zeros(3, dtype=torch.float64), torch.from_numpy(rays.origins[idx, 2]))
+        tests += rh.tests
+        sel = torch.nonzero(rh.hit).reshape(-1)
+        hits.append((idx[sel.numpy()], i, rh.face[sel].numpy(), rh.t[sel], rh.u[sel], rh.v[sel]))
+    if not hits:
+        z = torch.zeros(0, dtype=torch.float64)
+        e = np.zeros(0, dtype=np.int64)
+        return TracedHits(e, e, e, z, z, z, np.zeros(0, dtype=bool), e, tests)
+    ray = np.concatenate([h[0] for h in hits])
+    mesh = np.concatenate([np.full(len(h[0]), h[1], dtype=np.int64) for h in hits])
+    face = np.concatenate([h[2] for h in hits])
+    t, u, v = (torch.cat([h[k] for h in hits]) for k in (3, 4, 5))
+    if len(hits) > 1:  # nearest over meshes: sort by (ray, t), keep the first of each ray
+        order = np.lexsort((t.detach().numpy(), ray))
+        first = order[np.concatenate([[True], np.diff(ray[order]) != 0])]
+        sel = torch.from_numpy(first)
+        ray, mesh, face, t, u, v = ray[first], mesh[first], face[first], t[sel], u[sel], v[sel]
+    owner, pidx = prep.points_on(ray)
+    tn = t.detach().numpy()
+    rp = prep.range_m[pidx]
+    hidden = np.zeros(len(ray), dtype=bool)
+    hidden[owner[rp < tn[owner]]] = True
+    removed = np.unique(pidx[(rp > tn[owner]) & ~hidden[owner]])
+    return TracedHits(ray, mesh, face, t, u, v, hidden, removed, tests)
+
+
+@dataclass(frozen=True)
+class LidarRenderResult:
+    """Attacked scan.
+
+    Attributes:
+        scan: (M, 4) float32, the original points minus ``removed_index``, in order, then ``added``.
+        added: (K, 4) float32 x, y, z, reflectance of the mesh returns.
+        added_torch: (K, 3) torch float64 the same points, differentiable w.r.t. the mesh vertices.
+        removed_index: (P,) int64 indices into the input scan of the points removed (behind a mesh).
+        object_index: (K,) int64 mesh of each added point.
+        face_index: (K,) int64 face of each added point.
+        ray_index: (K,) int64 ray (into ``pattern.rays``) of each added point.
+        pattern: the beam pattern used.
+        tests: ray-triangle tests made.
+    """
+
+    scan: np.ndarray
+    added: np.ndarray
+    added_torch: torch.Tensor
+    removed_index: np.ndarray
+    object_index: np.ndarray
+    face_index: np.ndarray
+    ray_index: np.ndarray
+    pattern: BeamPattern
+    tests: int
+
+
+def _albedo(meshes: Sequence[MeshInput], mesh: np.ndarray, face: np.ndarray, u: np.ndarray,
+            v: np.ndarray) -> np.ndarray:
+    """(K, 3) float32 vertex colours interpolated at the hits ((1 - u - v) c0 + u c1 + v c2)."""
+    out = np.full((len(mesh), 3), DEFAULT_ALBEDO, dtype=np.float64)
+    for i in np.unique(mesh):
+        _, f, col = meshes[i]
+        if col is None:
+            continue
+        c = np.asarray(col.detach() if isinstance(col, torch.Tensor) else col, dtype=np.float64)
+        k = mesh == i
+        fk = np.asarray(f, dtype=np.int64)[face[k]]
+        w = np.stack([1 - u[k] - v[k], u[k], v[k]], axis=1)
+        out[k] = np.einsum("kj,kjc->kc", w, c[fk])
+    return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+
+def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *,
+                 rng: np.random.Generator | None = None, range_noise_m: float = 0.0, dropout: float = 0.0,
+                 ring_ids: np.ndarray | None = None) -> LidarRenderResult:
+    """Render ``meshes`` into ``scan`` (see the module docstring).
+
+    Args:
+        scan: (N, 4) velodyne x, y, z, reflectance, or a :class:`PreparedScan` (faster when reused).
+        meshes: (vertices (V, 3) velodyne m, numpy or torch float64 (may require grad), faces (F, 3),
+            albedo (V, 3) linear RGB in [0, 1] or None for grey).
+        rng: source of the dropout and range-noise draws (required when either is on).
+        range_noise_m: standard deviation of the Gaussian range noise, clipped at 3 sd, m.
+        dropout: probability that a mesh return is dropped.
+        ring_ids: (N,) laser of each point when known (else recovered from the scan).
+    """
+    if not 0.0 <= dropout < 1.0:
+        raise ValueError(f"render_lidar: field 'dropout': must be in [0, 1), got {dropout!r}")
+    if not (np.isfinite(range_noise_m) and range_noise_m >= 0.0):
+        raise ValueError(f"render_lidar: field 'range_noise_m': must be >= 0, got {range_noise_m!r}")
+    if (dropout > 0 or range_noise_m > 0) and rng is None:
+        raise ValueError("render_lidar: field 'rng': required when dropout or range_noise_m is on")
+    prep = scan if isinstance(scan, PreparedScan) else prepare_scan(scan, ring_ids)
+    tr = trace_meshes(prep, meshes)
+    keep = ~tr.hidden & lm.in_range(tr.t.detach().numpy())
+    if dropout > 0 and keep.any():
+        keep[keep] = rng.random(int(keep.sum())) >= dropout
+    sel = np.flatnonzero(keep)
+    ray, mesh, face = tr.ray[sel], tr.mesh[sel], tr.face[sel]
+    selt = torch.from_numpy(sel)
+    t = tr.t[selt]
+    if range_noise_m > 0 and len(sel):
+        sd = range_noise_m
+        t = t + torch.from_numpy(np.clip(rng.normal(0.0, sd, len(sel)), -3 * sd, 3 * sd))
+    rays = prep.pattern.rays
+    o, d = torch.from_numpy(rays.origins[ray]), torch.from_numpy(rays.directions[ray])
+    pts_t = o + t[:, None] * d
+    added = np.empty((len(sel), 4), dtype=np.float32)
+    added[:, :3] = pts_t.detach().numpy()
+    if len(sel):
+        u, v = tr.u[selt].detach().numpy(), tr.v[selt].detach().numpy()
+        normals = np.empty((len(sel), 3))
+        for i in np.unique(mesh):
+            k = mesh == i
+            vi = meshes[i][0]
+            vi = vi.detach().numpy() if isinstance(vi, torch.Tensor) else np.asarray(vi, dtype=np.float64)
+            normals[k] = face_normals(vi, np.asarray(meshes[i][1], dtype=np.int64)[face[k]])
+        rho = lm.material_reflectivity(np.full(len(sel), int(MESH_MATERIAL)), _albedo(meshes, mesh, face, u, v))
+        refl = lm.reflectance_mean(rho, lm.cos_incidence(normals, rays.directions[ray]), t.detach().numpy())
+        added[:, 3] = lm.quantize_reflectance(refl, np.zeros(len(sel), dtype=bool))
+    kept = np.ones(len(prep.scan), dtype=bool)
+    kept[tr.removed_index] = False
+    out = np.concatenate([prep.scan[kept], added])
+    return LidarRenderResult(out, added, pts_t, tr.removed_index, mesh, face, ray, prep.pattern, tr.tests)
+
+
+def render_lidar_torch(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput],
+                       ring_ids: np.ndarray | None = None) -> tuple[torch.Tensor, np.ndarray]:
+    """The mesh returns of :func:`render_lidar` without noise or dropout, as a differentiable tensor (the
+    scan is not assembled and no reflectance computed: the optimisation's fast path).
+
+    Returns:
+        (K, 3) torch float64 points (velodyne, m) with gradients w.r.t. the mesh vertices, and (K,) int64
+        mesh index of each.
+    """
+    prep = scan if isinstance(scan, PreparedScan) else prepare_scan(scan, ring_ids)
+    tr = trace_meshes(prep, meshes)
+    sel = np.flatnonzero(~tr.hidden & lm.in_range(tr.t.detach().numpy()))
+    rays = prep.pattern.rays
+    ray = tr.ray[sel]
+    pts = torch.from_numpy(rays.origins[ray]) + tr.t[torch.from_numpy(sel)][:, None] * torch.from_numpy(
+        rays.directions[ray])
+    return pts, tr.mesh[sel]

@@ -1,0 +1,435 @@
+"""Nearest ray/triangle hits in torch, differentiable in the vertices (Möller–Trumbore).
+
+One core for both sensors: LiDAR beams (the HDL-64E lasers start at different heights on the z axis)
+and camera pixel rays (one shared origin). Ray r starts at ``origin + origin_offset[r] * offset_axis``
+and runs along the unit direction d_r; faces are two-sided.
+
+Numerically safe form (performance-notes.md §2):
+
+1. Search, no grad, chunked over rays. Rays are first tested against the bounding spheres of clusters of
+   consecutive faces, then against the faces of the clusters they pass through. With T = o_r - V0 =
+   T0 + h_r a (h_r the ray's offset along the axis a), Möller–Trumbore's det, u*det, v*det and t*det are
+   each a per-face constant plus h_r times another per-face constant: five dot products of d_r with
+   per-face vectors (a GEMM in dense form; here evaluated on the candidate pairs only: a gather of the face's
+   column of constants and three 3-term dot products per pair). The test has no divisions; the sign that
+   makes t > 0 is folded in per face for a shared origin (t*det is then per face), per pair with offsets;
+   the nearest face per ray is kept. Optional back-face culling (:func:`back_faces`, ``skip_faces``).
+2. Recompute, with grad, on the (ray, nearest face) pairs only; divisions by ``where(ok, det, 1)``.
+
+Two entry points share these kernels (:func:`_test_pairs`, :func:`_nearest`, :func:`_recompute`):
+:func:`cast_rays` builds the candidate pairs itself (bounding spheres, above; the LiDAR), and
+:func:`cast_ray_pairs` takes candidate (ray, face) pairs from the caller's own cull (the camera's
+per-face screen boxes). Both test a pair element-wise, so its verdict and t do not depend on the
+other pairs, and keep the nearest hit per ray (equal t: the smallest face index).
+
+Rejected: faces of (near) zero area, rays within ``arccos(cos_min)`` of grazing (relative cut
+|cos(incidence)| > cos_min, which also bounds the gradients at about 1/cos_min), hits at t <= t_min.
+Barycentric tolerance 1e-6 (float64) / 1e-5 (float32) so rays through edges and vertices never leak.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+import torch
+
+#: Rays x faces per chunk of the no-grad search (bounds its memory to about 150 MB even if every pair is tested).
+SEARCH_CHUNK_PAIRS = 1 << 20
+#: Consecutive faces sharing one bounding sphere in the search (icosphere level L: face k of level L - 1 becomes
+#: faces 4k..4k+3; other meshes work whatever their face order, only faster when it is coherent).
+CLUSTER_SIZE = 4
+#: Faces whose |e1 x e2| is below this fraction of their longest squared edge are treated as degenerate.
+_SLIVER = {torch.float64: 1e-10, torch.float32: 1e-5}
+#: Barycentric tolerance: rays tangent to an edge or through a vertex still hit one of its faces.
+_BARY_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
+
+__all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "RayHits", "back_faces", "cast_ray_pairs", "cast_rays"]
+
+
+@dataclass(frozen=True)
+class RayHits:
+    """Nearest hits of R rays.
+
+    Attributes:
+        hit: (R,) bool.
+        face: (R,) int64 face index, -1 on a miss.
+        t: (R,) distance along the unit direction, 0 on a miss; differentiable w.r.t. the vertices.
+        u: (R,) barycentric weight of the face's vertex 1, 0 on a miss; differentiable.
+        v: (R,) barycentric weight of vertex 2 (vertex 0 has 1 - u - v); differentiable.
+        tests: number of ray-triangle pairs tested by the search (at most R x F).
+    """
+
+    hit: torch.Tensor
+    face: torch.Tensor
+    t: torch.Tensor
+    u: torch.Tensor
+    v: torch.Tensor
+    tests: int = 0
+
+    def points(self, origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+        """(R, 3) hit points origins + t * directions (origins (R, 3) or (3,)); zero rows on misses."""
+        p = origins + self.t[:, None] * directions
+        return torch.where(self.hit[:, None], p, torch.zeros_like(p))
+
+
+def _as_tensor(x: object, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        return x.to(dtype=dtype, device=device)
+    a = np.asarray(x)
+    return torch.as_tensor(a if a.flags.writeable else a.copy(), dtype=dtype, device=device)
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return torch.linalg.cross(a, b.expand_as(a) if b.dim() < a.dim() else b, dim=-1)
+
+
+def _face_tables(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, valid: torch.Tensor, origin: torch.Tensor,
+                 axis: torch.Tensor, cos_min: float, offsets: bool) -> torch.Tensor:
+    """Per-face constants of the no-grad test (module docstring), component-major (k, F) so that gathers by
+    face give contiguous rows: rows 3j..3j+2 the vector whose dot product with d is face f's det, u*det,
+    v*det at h = 0 (j = 0, 1, 2), row 9 t*det at h = 0, row 10 the grazing floor of |det| (+inf: never hit),
+    and with ``offsets`` (k = 18) the slopes in h of u*det, v*det (rows 11..16) and of t*det (row 17).
+
+    Shared origin (not ``offsets``): t*det is a per-face constant, so the sign that makes t > 0 is known
+    per face; rows 0..9 are multiplied by sign(t*det) (exact), a hit then needs det > floor, and a face
+    whose plane holds the origin (t*det = 0) gets an infinite floor."""
+    ax = axis[None, :].expand_as(e1)
+    t0 = origin[None, :] - v0  # T at offset 0, (F, 3)
+    n = _cross(e2, e1)  # det = d . (e2 x e1)
+    s0 = (e2 * _cross(t0, e1)).sum(-1)  # t*det = s0 + h s1
+    # relative grazing cut |det| > cos_min * |n| * |d| (unit d), never on a degenerate face
+    floor = torch.where(valid, cos_min * torch.linalg.norm(n, dim=-1), torch.full_like(s0, float("inf")))
+    rows = [n, _cross(e2, t0), _cross(t0, e1), s0[:, None], floor[:, None]]
+    if offsets:
+        rows += [_cross(e2, ax), _cross(ax, e1), (e2 * _cross(ax, e1)).sum(-1)[:, None]]
+    table = torch.cat(rows, 1).T.contiguous()
+    if not offsets:
+        sign = torch.sign(s0)
+        table[:10] *= sign
+        table[10] = torch.where(sign != 0, table[10], torch.full_like(s0, float("inf")))
+    return table
+
+
+def _test_pairs(table: torch.Tensor, d_cols: torch.Tensor, h: torch.Tensor | None, ray: torch.Tensor,
+                face: torch.Tensor, t_min: float, tol: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Möller–Trumbore test of (ray, face) pairs, no grad, no division in the verdict: (positions (K,)
+    int64 of the pairs that pass, their t (K,)). ``d_cols`` (3, R) are the directions by component, ``table``
+    from :func:`_face_tables` (with offsets iff ``h`` is given). Per pair: a gather of the face's column and
+    the ray's direction, three 3-term dot products (five with offsets), contiguous 1-D arithmetic.
+    Element-wise per pair, so a pair's verdict and t do not depend on which other pairs are tested with it."""
+    g = table.index_select(1, face)
+    d0, d1, d2 = d_cols.index_select(1, ray)
+    det = g[0] * d0 + g[1] * d1 + g[2] * d2
+    un = g[3] * d0 + g[4] * d1 + g[5] * d2
+    vn = g[6] * d0 + g[7] * d1 + g[8] * d2
+    tn = g[9]
+    if h is not None:  # T = T0 + h a; fold the sign of t*det per pair (the table folds it per face otherwise)
+        hr = h.index_select(0, ray)
+        un = un + hr * (g[11] * d0 + g[12] * d1 + g[13] * d2)
+        vn = vn + hr * (g[14] * d0 + g[15] * d1 + g[16] * d2)
+        tn = tn + hr * g[17]
+        sign = torch.sign(tn)  # t*det = 0 gives det = 0, which fails the floor test below
+        det, un, vn, tn = det * sign, un * sign, vn * sign, tn.abs()
+    slack = tol * det
+    ok = (det > g[10]) & (un >= -slack) & (vn >= -slack) & (un + vn <= det + slack) & (tn > t_min * det)
+    idx = torch.nonzero(ok).reshape(-1)
+    return idx, tn.index_select(0, idx) / det.index_select(0, idx)
+
+
+def _nearest(ray: torch.Tensor, face: torch.Tensor, t: torch.Tensor, n_rays: int, n_faces: int) -> torch.Tensor:
+    """(n_rays,) int64 nearest face per ray among the hitting pairs (ray, face, t), -1 where none; equal t
+    resolve to the smallest face index (deterministic whatever the pair order)."""
+    best = torch.full((n_rays,), float("inf"), dtype=t.dtype, device=t.device).scatter_reduce(0, ray, t, "amin")
+    win = t == best.index_select(0, ray)
+    first = torch.full((n_rays,), n_faces, dtype=torch.int64, device=t.device)
+    first = first.scatter_reduce(0, ray[win], face[win], "amin")
+    return torch.where(first < n_faces, first, torch.full_like(first, -1))
+
+
+class _PairTUV(torch.autograd.Function):
+    """t, u, v (K,) of rays (unit d (K, 3), offsets h (K,) or None) against per-face rows ``m`` (U, 10 or 17)
+    [det vector, u*det vector, v*det vector, t*det, (slopes in h: u*det, v*det vectors, t*det)] gathered by
+    ``slot`` (K,): the shared-origin Möller–Trumbore of :func:`_test_pairs`, with the division guarded by
+    ``where(det != 0, det, 1)``. Backward: one index_add of the (K, 10 or 17) row gradients."""
+
+    @staticmethod
+    def forward(ctx: object, m: torch.Tensor, slot: torch.Tensor, d: torch.Tensor, h: torch.Tensor | None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        g = m.T.contiguous().index_select(1, slot)
+        d0, d1, d2 = d.T.contiguous()
+        det = g[0] * d0 + g[1] * d1 + g[2] * d2
+        un = g[3] * d0 + g[4] * d1 + g[5] * d2
+        vn = g[6] * d0 + g[7] * d1 + g[8] * d2
+        tn = g[9]
+        if h is not None:
+            un = un + h * (g[10] * d0 + g[11] * d1 + g[12] * d2)
+            vn = vn + h * (g[13] * d0 + g[14] * d1 + g[15] * d2)
+            tn = tn + h * g[16]
+        ok = det != 0
+        inv = 1.0 / torch.where(ok, det, torch.ones_like(det))
+        t, u, v = tn * inv, un * inv, vn * inv
+        ctx.save_for_backward(slot, d0, d1, d2, h, ok, inv, t, u, v)
+        ctx.n_faces = len(m)
+        return t, u, v
+
+    @staticmethod
+    def backward(ctx: object, gt: torch.Tensor, gu: torch.Tensor, gv: torch.Tensor) -> tuple:
+        slot, d0, d1, d2, h, ok, inv, t, u, v = ctx.saved_tensors
+        gdet = torch.where(ok, -(gt * t + gu * u + gv * v) * inv, torch.zeros_like(inv))  # det = 0: constant 1
+        gun, gvn, gtn = gu * inv, gv * inv, gt * inv
+        cols = [gdet * d0, gdet * d1, gdet * d2, gun * d0, gun * d1, gun * d2, gvn * d0, gvn * d1, gvn * d2, gtn]
+        if h is not None:
+            cols += [x * h for x in cols[3:]]
+        grows = torch.stack(cols, 1)
+        gm = grows.new_zeros(ctx.n_faces, grows.shape[1]).index_add_(0, slot, grows)
+        return gm, None, None, None
+
+
+def _recompute(vertices: torch.Tensor, faces_t: torch.Tensor, d: torch.Tensor, origin: torch.Tensor,
+               h: torch.Tensor | None, axis: torch.Tensor, ray: torch.Tensor, face: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Differentiable t, u, v (P,) of the (ray, face) pairs (which hit): the per-face rows of the test
+    (:func:`_face_tables`' vectors, no sign fold) formed with autograd once per face (all faces, or those of
+    the pairs when there are fewer pairs than faces), then :class:`_PairTUV` per pair."""
+    if len(face) < len(faces_t):
+        used, slot = torch.unique(face, return_inverse=True)
+        f = faces_t.index_select(0, used)
+    else:
+        slot, f = face, faces_t
+    a0 = vertices.index_select(0, f[:, 0])
+    e1 = vertices.index_select(0, f[:, 1]) - a0
+    e2 = vertices.index_select(0, f[:, 2]) - a0
+    t0 = origin[None, :] - a0
+    q0 = _cross(t0, e1)
+    rows = [_cross(e2, e1), _cross(e2, t0), q0, (e2 * q0).sum(-1, keepdim=True)]
+    if h is not None:
+        ax = axis[None, :].expand_as(e1)
+        q1 = _cross(ax, e1)
+        rows += [_cross(e2, ax), q1, (e2 * q1).sum(-1, keepdim=True)]
+    return _PairTUV.apply(torch.cat(rows, 1), slot, d.index_select(0, ray),
+                          None if h is None else h.index_select(0, ray))
+
+
+def _search(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, table: torch.Tensor, d: torch.Tensor,
+            origin: torch.Tensor, h: torch.Tensor | None, axis: torch.Tensor, t_min: float,
+            tol: float) -> tuple[torch.Tensor, int]:
+    """No-grad nearest face per ray: (face (R,) int64, -1 on a miss; number of ray-triangle tests).
+
+    Faces are grouped in clusters of :data:`CLUSTER_SIZE` consecutive faces; a ray is tested (:func:`_test_pairs`)
+    against the faces of the clusters whose bounding sphere it passes through (a ray-sphere GEMM)."""
+    n_faces = len(v0)
+    # cluster bounding spheres (inflated: barycentric tolerance, rounding)
+    n_cl = (n_faces + CLUSTER_SIZE - 1) // CLUSTER_SIZE
+    pad = n_cl * CLUSTER_SIZE - n_faces
+    corners = torch.stack([v0, v0 + e1, v0 + e2], 1)  # (F, 3, 3)
+    if pad:
+        corners = torch.cat([corners, corners[-1:].expand(pad, 3, 3)])
+    corners = corners.reshape(n_cl, 3 * CLUSTER_SIZE, 3)
+    centre = 0.5 * (corners.amin(1) + corners.amax(1))
+    radius = torch.linalg.norm(corners - centre[:, None, :], dim=-1).amax(1)
+    radius = radius * (1 + 1e-3) + 1e-9
+    w0 = centre - origin[None, :]  # centre - ray origin = w0 - h a
+    w0a = w0 @ axis
+    w0sq = (w0 * w0).sum(-1)
+    n_rays = len(d)
+    hz = torch.zeros(n_rays, dtype=d.dtype, device=d.device) if h is None else h
+    face = torch.full((n_rays,), -1, dtype=torch.int64, device=d.device)
+    tests = 0
+    step = max(1, SEARCH_CHUNK_PAIRS // max(n_faces, 1))
+    for lo in range(0, n_rays, step):
+        dc, hc = d[lo:lo + step], hz[lo:lo + step]
+        proj = dc @ w0.T - hc[:, None] * (dc @ axis)[:, None]  # (Rc, C) t of the closest approach
+        dist2 = w0sq[None, :] - 2 * hc[:, None] * w0a[None, :] + (hc * hc)[:, None] - proj * proj
+        near = (dist2 <= radius[None, :] ** 2) & (proj > -radius[None, :])
+        ray_c, cl = torch.nonzero(near, as_tuple=True)
+        ray = ray_c.repeat_interleave(CLUSTER_SIZE)
+        fc = (cl[:, None] * CLUSTER_SIZE + torch.arange(CLUSTER_SIZE, device=d.device)[None, :]).reshape(-1)
+        if pad:
+            inside = fc < n_faces
+            ray, fc = ray[inside], fc[inside]
+        tests += len(fc)
+        if len(fc) == 0:
+            continue
+        ok, tc = _test_pairs(table, dc.T.contiguous(), None if h is None else hc, ray, fc, t_min, tol)
+        if len(tc):
+            face[lo:lo + step] = _nearest(ray.index_select(0, ok), fc.index_select(0, ok), tc, len(dc), n_faces)
+    return face, tests
+
+
+def back_faces(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray) -> np.ndarray | None:
+    """(F,) bool mask of the faces that cannot be the nearest hit of any ray from ``origin``, or None when the
+    mesh does not qualify for back-face culling (then every face must be tested).
+
+    Rays from outside a closed surface enter it first: the nearest hit is on a face whose outward normal
+    n points towards the origin o, (o - V0) . n > 0; faces with (o - V0) . n <= 0 can be culled. Qualifies:
+    a mesh that is (1) closed and consistently oriented (every directed edge once, and its reverse once),
+    (2) star-shaped about its vertex centroid c, outward-oriented: every face's (V0 - c) . (e1 x e2) > 0
+    and the faces' solid angles seen from c sum to 4 pi (one sheet, no folds), so that it bounds a
+    region, and (3) seen from outside: o lies outside the vertices' bounding sphere (centre of their box).
+    A deformed icosphere stays so unless a vertex is pushed across the centre's line of sight of a neighbour.
+
+    Culling changes no hit except at the rounding level or below the test's thresholds: a ray tangent to the
+    surface (within the barycentric tolerance of a silhouette edge), or a front face rejected as grazing
+    (|cos| <= cos_min) whose ray then met a back face within the object.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(f) == 0 or not _closed_oriented(f.tobytes(), len(v)):
+        return None
+    c = v.mean(axis=0)
+    a, b, cc = v[f[:, 0]] - c, v[f[:, 1]] - c, v[f[:, 2]] - c
+    e1, e2 = b - a, cc - a
+    normal = np.stack([e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1], e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
+                       e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]], axis=1)
+    triple = (a * normal).sum(1)  # det[a, b, cc]
+    if not np.all(triple > 0):
+        return None
+    la, lb, lc = (np.sqrt((x * x).sum(1)) for x in (a, b, cc))
+    den = la * lb * lc + (a * b).sum(1) * lc + (a * cc).sum(1) * lb + (b * cc).sum(1) * la
+    if abs(2.0 * np.arctan2(triple, den).sum() - 4.0 * np.pi) > np.pi:  # the sum is 4 pi x the sheet count
+        return None
+    o = np.asarray(origin, np.float64).reshape(3)
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    if np.linalg.norm(o - centre) <= np.sqrt(((v - centre) ** 2).sum(1).max()) * (1 + 1e-6):
+        return None
+    return ((o - c - a) * normal).sum(1) <= 0
+
+
+@lru_cache(maxsize=64)
+def _closed_oriented(faces: bytes, n_vertices: int) -> bool:
+    """Whether the (F, 3) int64 faces (raw bytes) hold every directed edge once and its reverse once."""
+    f = np.frombuffer(faces, np.int64).reshape(-1, 3)
+    head, tail = f.reshape(-1), np.roll(f, -1, axis=1).reshape(-1)  # directed edges head -> tail
+    key = np.sort(head * n_vertices + tail)
+    return bool(np.all(key[1:] != key[:-1]) and np.array_equal(key, np.sort(tail * n_vertices + head)))
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """Validated inputs of a cast (see :func:`_prepare`)."""
+
+    vertices: torch.Tensor
+    faces: torch.Tensor
+    d: torch.Tensor
+    origin: torch.Tensor
+    h: torch.Tensor | None
+    axis: torch.Tensor
+    tol: float
+
+
+def _prepare(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Tensor, origin: torch.Tensor,
+             origin_offset: torch.Tensor | None, offset_axis: Sequence[float], name: str) -> _Prepared:
+    if not isinstance(vertices, torch.Tensor):
+        vertices = torch.tensor(np.asarray(vertices, dtype=np.float64))
+    dtype, dev = vertices.dtype, vertices.device
+    if dtype not in _BARY_TOL:
+        raise ValueError(f"{name}: field 'vertices': dtype must be float32 or float64, got {dtype}")
+    faces_t = _as_tensor(faces, torch.int64, dev).reshape(-1, 3)
+    d = _as_tensor(directions, dtype, dev).reshape(-1, 3)
+    h = None if origin_offset is None else _as_tensor(origin_offset, dtype, dev).reshape(-1)
+    if vertices.dim() != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"{name}: field 'vertices': expected shape (V, 3), got {tuple(vertices.shape)}")
+    if not bool(torch.isfinite(vertices.detach()).all()):
+        raise ValueError(f"{name}: field 'vertices': contains NaN or inf")
+    if h is not None and len(h) != len(d):
+        raise ValueError(f"{name}: field 'origin_offset': {len(h)} offsets for {len(d)} rays")
+    if len(faces_t) and (int(faces_t.min()) < 0 or int(faces_t.max()) >= len(vertices)):
+        raise ValueError(f"{name}: field 'faces': indices must lie in [0, {len(vertices)})")
+    return _Prepared(vertices, faces_t, d, _as_tensor(origin, dtype, dev).reshape(3),
+                     h, _as_tensor(offset_axis, dtype, dev).reshape(3), _BARY_TOL[dtype])
+
+
+def _face_geometry(p: _Prepared, cos_min: float, skip: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+    """No grad: v0, e1, e2 (F, 3) and the test's per-face table (:func:`_face_tables`); faces of the mask
+    ``skip`` (F,) never hit."""
+    vd = p.vertices.detach()
+    f = p.faces
+    v0, v1, v2 = vd[f[:, 0]], vd[f[:, 1]], vd[f[:, 2]]
+    e1, e2 = v1 - v0, v2 - v0
+    area2 = torch.linalg.norm(_cross(e1, e2), dim=-1)
+    longest = torch.maximum(torch.maximum((e1 * e1).sum(-1), (e2 * e2).sum(-1)), ((v2 - v1) ** 2).sum(-1))
+    valid = (area2 > _SLIVER[vd.dtype] * longest) & torch.isfinite(area2)
+    if skip is not None:
+        valid &= ~skip
+    return v0, e1, e2, _face_tables(v0, e1, e2, valid, p.origin, p.axis, cos_min, p.h is not None)
+
+
+def _hits(p: _Prepared, face: torch.Tensor, tests: int) -> RayHits:
+    """:class:`RayHits` of the nearest faces ``face`` (R,) (-1 on a miss), recomputed with grad."""
+    n_rays = len(face)
+    hit = face >= 0
+    idx = torch.nonzero(hit).reshape(-1)
+    zeros = p.vertices.new_zeros(n_rays) + 0.0 * p.vertices.sum()  # keeps the graph connected on all-miss
+    if len(idx) == 0:
+        return RayHits(hit, face, zeros, zeros, zeros, tests)
+    t, u, v = _recompute(p.vertices, p.faces, p.d, p.origin, p.h, p.axis, idx, face.index_select(0, idx))
+    return RayHits(hit, face, zeros.index_put((idx,), t), zeros.index_put((idx,), u), zeros.index_put((idx,), v),
+                   tests)
+
+
+def cast_rays(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Tensor, origin: torch.Tensor,
+              origin_offset: torch.Tensor | None = None, offset_axis: Sequence[float] = (0.0, 0.0, 1.0), *,
+              t_min: float = 1e-6, cos_min: float = 1e-3, skip_faces: torch.Tensor | None = None) -> RayHits:
+    """Nearest hit of each ray origin_r + t * d_r, origin_r = origin + origin_offset[r] * offset_axis.
+
+    Args:
+        vertices: (V, 3) float tensor (float64 recommended; the computation runs in its dtype), may require grad.
+        faces: (F, 3) int vertex indices (tensor or array).
+        directions: (R, 3) unit ray directions.
+        origin: (3,) common ray origin.
+        origin_offset: (R,) offsets along ``offset_axis`` (the HDL-64E lasers' heights h0_k on z), or None.
+        offset_axis: (3,) unit axis of the offsets.
+        t_min: hits at t <= t_min are ignored.
+        cos_min: hits with |cos(incidence)| <= cos_min are ignored (grazing rays).
+        skip_faces: (F,) bool, faces never hit (e.g. :func:`back_faces`), or None.
+    Returns:
+        :class:`RayHits`; t, u, v carry gradients w.r.t. ``vertices`` (finite everywhere).
+    """
+    p = _prepare(vertices, faces, directions, origin, origin_offset, offset_axis, "cast_rays")
+    n_rays = len(p.d)
+    with torch.no_grad():
+        if n_rays and len(p.faces):
+            skip = None if skip_faces is None else _as_tensor(skip_faces, torch.bool, p.d.device).reshape(-1)
+            if skip is not None and len(skip) != len(p.faces):
+                raise ValueError(f"cast_rays: field 'skip_faces': {len(skip)} flags for {len(p.faces)} faces")
+            v0, e1, e2, table = _face_geometry(p, cos_min, skip)
+            face, tests = _search(v0, e1, e2, table, p.d, p.origin, p.h, p.axis, t_min, p.tol)
+        else:
+            face, tests = torch.full((n_rays,), -1, dtype=torch.int64, device=p.d.device), 0
+    return _hits(p, face, tests)
+
+
+def cast_ray_pairs(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Tensor, origin: torch.Tensor,
+                   ray_index: torch.Tensor, face_index: torch.Tensor, origin_offset: torch.Tensor | None = None,
+                   offset_axis: Sequence[float] = (0.0, 0.0, 1.0), *, t_min: float = 1e-6,
+                   cos_min: float = 1e-3) -> RayHits:
+    """Like :func:`cast_rays`, but each ray is tested only against the faces the caller pairs it with.
+
+    The caller's cull (e.g. the camera's per-face screen boxes) builds the candidate pairs
+    (ray_index[k], face_index[k]); they are tested with the same kernel as :func:`cast_rays` under no_grad,
+    the nearest hit per ray is kept (equal t: the smallest face index), and t, u, v are recomputed with
+    gradients on the winning pairs only. The result equals :func:`cast_rays`' wherever the pairs include
+    every face a ray can hit. Arguments as :func:`cast_rays`, plus ray_index, face_index (P,) int64;
+    ``RayHits.tests`` = P.
+    """
+    p = _prepare(vertices, faces, directions, origin, origin_offset, offset_axis, "cast_ray_pairs")
+    dev = p.d.device
+    ray = _as_tensor(ray_index, torch.int64, dev).reshape(-1)
+    fc = _as_tensor(face_index, torch.int64, dev).reshape(-1)
+    n_rays, n_faces = len(p.d), len(p.faces)
+    if len(ray) != len(fc):
+        raise ValueError(f"cast_ray_pairs: field 'face_index': {len(fc)} faces for {len(ray)} rays")
+    if len(ray) and (int(ray.min()) < 0 or int(ray.max()) >= n_rays or int(fc.min()) < 0
+                     or int(fc.max()) >= n_faces):
+        raise ValueError(f"cast_ray_pairs: field 'ray_index': pairs must index {n_rays} rays and {n_faces} faces")
+    with torch.no_grad():
+        face = torch.full((n_rays,), -1, dtype=torch.int64, device=dev)
+        if len(ray):
+            table = _face_geometry(p, cos_min)[3]
+            ok, t = _test_pairs(table, p.d.T.contiguous(), p.h, ray, fc, t_min, p.tol)
+            if len(t):
+                face = _nearest(ray.index_select(0, ok), fc.index_select(0, ok), t, n_rays, n_faces)
+    return _hits(p, face, len(ray))

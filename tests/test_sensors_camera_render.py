@@ -1,0 +1,238 @@
+"""Camera rendering of meshes into the image (robustbench3d.sensors.camera_render) against hand cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from robustbench3d.kitti.calib import Calibration
+from robustbench3d.sensors import camera_model as cm
+from robustbench3d.sensors.camera_depth import DepthMap
+from robustbench3d.sensors.camera_model import Lighting
+from robustbench3d.sensors.camera_render import (
+    _rect_lighting,
+    mesh_box,
+    render_camera,
+    render_camera_torch,
+    shade,
+)
+from robustbench3d.sensors.mesh import icosphere
+from robustbench3d.synth.calibs import DAY_0926
+
+# velodyne (x fwd, y left, z up) -> rect (x right, y down, z fwd), no offsets
+_PERM = np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [1.0, 0.0, 0.0, 0.0]])
+
+
+def small_calib(f: float = 20.0, cu: float = 20.0, cv: float = 15.0) -> Calibration:
+    p2 = np.array([[f, 0.0, cu, 0.0], [0.0, f, cv, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    return Calibration(P0=p2, P1=p2, P2=p2, P3=p2, R0_rect=np.eye(3), Tr_velo_to_cam=_PERM,
+                       Tr_imu_to_velo=np.eye(3, 4))
+
+
+#: Lighting under which a fronto-parallel face (normal along rect -z, n.up = 0) has radiance = albedo:
+#: ambient * 0.6 * sky = 1, no sun, no haze, exposure 1.
+FLAT = Lighting(sun_direction=np.array([0.0, 0.0, 1.0]), sun_color=np.zeros(3), sky_zenith=np.ones(3),
+                sky_horizon=np.ones(3), ambient=1 / 0.6, haze_distance=1e30, exposure=1.0)
+
+# A triangle at z = 5 in front of the 40x30 camera: projects to (10, 3), (10, 27), (32, 15) px
+TRI = np.array([[-2.5, -3.0, 5.0], [-2.5, 3.0, 5.0], [3.0, 0.0, 5.0]])
+TRI_FACES = np.array([[0, 1, 2]])
+
+
+def display(albedo: np.ndarray) -> np.ndarray:
+    return cm.tone_curve(np.asarray(albedo, np.float64))
+
+
+def test_hand_triangle_colours_alpha_and_antialiased_edge():
+    calib = small_calib()
+    black = np.zeros((30, 40, 3), np.uint8)
+    c = np.array([0.2, 0.5, 0.8])
+    res = render_camera(black, calib, [(TRI, TRI_FACES, np.tile(c, (3, 1)))], supersample=4, lighting=FLAT)
+    assert res.status == ["rendered"] and res.boxes == [(10, 3, 33, 28)]
+    assert res.alpha[15, 20] == 1.0 and res.alpha[15, 9] == 0.0 and res.alpha[2, 20] == 0.0
+    # the edge u = 10 splits pixel 10 (footprint [9.5, 10.5]): 8 of its 16 samples are inside
+    assert res.alpha[15, 10] == 0.5
+    np.testing.assert_array_equal(res.image[15, 20], np.round(255 * display(c)))
+    np.testing.assert_array_equal(res.image[15, 10], np.round(0.5 * 255 * display(c)))
+    np.testing.assert_array_equal(res.image[15, 9], [0, 0, 0])
+    # over a grey photo: alpha * object + (1 - alpha) * photo
+    grey = np.full((30, 40, 3), 100, np.uint8)
+    res = render_camera(grey, calib, [(TRI, TRI_FACES, np.tile(c, (3, 1)))], supersample=4, lighting=FLAT)
+    np.testing.assert_array_equal(res.image[15, 10], np.round(255 * (0.5 * display(c) + 0.5 * 100 / 255)))
+    outside = np.ones((30, 40), bool)
+    outside[3:28, 10:33] = False
+    assert (res.image[outside] == 100).all()
+
+
+def test_hand_triangle_barycentric_vertex_colours():
+    """Fronto-parallel triangle: the barycentrics of a pixel centre are its 2D barycentrics in the image."""
+    calib = small_calib()
+    cols = np.eye(3)
+    out = render_camera_torch(torch.zeros(30, 40, 3, dtype=torch.float64), calib, [(TRI, TRI_FACES, cols)],
+                              supersample=1, lighting=FLAT).numpy()
+    a, b, c = np.array([10.0, 3.0]), np.array([10.0, 27.0]), np.array([32.0, 15.0])
+    for u, v in [(20, 15), (12, 10), (25, 16), (30, 15), (11, 25)]:
+        m = np.column_stack([b - a, c - a])
+        lb, lc = np.linalg.solve(m, np.array([u, v]) - a)
+        expect = display((1 - lb - lc) * cols[0] + lb * cols[1] + lc * cols[2])
+        np.testing.assert_allclose(out[v, u], expect, atol=1e-12)
+
+
+def test_shading_matches_the_generator_camera_model():
+    """The torch shading equals camera_model's diffuse_faces -> aerial_perspective -> tone_curve."""
+    calib = DAY_0926.calib
+    rng = np.random.default_rng(3)
+    light = Lighting(sun_direction=np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81]),
+                     sun_color=np.array([2.6, 2.5, 2.2]), sky_zenith=np.array([0.18, 0.32, 0.75]),
+                     sky_horizon=np.array([0.62, 0.72, 0.86]), ambient=0.4, haze_distance=300.0, exposure=1.1)
+    n_velo = rng.normal(size=(50, 3))
+    n_velo /= np.linalg.norm(n_velo, axis=1, keepdims=True)
+    albedo = rng.random((50, 3))
+    dist = rng.uniform(1, 200, 50)
+    ref = cm.diffuse_faces(albedo.astype(np.float32), n_velo.astype(np.float32), light.sun_direction.astype(np.float32),
+                           light.sun_color, light.ambient, light.sky_zenith, light.sky_horizon).lit
+    ref = cm.aerial_perspective(ref.T.astype(np.float64), dist, light.sky_horizon, light.haze_distance).T
+    ref = cm.tone_curve(ref * light.exposure)
+    n_rect = n_velo @ calib.velo_to_rect[:3, :3].T
+    got = shade(torch.tensor(albedo), torch.tensor(n_rect), torch.tensor(dist),
+                _rect_lighting(light, calib, torch.float64)).numpy()
+    np.testing.assert_allclose(got, ref, atol=2e-5)  # float32 reference, rotation rounding of the calib
+
+
+def test_mesh_box_by_hand():
+    calib = small_calib()
+    assert mesh_box(calib, TRI, (40, 30)) == ((10, 3, 33, 28), "rendered")
+    assert mesh_box(calib, TRI * [1, 1, -1], (40, 30)) == (None, "behind")
+    assert mesh_box(calib, TRI + np.array([30.0, 0, 0]), (40, 30)) == (None, "outside")  # u >= 40 everywhere
+    assert mesh_box(calib, TRI + np.array([0, 0, -5.0 + 1e-9]), (40, 30)) == (None, "behind")  # in the camera plane
+    straddling = np.array([[-1.0, -1.0, -0.5], [1.0, -1.0, 0.5], [0.0, 1.0, 1.0]])
+    assert mesh_box(calib, straddling, (40, 30)) == ((0, 0, 40, 30), "rendered")
+
+
+def _sphere(centre, radius=0.4, seed=0):
+    v, f = icosphere(2, radius)
+    return v + np.asarray(centre, np.float64), f, np.random.default_rng(seed).random((len(v), 3))
+
+
+def test_crop_render_equals_full_image_render():
+    calib = DAY_0926.calib
+    w, h = DAY_0926.image_size
+    photo = np.random.default_rng(1).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    meshes = [_sphere([1.0, 0.0, 10.0]), _sphere([1.3, 0.2, 12.0], seed=1), _sphere([-7.55, 0.5, 9.0], seed=2)]
+    crop = render_camera(photo, calib, meshes, supersample=2)
+    full = render_camera(photo, calib, meshes, supersample=2, full_image=True)
+    assert crop.boxes[2][0] == 0  # the third sphere is cut by the image border
+    np.testing.assert_array_equal(crop.image, full.image)
+    np.testing.assert_array_equal(crop.alpha, full.alpha)
+    changed = np.argwhere((crop.image != photo).any(axis=2))
+    inside = np.zeros((h, w), bool)
+    for u0, v0, u1, v1 in crop.boxes:
+        inside[v0:v1, u0:u1] = True
+    assert len(changed) > 2000 and inside[changed[:, 0], changed[:, 1]].all()
+    photo_t = torch.as_tensor(photo, dtype=torch.float64) / 255
+    a = render_camera_torch(photo_t, calib, meshes, supersample=2)
+    b = render_camera_torch(photo_t, calib, meshes, supersample=2, full_image=True)
+    assert torch.equal(a, b)
+
+
+def test_crop_equals_full_with_faces_crossing_the_camera_plane():
+    """Faces with a vertex behind the camera get the whole region as their box: still the full-image result."""
+    calib = small_calib()
+    photo = np.random.default_rng(4).integers(0, 256, (30, 40, 3), dtype=np.uint8)
+    wall = np.array([[-2.0, -1.0, -0.5], [2.0, -1.0, 2.5], [0.0, 2.0, 2.5]])  # one vertex behind the camera
+    meshes = [(wall, TRI_FACES, np.eye(3)), _sphere([0.3, -0.2, 2.0], radius=0.5, seed=3)]
+    crop = render_camera(photo, calib, meshes, supersample=2)
+    full = render_camera(photo, calib, meshes, supersample=2, full_image=True)
+    alone = render_camera(photo, calib, meshes[:1], supersample=2)
+    assert crop.boxes[0] == (0, 0, 40, 30) and (alone.alpha > 0).sum() > 300
+    np.testing.assert_array_equal(crop.image, full.image)
+    np.testing.assert_array_equal(crop.alpha, full.alpha)
+
+
+def test_gradients_match_finite_differences():
+    calib = small_calib(f=10.0, cu=6.0, cv=5.0)
+    rng = np.random.default_rng(7)
+    verts = torch.tensor([[-0.8, -0.7, 2.0], [0.9, -0.5, 2.3], [0.1, 0.9, 1.9], [0.6, 0.4, 2.6]], dtype=torch.float64,
+                         requires_grad=True)
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    colors = torch.tensor(rng.random((4, 3)), requires_grad=True)
+    photo = torch.tensor(rng.random((10, 12, 3)))
+    light = Lighting(sun_direction=np.array([-0.6, 0.3, 0.74]) / np.linalg.norm([-0.6, 0.3, 0.74]),
+                     sun_color=np.array([1.5, 1.4, 1.2]), sky_zenith=np.array([0.2, 0.3, 0.7]),
+                     sky_horizon=np.array([0.6, 0.7, 0.8]), ambient=0.5, haze_distance=3.0, exposure=0.8)
+
+    def fn(v, c):
+        return render_camera_torch(photo, calib, [(v, faces, c)], supersample=2, lighting=light)
+
+    out = fn(verts, colors)
+    out.sum().backward()
+    assert verts.grad.abs().sum() > 0 and colors.grad.abs().sum() > 0
+    assert torch.autograd.gradcheck(fn, (verts, colors), eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
+def test_scene_depth_hides_exactly_where_nearer():
+    calib = small_calib()
+    grey = np.full((30, 40, 3), 90, np.uint8)
+    mesh = (TRI, TRI_FACES, np.tile([0.9, 0.1, 0.1], (3, 1)))
+    plain = render_camera(grey, calib, [mesh], supersample=2, lighting=FLAT)
+    dmap = np.full((30, 40), np.inf)
+    dmap[:, :20] = 4.0  # nearer than the triangle (z = 5) left of column 20
+    hidden = render_camera(grey, calib, [mesh], supersample=2, lighting=FLAT, scene_depth=DepthMap(dmap))
+    assert (hidden.image[:, :20] == 90).all() and (hidden.alpha[:, :20] == 0).all()
+    np.testing.assert_array_equal(hidden.image[:, 20:], plain.image[:, 20:])
+    far = np.full((30, 40), 6.0)
+    behind = render_camera(grey, calib, [mesh], supersample=2, lighting=FLAT, scene_depth=DepthMap(far))
+    np.testing.assert_array_equal(behind.image, plain.image)
+
+
+def test_two_objects_overlapping_resolve_by_depth():
+    calib = small_calib()
+    black = np.zeros((30, 40, 3), np.uint8)
+    red, green = np.tile([0.9, 0.0, 0.0], (3, 1)), np.tile([0.0, 0.9, 0.0], (3, 1))
+    big = TRI * [1.6, 1.6, 1.6]  # same projection as TRI, at z = 8
+    for near, far, want in (((TRI, red), (big, green), red), ((TRI * [2, 2, 2], red), (big, green), green)):
+        res = render_camera(black, calib, [(near[0], TRI_FACES, near[1]), (far[0], TRI_FACES, far[1])],
+                            supersample=1, lighting=FLAT)
+        np.testing.assert_array_equal(res.image[15, 20], np.round(255 * display(want[0])))
+        res = render_camera(black, calib, [(far[0], TRI_FACES, far[1]), (near[0], TRI_FACES, near[1])],
+                            supersample=1, lighting=FLAT)
+        np.testing.assert_array_equal(res.image[15, 20], np.round(255 * display(want[0])))
+
+
+@pytest.mark.parametrize("centre", [[0.0, 0.3, 1.0], [0.5, 0.5, 80.0], [-6.0, 0.0, 8.0], [0.0, 0.0, 0.2]])
+def test_no_nan_near_far_partly_outside_and_straddling(centre):
+    straddles = centre[2] < 0.4  # whole image rendered: use the small camera
+    calib = small_calib() if straddles else DAY_0926.calib
+    w, h = (40, 30) if straddles else DAY_0926.image_size
+    v, f, c = _sphere(centre)
+    vt = torch.tensor(v, requires_grad=True)
+    ct = torch.tensor(c, requires_grad=True)
+    out = render_camera_torch(torch.full((h, w, 3), 0.5, dtype=torch.float64), calib, [(vt, f, ct)], supersample=1)
+    assert torch.isfinite(out).all()
+    out.sum().backward()
+    assert torch.isfinite(vt.grad).all() and torch.isfinite(ct.grad).all() and ct.grad.abs().sum() > 0
+    assert (out != 0.5).any()
+
+
+def test_behind_camera_and_outside_are_not_rendered():
+    calib = DAY_0926.calib
+    w, h = DAY_0926.image_size
+    photo = np.random.default_rng(2).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    res = render_camera(photo, calib, [_sphere([0.0, 0.0, -5.0]), _sphere([40.0, 0.0, 10.0])])
+    assert res.boxes == [None, None] and res.status == ["behind", "outside"]
+    np.testing.assert_array_equal(res.image, photo)
+    assert not res.alpha.any()
+
+
+def test_bad_input_names_the_field():
+    calib = small_calib()
+    black = np.zeros((30, 40, 3), np.uint8)
+    with pytest.raises(ValueError, match="field 'meshes\\[0\\]'"):
+        render_camera(black, calib, [(TRI, np.array([[0, 1, 3]]), np.ones((3, 3)))])
+    with pytest.raises(ValueError, match="field 'meshes\\[0\\]'"):
+        render_camera(black, calib, [(TRI * np.nan, TRI_FACES, np.ones((3, 3)))])
+    with pytest.raises(ValueError, match="field 'supersample'"):
+        render_camera(black, calib, [(TRI, TRI_FACES, np.ones((3, 3)))], supersample=0)
+    with pytest.raises(ValueError, match="field 'image'"):
+        render_camera(black.astype(np.float32), calib, [])

@@ -1,0 +1,274 @@
+"""LiDAR rendering of meshes into scans: the generator's beam pattern, culled casting against an Embree
+brute force over every ray of the pattern, occlusion both ways on a hand-built scan, reflectance,
+noise, gradients, and a real KITTI scan."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from embreex import rtcore, rtcore_scene
+from embreex.mesh_construction import TriangleMesh
+
+from robustbench3d.sensors import lidar_model as lm
+from robustbench3d.sensors.lidar_beams import AZIMUTH_STEP_DEG, BeamPattern, estimate_pattern, scan_ring_ids
+from robustbench3d.sensors.lidar_render import prepare_scan, render_lidar, render_lidar_torch, trace_meshes
+from robustbench3d.sensors.materials import REFLECTIVITY, Mat
+from robustbench3d.sensors.mesh import face_normals, icosphere
+
+torch.set_num_threads(1)
+ROOF_Z = -1.73 + 1.50  # roof of a 1.50 m high car in the velodyne frame
+EMPTY = np.zeros((0, 4), dtype=np.float32)
+
+
+def _object(x: float, y: float = 0.3, level: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """A smoothly deformed 0.40 m icosphere resting on a roof at (x, y)."""
+    v, f = icosphere(level, 0.4)
+    r = 1 + 0.15 * np.sin(3 * v[:, 0] / 0.4 + 0.5) * np.cos(2 * v[:, 1] / 0.4)
+    v = v * r[:, None]
+    return v + np.array([x, y, ROOF_Z - v[:, 2].min()]), f
+
+
+def _embree(v: np.ndarray, f: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    scene = rtcore_scene.EmbreeScene(rtcore.EmbreeDevice())
+    TriangleMesh(scene, np.ascontiguousarray(v, dtype=np.float32), np.ascontiguousarray(f, dtype=np.int32))
+    out = scene.run(np.ascontiguousarray(origins, np.float32), np.ascontiguousarray(dirs, np.float32), output=1)
+    return out["primID"], out["tfar"].astype(np.float64)
+
+
+def test_generator_pattern_is_the_generators_rays():
+    from robustbench3d.synth.lidar import _base_rays
+
+    phase = 0.0312
+    rays = BeamPattern.generator(phase).rays
+    base = _base_rays()
+    c, s = np.cos(np.radians(phase)), np.sin(np.radians(phase))
+    bx, by, bz = base.direction_rows
+    gen = np.stack([c * bx - s * by, s * bx + c * by, bz], 1)  # as in synth.lidar.simulate_scan
+    assert len(rays) == len(gen)
+    np.testing.assert_allclose(rays.directions, gen, atol=1e-12)
+    np.testing.assert_allclose(rays.origins, base.origins, atol=1e-6)
+
+
+def test_pattern_and_rings_recovered_from_a_generated_scan():
+    from robustbench3d.synth.frame import frame_generators
+    from robustbench3d.synth.layout import sample_scene
+    from robustbench3d.synth.lidar import simulate_scan
+    from robustbench3d.synth.raytrace import SceneGeometry
+
+    scene_rng, lidar_rng, _ = frame_generators(11, 0)
+    frame_phase = frame_generators(11, 0)[1].uniform(0.0, 0.045)  # simulate_scan's first draw
+    scene = sample_scene(scene_rng)
+    scan, _ = simulate_scan(scene, SceneGeometry(scene), lidar_rng)
+    prep = prepare_scan(scan)
+    truth = BeamPattern.generator(frame_phase)
+    assert prep.pattern.shift_deg == pytest.approx(frame_phase, abs=1e-6)
+    np.testing.assert_allclose(prep.pattern.phases_deg, truth.phases_deg, atol=1e-6)
+    # every point lies on a ray of its own laser, at that ray's azimuth
+    assert (prep.point_ray >= 0).all()
+    rays = prep.pattern.rays
+    assert (rays.ring[prep.point_ray] == prep.ring).all()
+    az = np.degrees(np.arctan2(scan[:, 1], scan[:, 0])) % 360
+    dev = (az - rays.azimuth_deg[prep.point_ray] + 180) % 360 - 180
+    assert np.abs(dev).max() < 1e-3
+    # ... at the range along that ray from that laser's origin
+    p = rays.origins[prep.point_ray] + prep.range_m[:, None] * rays.directions[prep.point_ray]
+    np.testing.assert_allclose(p, scan[:, :3], atol=2e-4)
+    # the cone fallback (for scans without all 64 lasers) agrees with the wrap heuristic
+    np.testing.assert_array_equal(scan_ring_ids(scan[scan[:, 0] > 0][::-1]), prep.ring[scan[:, 0] > 0][::-1])
+
+
+@pytest.mark.parametrize("distance", [1.3, 5.0, 20.0, 80.0])
+def test_culled_hits_equal_embree_brute_force_over_every_ray(distance):
+    pattern = BeamPattern.generator(0.0231)
+    v, f = _object(distance, y=0.3 if distance > 2 else 0.0)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    vt = torch.tensor(v, requires_grad=True)
+    tr = trace_meshes(prep, [(vt, f, None)])
+    (tr.t.sum() + tr.u.sum() + tr.v.sum()).backward()
+    assert torch.isfinite(vt.grad).all() and torch.isfinite(tr.t).all()
+    rays = pattern.rays
+    prim, tfar = _embree(v, f, rays.origins, rays.directions)
+    ref = np.flatnonzero(prim >= 0)
+    assert len(ref) > {1.3: 3000, 5.0: 500, 20.0: 40, 80.0: 1}[distance]
+    np.testing.assert_array_equal(tr.ray, ref)  # exactly the same rays hit
+    ours = rays.origins[tr.ray] + tr.t.detach().numpy()[:, None] * rays.directions[tr.ray]
+    theirs = rays.origins[ref] + tfar[ref, None] * rays.directions[ref]
+    assert np.abs(ours - theirs).max() < 1e-5
+    brute = len(rays) * len(f)
+    if distance >= 5.0:
+        assert tr.tests <= 0.01 * brute
+    # the render adds exactly the in-range hits (nothing hides them in an empty scan)
+    res = render_lidar(prep, [(v, f, None)])
+    gate = lm.in_range(tfar[ref])
+    np.testing.assert_array_equal(res.ray_index, ref[gate])
+    np.testing.assert_allclose(res.added[:, :3], theirs[gate], atol=2e-5)
+    assert res.tests == tr.tests and len(res.removed_index) == 0
+
+
+def test_sensor_inside_a_mesh_and_a_mesh_out_of_sight():
+    pattern = BeamPattern.generator(0.04)
+    v, f = icosphere(2, 3.0)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    tr = trace_meshes(prep, [(v + np.array([0.2, 0.0, 0.1]), f, None)])
+    assert len(tr.ray) == len(pattern.rays)  # every laser, every azimuth
+    t = tr.t.numpy()
+    assert np.isfinite(t).all() and (t > 2.5).all() and (t < 3.6).all()
+    above = trace_meshes(prep, [(icosphere(1, 0.4)[0] + np.array([0.0, 0.0, 5.0]), icosphere(1, 0.4)[1], None)])
+    assert len(above.ray) == 0 and above.tests == 0  # straight above the sensor: no laser's cone reaches it
+
+
+def test_two_meshes_in_one_beam_nearest_wins():
+    pattern = BeamPattern.generator(0.01)
+    near, f = _object(8.0)
+    far = near + np.array([3.0, 0.5, 0.1])  # behind the near one, partly covered by it
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    res = render_lidar(prep, [(far, f, None), (near, f, None)])
+    rays = pattern.rays
+    both = np.concatenate([far, near])
+    prim, tfar = _embree(both, np.concatenate([f, f + len(far)]), rays.origins, rays.directions)
+    ref = np.flatnonzero(prim >= 0)
+    np.testing.assert_array_equal(res.ray_index, ref)
+    np.testing.assert_array_equal(res.object_index, (prim[ref] >= len(f)).astype(np.int64))
+    assert (res.object_index == 0).sum() > 0 and (res.object_index == 1).sum() > 0
+    theirs = rays.origins[ref] + tfar[ref, None] * rays.directions[ref]
+    assert np.abs(res.added[:, :3] - theirs).max() < 2e-5
+
+
+def test_occlusion_both_ways_on_a_hand_built_scan():
+    pattern = BeamPattern(np.zeros(64))
+    v, f = _object(10.0, y=0.0)
+    empty = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    tr = trace_meshes(empty, [(v, f, None)])
+    rays = pattern.rays
+    hit_rays, t = tr.ray, tr.t.detach().numpy()
+    assert len(hit_rays) > 100
+    behind, front = hit_rays[0::3], hit_rays[1::3]
+    t_behind, t_front = t[0::3], t[1::3]
+    # the object straddles azimuth 0: its rays sit at both ends of each laser's sweep
+    assert (rays.azimuth_deg[hit_rays] < 5).any() and (rays.azimuth_deg[hit_rays] > 355).any()
+    miss_ray = pattern.ring_start[rays.ring[hit_rays[0]]] + 100  # same laser, 18 deg aside: never hit
+    assert miss_ray not in set(hit_rays)
+    pts = np.concatenate([
+        rays.origins[behind] + (t_behind + 5.0)[:, None] * rays.directions[behind],  # removed
+        rays.origins[front] + (t_front - 2.0)[:, None] * rays.directions[front],  # hide the object there
+        rays.origins[[miss_ray]] + 30.0 * rays.directions[[miss_ray]],  # kept
+    ])
+    ring = np.concatenate([rays.ring[behind], rays.ring[front], rays.ring[[miss_ray]]])
+    # a point 0.04 deg off a hit ray (its own beam), beyond the object: removed too
+    k = hit_rays[2 * len(hit_rays) // 3 + 1]
+    a = np.radians(rays.azimuth_deg[k] + 0.04)
+    phi = np.radians(pattern.sensor.elevation_deg[rays.ring[k]])
+    d = np.array([np.cos(phi) * np.cos(a), np.cos(phi) * np.sin(a), np.sin(phi)])
+    pts = np.concatenate([pts, (rays.origins[k] + 40.0 * d)[None]])
+    ring = np.concatenate([ring, [rays.ring[k]]])
+    scan = np.concatenate([pts, np.full((len(pts), 1), 0.2)], 1).astype(np.float32)
+    res = render_lidar(scan, [(v, f, None)], ring_ids=ring)
+    n_b, n_f = len(behind), len(front)
+    expect_removed = np.concatenate([np.arange(n_b), [len(pts) - 1]])
+    np.testing.assert_array_equal(res.removed_index, expect_removed)
+    assert not np.isin(res.ray_index, front).any()  # hidden behind nearer returns
+    expected_added = np.setdiff1d(hit_rays, front)
+    np.testing.assert_array_equal(res.ray_index, expected_added)
+    kept = np.setdiff1d(np.arange(len(pts)), expect_removed)
+    np.testing.assert_array_equal(res.scan[: len(kept)], scan[kept])
+    np.testing.assert_array_equal(res.scan[len(kept):], res.added)
+    assert len(res.scan) == len(pts) - n_b - 1 + len(expected_added)
+    assert n_f > 0
+
+
+def test_reflectance_follows_the_generators_model_and_is_deterministic():
+    pattern = BeamPattern.generator(0.0)
+    v, f = _object(12.0)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    white = render_lidar(prep, [(v, f, np.ones_like(v))])
+    black = render_lidar(prep, [(v, f, np.zeros_like(v))])
+    grey = render_lidar(prep, [(v, f, None)])
+    assert np.array_equal(white.added, render_lidar(prep, [(v, f, np.ones_like(v))]).added)
+    assert (white.added[:, 3] > black.added[:, 3]).all()
+    # hand computation for white paint: rho = 0.42 * (0.55 + 0.9), times (0.55 + 0.45 |cos|), range < 20 m
+    rays = pattern.rays
+    n = face_normals(v, f[white.face_index])
+    cos = np.abs((n * rays.directions[white.ray_index]).sum(1))
+    rho = min(REFLECTIVITY[Mat.PAINT] * 1.45, 0.98)
+    expect = np.floor(rho * (0.55 + 0.45 * cos) * 100) / 100
+    np.testing.assert_allclose(white.added[:, 3], expect, atol=0.0100001)
+    assert np.mean(np.isclose(white.added[:, 3], expect, atol=1e-6)) > 0.95  # floor at a boundary: 0.01 off
+    assert black.added[:, 3].max() < grey.added[:, 3].min() + 0.2
+
+
+def test_noise_and_dropout_draw_only_from_the_given_rng():
+    pattern = BeamPattern.generator(0.0)
+    v, f = _object(10.0)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    clean = render_lidar(prep, [(v, f, None)])
+    a = render_lidar(prep, [(v, f, None)], rng=np.random.default_rng(4), range_noise_m=0.02, dropout=0.3)
+    b = render_lidar(prep, [(v, f, None)], rng=np.random.default_rng(4), range_noise_m=0.02, dropout=0.3)
+    np.testing.assert_array_equal(a.scan, b.scan)
+    assert 0.55 < len(a.added) / len(clean.added) < 0.85
+    assert np.isin(a.ray_index, clean.ray_index).all()
+    # range noise moves the point along its ray only, by at most 3 sd
+    rays = pattern.rays
+    o, d = rays.origins[a.ray_index], rays.directions[a.ray_index]
+    rel = a.added[:, :3] - o
+    assert np.abs(np.cross(rel, d)).max() < 1e-4
+    base = clean.added[np.searchsorted(clean.ray_index, a.ray_index), :3]
+    shift = np.linalg.norm(a.added[:, :3] - base, axis=1)
+    assert shift.max() <= 0.06 + 1e-5 and shift.std() > 0.005
+    with pytest.raises(ValueError, match="field 'rng'"):
+        render_lidar(prep, [(v, f, None)], dropout=0.1)
+    with pytest.raises(ValueError, match="field 'meshes\\[0\\]'"):
+        render_lidar(prep, [(v, f[:, :2], None)])
+
+
+def test_torch_points_have_finite_difference_gradients():
+    pattern = BeamPattern.generator(0.02)
+    v, f = _object(6.0, level=1)
+    ring = np.zeros(0, dtype=np.int64)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=ring)
+    v0 = torch.tensor(v, requires_grad=True)
+    pts, mesh = render_lidar_torch(prep, [(v0, f, None)])
+    assert len(pts) > 100 and (mesh == 0).all()
+    np.testing.assert_allclose(pts.detach().numpy(), render_lidar(prep, [(v, f, None)]).added[:, :3], atol=1e-5)
+    n = len(pts)
+
+    def fn(vert: torch.Tensor) -> torch.Tensor:
+        p, _ = render_lidar_torch(prep, [(vert, f, None)])
+        assert len(p) == n
+        return p[::7]
+
+    assert torch.autograd.gradcheck(fn, (v0,), eps=1e-7, atol=1e-6, rtol=1e-4)
+    pts.pow(2).sum().backward()
+    assert torch.isfinite(v0.grad).all() and v0.grad.abs().sum() > 0
+
+
+def test_real_kitti_scan(kitti_samples):
+    from robustbench3d.kitti.velodyne import read_scan
+
+    scan = read_scan(kitti_samples / "training" / "velodyne" / "000000.bin")
+    prep = prepare_scan(scan)
+    assert prep.ring.max() == 63 and prep.pattern.shift_deg == 0.0
+    assert np.mean(prep.point_ray >= 0) > 0.97  # real firings sit on the per-laser phase grid
+    # an object resting on the road 9 m ahead (velodyne x forward)
+    v, f = _object(9.0, y=0.0)
+    v = v + np.array([0.0, 0.0, -1.73 - ROOF_Z])
+    res = render_lidar(prep, [(v, f, np.full_like(v, 0.6))])
+    assert len(res.added) > 150 and np.isfinite(res.added).all()
+    assert len(res.removed_index) > 50  # ground returns behind the object on its beams
+    rays = prep.pattern.rays
+    hit_t = dict(zip(res.ray_index.tolist(), np.linalg.norm(res.added[:, :3] - rays.origins[res.ray_index], axis=1),
+                     strict=True))
+    for i in res.removed_index:
+        assert prep.point_ray[i] in hit_t and prep.range_m[i] > hit_t[prep.point_ray[i]]
+        dev = (np.degrees(np.arctan2(scan[i, 1], scan[i, 0])) - rays.azimuth_deg[prep.point_ray[i]] + 180) % 360
+        assert abs(dev - 180) <= AZIMUTH_STEP_DEG / 2
+    # no kept point lies on a hit ray beyond the object
+    kept = np.setdiff1d(np.arange(len(scan)), res.removed_index)
+    on = np.isin(prep.point_ray[kept], res.ray_index)
+    for i in kept[on]:
+        assert prep.range_m[i] < hit_t[prep.point_ray[i]]
+    assert len(res.scan) == len(scan) - len(res.removed_index) + len(res.added)
+    # estimating the pattern again from the attacked scan keeps the per-laser phases close
+    again = estimate_pattern(res.scan, scan_ring_ids(res.scan))
+    d_phase = (again.phases_deg - prep.pattern.phases_deg + 0.045) % 0.09 - 0.045
+    assert np.abs(d_phase).max() < 0.01

@@ -1,0 +1,282 @@
+"""The torch ray/triangle core against hand-computed cases, an independent textbook Möller–Trumbore loop,
+float64 finite differences, and the degenerate cases (grazing rays, edges, vertices, zero-area faces, rays
+from inside, all-miss)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from robustbench3d.sensors.mesh import icosphere
+from robustbench3d.sensors.raycast import back_faces, cast_ray_pairs, cast_rays
+
+torch.set_num_threads(1)
+F64 = torch.float64
+
+
+def _t(a: np.ndarray, dtype: torch.dtype = F64) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(a), dtype=dtype)
+
+
+def _reference(v: np.ndarray, f: np.ndarray, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Nearest t per ray (inf on a miss): the textbook per-ray Möller–Trumbore of reference.md §4.4."""
+    best = np.full(len(d), np.inf)
+    v0 = v[f[:, 0]]
+    e1, e2 = v[f[:, 1]] - v0, v[f[:, 2]] - v0
+    for i in range(len(d)):
+        p = np.cross(d[i], e2)
+        det = (e1 * p).sum(1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = o[i] - v0
+            u = (s * p).sum(1) / det
+            q = np.cross(s, e1)
+            w = (d[i] * q).sum(1) / det
+            t = (e2 * q).sum(1) / det
+            ok = (np.abs(det) > 1e-12) & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 1e-6)
+        if ok.any():
+            best[i] = t[ok].min()
+    return best
+
+
+def _blob(level: int = 2, centre=(8.0, 0.5, 0.2)) -> tuple[np.ndarray, np.ndarray]:
+    v, f = icosphere(level, 0.4)
+    r = 1 + 0.2 * np.sin(3 * v[:, 0] / 0.4) * np.cos(2 * v[:, 1] / 0.4)
+    return v * r[:, None] + np.asarray(centre), f
+
+
+def _rays_at(centre: np.ndarray, n: int, spread: float, rng: np.random.Generator):
+    az0, el0 = np.arctan2(centre[1], centre[0]), np.arctan2(centre[2], np.hypot(centre[0], centre[1]))
+    az = az0 + rng.uniform(-spread, spread, n)
+    el = el0 + rng.uniform(-spread, spread, n)
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
+
+
+def test_hand_computed_triangle():
+    v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]])  # plane x = 2
+    f = torch.tensor([[0, 1, 2]])
+    d = _t([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    origin = _t([0.0, 0.25, 0.5])
+    hits = cast_rays(v, f, d, origin, _t([0.0, -1.0, 0.0, 0.0]), offset_axis=(0.0, 0.0, 1.0))
+    # ray 0 hits (2, .25, .5): u = .25 (vertex 1 weight), v = .5; ray 1 starts at z = -0.5: miss;
+    # ray 2 points away: miss (t < 0); ray 3 = ray 0
+    assert hits.hit.tolist() == [True, False, False, True]
+    assert hits.face.tolist() == [0, -1, -1, 0]
+    np.testing.assert_allclose(hits.t.numpy(), [2.0, 0.0, 0.0, 2.0], atol=1e-15)
+    np.testing.assert_allclose(hits.u.numpy(), [0.25, 0, 0, 0.25], atol=1e-15)
+    np.testing.assert_allclose(hits.v.numpy(), [0.5, 0, 0, 0.5], atol=1e-15)
+    pts = hits.points(origin + _t([0.0, 0.0, 0.0]), d)
+    np.testing.assert_allclose(pts[0].numpy(), [2.0, 0.25, 0.5], atol=1e-15)
+    np.testing.assert_array_equal(pts[1].numpy(), [0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_matches_textbook_reference_with_laser_heights(dtype):
+    rng = np.random.default_rng(3)
+    v, f = _blob()
+    f = f[:301]  # not a multiple of the cluster size
+    d = _rays_at(np.array([8.0, 0.5, 0.2]), 1500, 0.07, rng)
+    h = rng.uniform(0.1, 0.21, len(d))
+    origin = np.array([0.0, 0.0, 0.0])
+    hits = cast_rays(_t(v, dtype), torch.from_numpy(f), _t(d, dtype), _t(origin, dtype), _t(h, dtype))
+    o = np.zeros((len(d), 3))
+    o[:, 2] = h
+    ref = _reference(v, f, o, d)
+    assert hits.t.dtype == dtype
+    assert 300 < np.isfinite(ref).sum() < 1400
+    np.testing.assert_array_equal(hits.hit.numpy(), np.isfinite(ref))
+    tol = 1e-12 if dtype == torch.float64 else 2e-5
+    np.testing.assert_allclose(hits.t.numpy()[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=0, atol=tol * 10)
+    # the recorded face really contains the hit point: barycentrics reproduce it
+    k = hits.hit.numpy()
+    fa = f[hits.face.numpy()[k]]
+    u, w = hits.u.numpy()[k], hits.v.numpy()[k]
+    p = (1 - u - w)[:, None] * v[fa[:, 0]] + u[:, None] * v[fa[:, 1]] + w[:, None] * v[fa[:, 2]]
+    np.testing.assert_allclose(p, hits.points(_t(o, dtype), _t(d, dtype)).numpy()[k], atol=tol * 100)
+    assert hits.tests < len(d) * len(f) / 3  # the cluster spheres skip most pairs
+
+
+def test_gradients_match_float64_finite_differences():
+    v, f = _blob(level=1, centre=(4.0, 0.0, 0.0))
+    rng = np.random.default_rng(5)
+    d = _t(_rays_at(np.array([4.0, 0.0, 0.0]), 40, 0.06, rng))
+    h = _t(rng.uniform(0.1, 0.2, 40))
+    ft = torch.from_numpy(f)
+    origin = _t([0.0, 0.0, 0.0])
+    v0 = _t(v).requires_grad_()
+    hits = cast_rays(v0, ft, d, origin, h)
+    assert hits.hit.sum() > 20
+
+    def pts(vert: torch.Tensor) -> torch.Tensor:
+        r = cast_rays(vert, ft, d, origin, h)
+        assert torch.equal(r.face, hits.face)  # the perturbation keeps every ray on its face
+        o = origin + h[:, None] * _t([0.0, 0.0, 1.0])
+        return torch.cat([r.points(o, d), r.u[:, None], r.v[:, None]], 1)
+
+    assert torch.autograd.gradcheck(pts, (v0,), eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
+def _finite_grad(hits, vert: torch.Tensor, o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    loss = hits.points(o, d).pow(2).sum() + hits.u.sum() + hits.v.sum()
+    (g,) = torch.autograd.grad(loss, vert, allow_unused=True)
+    g = torch.zeros_like(vert) if g is None else g
+    assert torch.isfinite(g).all()
+    for x in (hits.t, hits.u, hits.v):
+        assert torch.isfinite(x).all()
+    return g
+
+
+def test_rays_through_vertices_and_edges_never_leak():
+    v, f = icosphere(2, 0.4)
+    vert = _t(v).requires_grad_()
+    targets = [v, 0.5 * (v[f[:, 0]] + v[f[:, 1]]), 0.5 * (v[f[:, 1]] + v[f[:, 2]])]
+    origin = np.array([3.0, -2.0, 1.0])
+    for tgt in targets:
+        d = tgt - origin
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        hits = cast_rays(vert, torch.from_numpy(f), _t(d), _t(origin))
+        _finite_grad(hits, vert, _t(origin), _t(d))
+        # rays aimed at a point on the near side (not near the silhouette) must hit at or before it
+        facing = ((tgt / np.linalg.norm(tgt, axis=1, keepdims=True)) * -d).sum(1) > 0.05
+        assert hits.hit.numpy()[facing].all()
+        dist = np.linalg.norm(tgt - origin, axis=1)
+        assert (hits.t.detach().numpy()[facing] <= dist[facing] + 1e-9).all()
+
+
+def test_grazing_and_in_plane_rays_are_rejected_with_finite_gradients():
+    v = _t([[2.0, -1.0, -1.0], [2.0, 1.0, -1.0], [2.0, 0.0, 1.0]]).requires_grad_()
+    f = torch.tensor([[0, 1, 2]])
+    # origin on the plane x = 2: in-plane and nearly in-plane rays through the triangle
+    o_on = _t([2.0, -3.0, 0.0])
+    d = _t([[0.0, 1.0, 0.0], [1e-9, 1.0, 0.0], [1e-4, 1.0, 0.0]])
+    d = d / torch.linalg.norm(d, dim=1, keepdim=True)
+    hits = cast_rays(v, f, d, o_on)
+    assert not hits.hit.any()  # |cos(incidence)| < 1e-3: no hit
+    _finite_grad(hits, v, o_on, d)
+    # rays at the interior point (2, 0, 0) from 1 m away, incidence just above / below the cut cos = 1e-3
+    for cos_inc, expect in ((2e-3, True), (5e-4, False)):
+        di = _t([[cos_inc, 0.0, np.sqrt(1 - cos_inc**2)]])
+        oi = _t([2.0, 0.0, 0.0]) - di[0]
+        hits = cast_rays(v, f, di, oi)
+        assert hits.hit.tolist() == [expect]
+        g = _finite_grad(hits, v, oi, di)
+        assert g.abs().max() < 2e4  # grows like 1 / cos(incidence), bounded by the cut
+        if expect:
+            np.testing.assert_allclose(hits.t.detach().numpy(), [1.0], atol=1e-9)
+
+
+def test_zero_area_faces_inside_rays_and_all_miss():
+    v, f = icosphere(2, 0.4)
+    # add a collapsed face (three equal vertices) and a collinear sliver in front of the sphere
+    extra = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, -0.1, 0.0], [1.0, 0.0, 0.0],
+                      [1.0, 0.1, 0.0]])
+    vv = np.concatenate([v, extra])
+    ff = np.concatenate([f, [[162, 163, 164], [165, 166, 167]]])
+    vert = _t(vv).requires_grad_()
+    origin = _t([3.0, 0.0, 0.0])
+    d = _t([[-1.0, 0.0, 0.0], [-1.0, 1e-9, 0.0]])
+    d = d / torch.linalg.norm(d, dim=1, keepdim=True)
+    hits = cast_rays(vert, torch.from_numpy(ff), d, origin)
+    assert hits.hit.all() and (hits.face < 320).all()  # the degenerate faces are never hit
+    np.testing.assert_allclose(hits.t.detach().numpy(), 2.6, atol=1e-3)
+    _finite_grad(hits, vert, origin, d)
+    # from inside: every ray hits the sphere once, at about the radius
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(500, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    vert = _t(v).requires_grad_()
+    hits = cast_rays(vert, torch.from_numpy(f), _t(d), _t([0.0, 0.0, 0.0]))
+    assert hits.hit.all()
+    t = hits.t.detach().numpy()
+    assert (t > 0.4 * 0.95).all() and (t <= 0.4 + 1e-12).all()
+    _finite_grad(hits, vert, _t([0.0, 0.0, 0.0]), _t(d))
+    # all miss, and no rays at all
+    hits = cast_rays(vert, torch.from_numpy(f), _t(-d[:5] * 0 + [0.0, 0.0, 1.0]), _t([0.0, 0.0, 5.0]))
+    assert not hits.hit.any() and (hits.face == -1).all() and (hits.t == 0).all()
+    g = _finite_grad(hits, vert, _t([0.0, 0.0, 5.0]), _t(np.tile([0.0, 0.0, 1.0], (5, 1))))
+    assert (g == 0).all()
+    empty = cast_rays(vert, torch.from_numpy(f), torch.zeros(0, 3, dtype=F64), _t([0.0, 0.0, 0.0]))
+    assert empty.hit.shape == (0,) and empty.tests == 0
+
+
+def test_bad_input_is_reported():
+    v, f = icosphere(1, 0.4)
+    with pytest.raises(ValueError, match="field 'faces'"):
+        cast_rays(_t(v), torch.from_numpy(f + 100), _t([[1.0, 0, 0]]), _t([0.0, 0, 0]))
+    bad = v.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="field 'vertices'"):
+        cast_rays(_t(bad), torch.from_numpy(f), _t([[1.0, 0, 0]]), _t([0.0, 0, 0]))
+    with pytest.raises(ValueError, match="field 'origin_offset'"):
+        cast_rays(_t(v), torch.from_numpy(f), _t([[1.0, 0, 0]]), _t([0.0, 0, 0]), _t([0.1, 0.2]))
+
+
+def test_pairs_entry_point_equals_cast_rays_and_the_textbook_reference():
+    """cast_ray_pairs with every (ray, face) pair, or only a subset holding each ray's hit faces, gives
+    cast_rays' hits bit for bit (same kernels) and the textbook nearest t; a pair left out is not tested."""
+    rng = np.random.default_rng(11)
+    v, f = _blob()
+    d = _rays_at(np.array([8.0, 0.5, 0.2]), 400, 0.06, rng)
+    origin = np.zeros(3)
+    vt = torch.tensor(v, requires_grad=True)
+    ref = cast_rays(vt, torch.as_tensor(f), _t(d), _t(origin))
+    ray_all = torch.arange(len(d)).repeat_interleave(len(f))
+    face_all = torch.arange(len(f)).repeat(len(d))
+    every = cast_ray_pairs(vt, torch.as_tensor(f), _t(d), _t(origin), ray_all, face_all)
+    assert every.tests == len(d) * len(f)
+    expect_t = _reference(v, f, origin[None, :].repeat(len(d), 0), d)
+    np.testing.assert_allclose(np.where(every.hit.numpy(), every.t.detach().numpy(), np.inf), expect_t, rtol=1e-12)
+    # pairs of faces whose vertices all lie on the ray's side of the blob centre (a crude cull holding the hits)
+    cand = (v[f].mean(axis=1) - np.array([8.0, 0.5, 0.2])) @ np.array([-1.0, 0.0, 0.0]) > -0.1
+    keep = torch.as_tensor(cand)[face_all]
+    some = cast_ray_pairs(vt, torch.as_tensor(f), _t(d), _t(origin), ray_all[keep], face_all[keep])
+    for got in (every, some):
+        assert torch.equal(got.hit, ref.hit) and torch.equal(got.face, ref.face)
+        for a, b in ((got.t, ref.t), (got.u, ref.u), (got.v, ref.v)):
+            assert torch.equal(a.detach(), b.detach())
+        (ga,) = torch.autograd.grad((got.t + got.u).sum(), vt)
+        (gb,) = torch.autograd.grad((ref.t + ref.u).sum(), vt, retain_graph=True)
+        assert torch.equal(ga, gb)
+    # only the far side's faces paired: the rays now hit the back of the blob (larger t) or nothing
+    far = cast_ray_pairs(vt, torch.as_tensor(f), _t(d), _t(origin), ray_all[~keep], face_all[~keep])
+    both = far.hit & ref.hit
+    assert both.any() and (far.t[both] > ref.t[both]).all()
+    with pytest.raises(ValueError, match="field 'face_index'"):
+        cast_ray_pairs(vt, torch.as_tensor(f), _t(d), _t(origin), ray_all[:3], face_all[:2])
+    with pytest.raises(ValueError, match="field 'ray_index'"):
+        cast_ray_pairs(vt, torch.as_tensor(f), _t(d), _t(origin), torch.tensor([len(d)]), torch.tensor([0]))
+
+
+def test_back_faces_hand_computed_tetrahedron():
+    """A unit right tetrahedron (outward faces) seen from (2, 2, 2): only the slanted face x + y + z = 1
+    faces the origin; the three faces in the coordinate planes are back faces."""
+    v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])  # normals -z, -y, -x, (1, 1, 1)
+    assert back_faces(v, f, np.array([2.0, 2.0, 2.0])).tolist() == [True, True, True, False]
+    assert back_faces(v, f, np.array([-2.0, 0.2, 0.2])).tolist() == [True, True, False, True]
+    assert back_faces(v, f[:, ::-1], np.array([2.0, 2.0, 2.0])) is None  # inward-oriented
+    assert back_faces(v, f[:3], np.array([2.0, 2.0, 2.0])) is None  # open
+    assert back_faces(v, f, np.array([0.5, 0.5, 0.5])) is None  # origin inside the bounding sphere
+
+
+def test_back_face_culling_keeps_every_hit_and_refuses_folded_meshes():
+    """Culling the back faces of a closed star-shaped blob leaves every ray's nearest hit unchanged (face,
+    t, u, v bit for bit); a fold (a vertex pushed through the centre) or a reversed mesh is not culled."""
+    rng = np.random.default_rng(5)
+    v, f = _blob()
+    origin = np.zeros(3)
+    d = _rays_at(np.array([8.0, 0.5, 0.2]), 3000, 0.06, rng)
+    skip = back_faces(v, f, origin)
+    assert skip is not None and 0.4 < skip.mean() < 0.6
+    vt = _t(v)
+    full = cast_rays(vt, torch.as_tensor(f), _t(d), _t(origin))
+    culled = cast_rays(vt, torch.as_tensor(f), _t(d), _t(origin), skip_faces=torch.as_tensor(skip))
+    assert full.hit.sum() > 1000 and torch.equal(full.face, culled.face)
+    for a, b in ((full.t, culled.t), (full.u, culled.u), (full.v, culled.v)):
+        assert torch.equal(a, b)
+    assert not skip[full.face[full.hit].numpy()].any()
+    folded = v.copy()
+    folded[0] = 2 * v.mean(axis=0) - 0.5 * (v[0] - v.mean(axis=0))  # across the centre
+    assert back_faces(folded, f, origin) is None
+    with pytest.raises(ValueError, match="field 'skip_faces'"):
+        cast_rays(vt, torch.as_tensor(f), _t(d), _t(origin), skip_faces=torch.zeros(3, dtype=torch.bool))
