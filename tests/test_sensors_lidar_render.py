@@ -272,3 +272,74 @@ def test_real_kitti_scan(kitti_samples):
     again = estimate_pattern(res.scan, scan_ring_ids(res.scan))
     d_phase = (again.phases_deg - prep.pattern.phases_deg + 0.045) % 0.09 - 0.045
     assert np.abs(d_phase).max() < 0.01
+
+
+def _pattern_scan(phase: float = 0.021) -> np.ndarray:
+    """A KITTI-ordered scan with one return per ray of the generator's pattern, 5-40 m, azimuth jitter 0.03 deg."""
+    rays = BeamPattern.generator(phase).rays
+    rng = np.random.default_rng(3)
+    az = np.radians(rays.azimuth_deg + rng.uniform(-0.03, 0.03, len(rays)))
+    phi = np.arcsin(rays.directions[:, 2])
+    d = np.stack([np.cos(phi) * np.cos(az), np.cos(phi) * np.sin(az), np.sin(phi)], 1)
+    xyz = rays.origins + rng.uniform(5.0, 40.0, len(rays))[:, None] * d
+    return np.concatenate([xyz, np.full((len(xyz), 1), 0.3)], 1).astype(np.float32)
+
+
+def test_culled_preparation_and_lazy_rays_match_the_full_ones_bit_for_bit():
+    scan = _pattern_scan()
+    ring = scan_ring_ids(scan)
+    full = prepare_scan(scan, ring)
+    lazy = estimate_pattern(scan, ring)
+    idx = np.sort(np.random.default_rng(0).choice(len(full.pattern.rays), 500, replace=False))
+    o, d = lazy.ray_geometry(idx)
+    assert "rays" not in lazy.__dict__  # answered without building every ray
+    assert o.tobytes() == full.pattern.rays.origins[idx].tobytes()
+    assert d.tobytes() == full.pattern.rays.directions[idx].tobytes()
+    cull = full.pattern.cull(np.array([12.0, 3.0, -0.1]), 0.5)
+    part = prepare_scan(scan, ring, full.pattern, cull)
+    on = np.isin(full.point_ray, cull)
+    assert on.sum() > 50
+    np.testing.assert_array_equal(part.point_ray[on], full.point_ray[on])  # every point of the culled rays
+    assert part.range_m[on].tobytes() == full.range_m[on].tobytes()
+    assert np.all((part.point_ray == -1) | (part.point_ray == full.point_ray))
+    assert (part.point_ray >= 0).sum() < len(scan) / 20  # only the points near the culled rays were matched
+
+
+def test_raw_scan_render_equals_the_prepared_scan_render():
+    scan = _pattern_scan()
+    meshes = [(*_object(x, y), None) for x, y in ((12.0, 3.0), (12.6, 3.2), (25.0, -4.0), (-9.0, 1.0))]
+    a = render_lidar(scan, meshes)
+    b = render_lidar(prepare_scan(scan), meshes)
+    assert len(a.added) > 20 and len(a.removed_index) > 5 and len(np.unique(a.object_index)) == 4
+    assert a.scan.tobytes() == b.scan.tobytes()
+    np.testing.assert_array_equal(a.ray_index, b.ray_index)
+    np.testing.assert_array_equal(a.removed_index, b.removed_index)
+
+
+def test_grouped_cast_equals_casting_each_group_alone():
+    from robustbench3d.sensors.raycast import cast_rays
+
+    (v1, f1), (v2, f2) = _object(10.0, 0.0), _object(10.5, 0.05)  # overlapping along the rays
+    rays = BeamPattern.generator(0.01).rays
+    pat = BeamPattern.generator(0.01)
+    c1 = pat.cull(0.5 * (v1.min(0) + v1.max(0)), 0.6)
+    c2 = pat.cull(0.5 * (v2.min(0) + v2.max(0)), 0.6)
+    idx = np.union1d(c1, c2)
+    d, h = torch.from_numpy(rays.directions[idx]), torch.from_numpy(rays.origins[idx, 2])
+    v = torch.from_numpy(np.concatenate([v1, v2]))
+    f = np.concatenate([f1, f2 + len(v1)])
+    zero = torch.zeros(3, dtype=torch.float64)
+    grouped = cast_rays(v, f, d, zero, h, groups=[(np.searchsorted(idx, c1), 0, len(f1)),
+                                                  (np.searchsorted(idx, c2), len(f1), len(f))])
+    alone = cast_rays(v, f, d, zero, h)
+    assert grouped.hit.sum() > 20
+    assert torch.equal(grouped.face, alone.face) and torch.equal(grouped.t, alone.t)
+    assert grouped.tests <= alone.tests
+    # a group restricts its rays to its faces: only mesh 1's rays, against mesh 1 alone
+    only1 = cast_rays(v, f, d, zero, h, groups=[(np.searchsorted(idx, c1), 0, len(f1))])
+    first = cast_rays(torch.from_numpy(v1), f1, d, zero, h)
+    in1 = torch.from_numpy(np.isin(idx, c1))
+    assert torch.equal(only1.face[in1], first.face[in1]) and not bool(only1.hit[~in1].any())
+    assert bool((only1.face[only1.hit] < len(f1)).all())
+    with pytest.raises(ValueError, match="groups\\[0\\]"):
+        cast_rays(v, f, d, zero, h, groups=[(np.array([len(idx)]), 0, len(f1))])

@@ -25,6 +25,7 @@ The lowest lasers are partly blocked by the ego vehicle and the sensor mount;
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -109,9 +110,7 @@ class HDL64E:
             firings: firings per revolution (default :attr:`firings_per_revolution`).
         """
         n = self.firings_per_revolution if firings is None else int(firings)
-        q = self.azimuth_quantum_deg
-        j = np.arange(n, dtype=np.float64)
-        az = phase_deg + q * np.floor(j * (360.0 / n) / q + 1e-9)
+        az = phase_deg + _firing_steps(n, self.azimuth_quantum_deg)
         return az[az < 360.0]
 
     def directions(self, ring: np.ndarray, azimuth_deg: np.ndarray) -> np.ndarray:
@@ -130,6 +129,12 @@ class HDL64E:
             firings: firings per laser and revolution (default :attr:`firings_per_revolution`).
             ego_occlusion: drop the rays of :data:`EGO_OCCLUSION_SECTORS` (they never return).
         """
+        ring, azimuth = self.ray_azimuths(phases_deg, firings, ego_occlusion)
+        return BeamRays(self.origins(ring), self.directions(ring, azimuth), ring, azimuth)
+
+    def ray_azimuths(self, phases_deg: np.ndarray | None = None, firings: int | None = None,
+                     ego_occlusion: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """(ring (N,) int16, azimuth_deg (N,)) of :meth:`rays` without the geometry (arguments alike)."""
         nl = self.num_lasers
         phases = np.zeros(nl) if phases_deg is None else np.asarray(phases_deg, dtype=np.float64)
         rings, azs = [], []
@@ -139,11 +144,23 @@ class HDL64E:
                 az = az[~_occluded(k, az)]
             azs.append(az)
             rings.append(np.full(len(az), k, dtype=np.int16))
-        ring = np.concatenate(rings)
-        azimuth = np.concatenate(azs)
+        return np.concatenate(rings), np.concatenate(azs)
+
+    def origins(self, ring: np.ndarray) -> np.ndarray:
+        """(N, 3) ray origins (0, 0, h0_k) of lasers ``ring`` (velodyne frame, m)."""
+        ring = np.asarray(ring)
         origins = np.zeros((len(ring), 3))
         origins[:, 2] = self.origin_z[ring]
-        return BeamRays(origins, self.directions(ring, azimuth), ring, azimuth)
+        return origins
+
+
+@lru_cache(maxsize=8)
+def _firing_steps(firings: int, quantum_deg: float) -> np.ndarray:
+    """(firings,) read-only offsets q floor(j (360 / n) / q) of the firings from the phase (module doc)."""
+    j = np.arange(firings, dtype=np.float64)
+    steps = quantum_deg * np.floor(j * (360.0 / firings) / quantum_deg + 1e-9)
+    steps.flags.writeable = False
+    return steps
 
 
 def _occluded(ring: int, azimuth_deg: np.ndarray) -> np.ndarray:

@@ -55,18 +55,33 @@ class BeamPattern:
     @cached_property
     def rays(self) -> BeamRays:
         """All rays of the revolution in scan order (laser by laser, azimuth increasing)."""
-        base = self.sensor.rays(np.asarray(self.phases_deg, dtype=np.float64) - self.shift_deg)
-        az = base.azimuth_deg + self.shift_deg
-        return BeamRays(base.origins, self.sensor.directions(base.ring, az), base.ring.astype(np.int64), az)
+        ring, az = self._ring_azimuth
+        return BeamRays(self.sensor.origins(ring), self.sensor.directions(ring, az), ring, az)
+
+    @cached_property
+    def _ring_azimuth(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ring (R,) int64, azimuth_deg (R,)) of :attr:`rays`, without their geometry."""
+        ring, az = self.sensor.ray_azimuths(np.asarray(self.phases_deg, dtype=np.float64) - self.shift_deg)
+        return ring.astype(np.int64), az + self.shift_deg
+
+    def ray_geometry(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(origins (K, 3), unit directions (K, 3)) of the rays ``index`` (K,): ``rays.origins[index]`` and
+        ``rays.directions[index]``, bit for bit, without building every ray of the revolution."""
+        index = np.asarray(index, dtype=np.int64)
+        if "rays" in self.__dict__:
+            return self.rays.origins[index], self.rays.directions[index]
+        ring, az = self._ring_azimuth
+        return self.sensor.origins(ring[index]), self.sensor.directions(ring[index], az[index])
 
     @cached_property
     def ring_start(self) -> np.ndarray:
         """(65,) index of each laser's first ray in :attr:`rays` (and the total at the end)."""
-        return np.searchsorted(self.rays.ring, np.arange(self.sensor.num_lasers + 1))
+        return np.searchsorted(self._ring_azimuth[0], np.arange(self.sensor.num_lasers + 1))
 
     @cached_property
     def _keys(self) -> np.ndarray:
-        return self.rays.ring * _BAND + self.rays.azimuth_deg
+        ring, az = self._ring_azimuth
+        return ring * _BAND + az
 
     def cull(self, center: np.ndarray, radius: float, margin_deg: float = AZIMUTH_STEP_DEG) -> np.ndarray:
         """Indices (int64, increasing) of the rays whose direction passes within ``radius`` (m) of ``center``
@@ -104,6 +119,23 @@ class BeamPattern:
                 break
         return np.unique(_expand_ranges(np.concatenate(starts), np.concatenate(stops)))
 
+    def near_rays(self, index: np.ndarray, ring: np.ndarray, azimuth_deg: np.ndarray,
+                  max_deg: float = AZIMUTH_QUANTUM_DEG) -> np.ndarray:
+        """(N,) bool, a superset of the points (laser ``ring``, ``azimuth_deg``) whose :meth:`nearest_ray` within
+        ``max_deg`` can be one of the rays ``index``: those within about ``max_deg`` of such a ray's azimuth on
+        the same laser (bins of ``max_deg`` per laser: the ray's bin and two on either side)."""
+        nl = self.sensor.num_lasers
+        ring = np.asarray(ring, dtype=np.int64)
+        bins = int(np.ceil(360.0 / max_deg))
+        rr, raz = self._ring_azimuth[0][index], self._ring_azimuth[1][index]
+        grid = np.zeros((nl, bins), dtype=bool)
+        b = np.floor(raz / max_deg).astype(np.int64)
+        for step in range(-2, 3):
+            grid[rr, (b + step) % bins] = True
+        known = (ring >= 0) & (ring < nl)
+        pb = np.floor((np.asarray(azimuth_deg, dtype=np.float64) % 360.0) / max_deg).astype(np.int64) % bins
+        return known & grid[np.where(known, ring, 0), pb]
+
     def nearest_ray(self, ring: np.ndarray, azimuth_deg: np.ndarray, max_deg: float = AZIMUTH_QUANTUM_DEG
                     ) -> np.ndarray:
         """(N,) index of the ray of laser ``ring`` nearest in azimuth to ``azimuth_deg`` (circularly), or -1
@@ -116,7 +148,7 @@ class BeamPattern:
             return out
         rk, ak = ring[known], az[known]
         first, last = self.ring_start[rk], self.ring_start[rk + 1] - 1
-        raz = self.rays.azimuth_deg
+        raz = self._ring_azimuth[1]
         best = np.full(len(rk), -1, dtype=np.int64)
         gap = np.full(len(rk), np.inf)
         for turn in (-360.0, 0.0, 360.0):
@@ -184,8 +216,14 @@ def estimate_pattern(scan: np.ndarray, ring: np.ndarray, sensor: HDL64E | None =
     ring = np.asarray(ring, dtype=np.int64)
     offsets = GENERATOR_FIRING_OFFSETS_DEG[: s.num_lasers]
     phases = np.full(s.num_lasers, np.nan)
-    for k in np.unique(ring[(ring >= 0) & (ring < s.num_lasers)]):
-        phases[k] = _circular_mean(az[ring == k] % q, q)
+    if len(ring) and np.all(ring[1:] >= ring[:-1]):  # laser-ordered (KITTI order): each laser is one slice
+        lasers = np.arange(s.num_lasers)
+        lo, hi = np.searchsorted(ring, lasers, "left"), np.searchsorted(ring, lasers, "right")
+        for k in np.flatnonzero(hi > lo):
+            phases[k] = _circular_mean(az[lo[k]:hi[k]] % q, q)
+    else:
+        for k in np.unique(ring[(ring >= 0) & (ring < s.num_lasers)]):
+            phases[k] = _circular_mean(az[ring == k] % q, q)
     seen = np.isfinite(phases)
     if not seen.any():
         return BeamPattern(offsets.copy(), 0.0, s)

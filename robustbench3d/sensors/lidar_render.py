@@ -75,9 +75,35 @@ class PreparedScan:
 
 
 def prepare_scan(scan: np.ndarray, ring_ids: np.ndarray | None = None,
-                 pattern: BeamPattern | None = None) -> PreparedScan:
+                 pattern: BeamPattern | None = None, rays: np.ndarray | None = None) -> PreparedScan:
     """Laser ids (given, else :func:`~robustbench3d.sensors.lidar_beams.scan_ring_ids`), beam pattern (given,
-    else estimated from the scan) and each point's ray."""
+    else estimated from the scan) and each point's ray.
+
+    ``rays`` (indices into ``pattern.rays``) restricts the ray matching to the points that can lie on them
+    (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.near_rays`; the others get ray -1, range NaN):
+    enough, and much cheaper, to render meshes whose culled rays
+    (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.cull`) are among them."""
+    pts, ring, pattern = _scan_pattern(scan, ring_ids, pattern)
+    xyz = pts[:, :3].astype(np.float64)
+    az = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
+    sub: slice | np.ndarray = slice(None)
+    if rays is not None:
+        sub = np.flatnonzero(pattern.near_rays(np.asarray(rays, dtype=np.int64), ring, az))
+        xyz, az = xyz[sub], az[sub]
+    rk = ring[sub]
+    h0 = np.where((rk >= 0) & (rk < pattern.sensor.num_lasers),
+                  pattern.sensor.origin_z[np.clip(rk, 0, pattern.sensor.num_lasers - 1)], 0.0)
+    point_ray = np.full(len(pts), -1, dtype=np.int64)
+    rng_m = np.full(len(pts), np.nan)
+    point_ray[sub] = pattern.nearest_ray(rk, az)
+    rng_m[sub] = np.sqrt(xyz[:, 0] ** 2 + xyz[:, 1] ** 2 + (xyz[:, 2] - h0) ** 2)
+    by_ray = np.argsort(point_ray, kind="stable")
+    return PreparedScan(pts, pattern, ring, point_ray, rng_m, by_ray, point_ray[by_ray])
+
+
+def _scan_pattern(scan: np.ndarray, ring_ids: np.ndarray | None,
+                  pattern: BeamPattern | None) -> tuple[np.ndarray, np.ndarray, BeamPattern]:
+    """(float32 points (N, 4), laser ids (N,), beam pattern) of :func:`prepare_scan`."""
     pts = np.asarray(scan)
     if pts.ndim != 2 or pts.shape[1] != 4:
         raise ValueError(f"render_lidar: field 'scan': expected shape (N, 4), got {pts.shape}")
@@ -90,14 +116,7 @@ def prepare_scan(scan: np.ndarray, ring_ids: np.ndarray | None = None,
             raise ValueError(f"render_lidar: field 'ring_ids': {len(ring)} ids for {len(pts)} points")
     if pattern is None:
         pattern = estimate_pattern(pts, ring)
-    xyz = pts[:, :3].astype(np.float64)
-    az = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
-    point_ray = pattern.nearest_ray(ring, az)
-    h0 = np.where((ring >= 0) & (ring < pattern.sensor.num_lasers),
-                  pattern.sensor.origin_z[np.clip(ring, 0, pattern.sensor.num_lasers - 1)], 0.0)
-    rng_m = np.sqrt(xyz[:, 0] ** 2 + xyz[:, 1] ** 2 + (xyz[:, 2] - h0) ** 2)
-    by_ray = np.argsort(point_ray, kind="stable")
-    return PreparedScan(pts, pattern, ring, point_ray, rng_m, by_ray, point_ray[by_ray])
+    return pts, ring, pattern
 
 
 @dataclass(frozen=True)
@@ -144,45 +163,70 @@ def _mesh_tensors(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.nd
     return out
 
 
-def trace_meshes(prep: PreparedScan, meshes: Sequence[MeshInput]) -> TracedHits:
-    """Cast the culled rays of ``prep``'s pattern at each mesh, keep the nearest hit per ray, and apply the
-    occlusion by the scan's points (see the module docstring)."""
-    rays = prep.pattern.rays
-    hits: list[tuple[np.ndarray, int, np.ndarray, torch.Tensor, torch.Tensor, torch.Tensor]] = []
-    tests = 0
-    for i, (vt, fa) in enumerate(_mesh_tensors(meshes)):
+def _culled_rays(pattern: BeamPattern, meshes: list[tuple[torch.Tensor, np.ndarray]]) -> list[np.ndarray]:
+    """Per mesh the rays (increasing indices into ``pattern.rays``) passing within its bounding sphere (centre of
+    its vertex box), widened by one azimuth step (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.cull`);
+    empty for a mesh without faces."""
+    out = []
+    for vt, fa in meshes:
         if len(fa) == 0:
+            out.append(np.zeros(0, dtype=np.int64))
             continue
         vn = vt.detach().numpy()
         center = 0.5 * (vn.min(axis=0) + vn.max(axis=0))
-        idx = prep.pattern.cull(center, float(np.linalg.norm(vn - center, axis=1).max()))
-        if len(idx) == 0:
-            continue
-        rh = cast_rays(vt, torch.from_numpy(fa), torch.from_numpy(rays.directions[idx]),
-                       torch.zeros(3, dtype=torch.float64), torch.from_numpy(rays.origins[idx, 2]))
-        tests += rh.tests
-        sel = torch.nonzero(rh.hit).reshape(-1)
-        hits.append((idx[sel.numpy()], i, rh.face[sel].numpy(), rh.t[sel], rh.u[sel], rh.v[sel]))
-    if not hits:
+        out.append(pattern.cull(center, float(np.linalg.norm(vn - center, axis=1).max())))
+    return out
+
+
+def _prepared(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], ring_ids: np.ndarray | None
+              ) -> tuple[PreparedScan, list[tuple[torch.Tensor, np.ndarray]], list[np.ndarray]]:
+    """(prepared scan, checked meshes, culled rays per mesh); a raw scan is prepared only on the culled rays."""
+    mts = _mesh_tensors(meshes)
+    if isinstance(scan, PreparedScan):
+        return scan, mts, _culled_rays(scan.pattern, mts)
+    pts, ring, pattern = _scan_pattern(scan, ring_ids, None)
+    culls = _culled_rays(pattern, mts)
+    rays = np.unique(np.concatenate(culls)) if culls else np.zeros(0, dtype=np.int64)
+    return prepare_scan(pts, ring, pattern, rays), mts, culls
+
+
+def trace_meshes(prep: PreparedScan, meshes: Sequence[MeshInput]) -> TracedHits:
+    """Cast the culled rays of ``prep``'s pattern at each mesh, keep the nearest hit per ray, and apply the
+    occlusion by the scan's points (see the module docstring)."""
+    mts = _mesh_tensors(meshes)
+    return _trace(prep, mts, _culled_rays(prep.pattern, mts))
+
+
+def _trace(prep: PreparedScan, mts: list[tuple[torch.Tensor, np.ndarray]], culls: list[np.ndarray]) -> TracedHits:
+    """:func:`trace_meshes` with the meshes checked and culled: all meshes in one cast (faces concatenated, so
+    the nearest face over them is the nearest hit over the meshes; equal t: the lower mesh) of the union of
+    their culled rays, each mesh tested only with the rays of its own cull (``cast_rays``' groups)."""
+    with_faces = [i for i, (_, fa) in enumerate(mts) if len(fa) and len(culls[i])]
+    idx = np.unique(np.concatenate([culls[i] for i in with_faces])) if with_faces else np.zeros(0, dtype=np.int64)
+    if len(idx) == 0:
         z = torch.zeros(0, dtype=torch.float64)
         e = np.zeros(0, dtype=np.int64)
-        return TracedHits(e, e, e, z, z, z, np.zeros(0, dtype=bool), e, tests)
-    ray = np.concatenate([h[0] for h in hits])
-    mesh = np.concatenate([np.full(len(h[0]), h[1], dtype=np.int64) for h in hits])
-    face = np.concatenate([h[2] for h in hits])
-    t, u, v = (torch.cat([h[k] for h in hits]) for k in (3, 4, 5))
-    if len(hits) > 1:  # nearest over meshes: sort by (ray, t), keep the first of each ray
-        order = np.lexsort((t.detach().numpy(), ray))
-        first = order[np.concatenate([[True], np.diff(ray[order]) != 0])]
-        sel = torch.from_numpy(first)
-        ray, mesh, face, t, u, v = ray[first], mesh[first], face[first], t[sel], u[sel], v[sel]
+        return TracedHits(e, e, e, z, z, z, np.zeros(0, dtype=bool), e, 0)
+    v_off = np.cumsum([0] + [len(mts[i][0]) for i in with_faces])
+    f_off = np.cumsum([0] + [len(mts[i][1]) for i in with_faces])
+    vt = mts[with_faces[0]][0] if len(with_faces) == 1 else torch.cat([mts[i][0] for i in with_faces])
+    fa = np.concatenate([mts[i][1] + v_off[k] for k, i in enumerate(with_faces)])
+    origins, dirs = prep.pattern.ray_geometry(idx)
+    groups = [(np.searchsorted(idx, culls[i]), int(f_off[k]), int(f_off[k + 1])) for k, i in enumerate(with_faces)]
+    rh = cast_rays(vt, torch.from_numpy(fa), torch.from_numpy(dirs), torch.zeros(3, dtype=torch.float64),
+                   torch.from_numpy(origins[:, 2]), groups=groups)
+    sel = torch.nonzero(rh.hit).reshape(-1)
+    gface = rh.face[sel].numpy()
+    part = np.searchsorted(f_off, gface, "right") - 1
+    ray, mesh, face = idx[sel.numpy()], np.asarray(with_faces, dtype=np.int64)[part], gface - f_off[part]
+    t, u, v = rh.t[sel], rh.u[sel], rh.v[sel]
     owner, pidx = prep.points_on(ray)
     tn = t.detach().numpy()
     rp = prep.range_m[pidx]
     hidden = np.zeros(len(ray), dtype=bool)
     hidden[owner[rp < tn[owner]]] = True
     removed = np.unique(pidx[(rp > tn[owner]) & ~hidden[owner]])
-    return TracedHits(ray, mesh, face, t, u, v, hidden, removed, tests)
+    return TracedHits(ray, mesh, face, t, u, v, hidden, removed, rh.tests)
 
 
 @dataclass(frozen=True)
@@ -248,8 +292,8 @@ def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *
         raise ValueError(f"render_lidar: field 'range_noise_m': must be >= 0, got {range_noise_m!r}")
     if (dropout > 0 or range_noise_m > 0) and rng is None:
         raise ValueError("render_lidar: field 'rng': required when dropout or range_noise_m is on")
-    prep = scan if isinstance(scan, PreparedScan) else prepare_scan(scan, ring_ids)
-    tr = trace_meshes(prep, meshes)
+    prep, mts, culls = _prepared(scan, meshes, ring_ids)
+    tr = _trace(prep, mts, culls)
     keep = ~tr.hidden & lm.in_range(tr.t.detach().numpy())
     if dropout > 0 and keep.any():
         keep[keep] = rng.random(int(keep.sum())) >= dropout
@@ -260,8 +304,8 @@ def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *
     if range_noise_m > 0 and len(sel):
         sd = range_noise_m
         t = t + torch.from_numpy(np.clip(rng.normal(0.0, sd, len(sel)), -3 * sd, 3 * sd))
-    rays = prep.pattern.rays
-    o, d = torch.from_numpy(rays.origins[ray]), torch.from_numpy(rays.directions[ray])
+    ray_o, ray_d = prep.pattern.ray_geometry(ray)
+    o, d = torch.from_numpy(ray_o), torch.from_numpy(ray_d)
     pts_t = o + t[:, None] * d
     added = np.empty((len(sel), 4), dtype=np.float32)
     added[:, :3] = pts_t.detach().numpy()
@@ -274,7 +318,7 @@ def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *
             vi = vi.detach().numpy() if isinstance(vi, torch.Tensor) else np.asarray(vi, dtype=np.float64)
             normals[k] = face_normals(vi, np.asarray(meshes[i][1], dtype=np.int64)[face[k]])
         rho = lm.material_reflectivity(np.full(len(sel), int(MESH_MATERIAL)), _albedo(meshes, mesh, face, u, v))
-        refl = lm.reflectance_mean(rho, lm.cos_incidence(normals, rays.directions[ray]), t.detach().numpy())
+        refl = lm.reflectance_mean(rho, lm.cos_incidence(normals, ray_d), t.detach().numpy())
         added[:, 3] = lm.quantize_reflectance(refl, np.zeros(len(sel), dtype=bool))
     kept = np.ones(len(prep.scan), dtype=bool)
     kept[tr.removed_index] = False
@@ -291,11 +335,10 @@ def render_lidar_torch(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInp
         (K, 3) torch float64 points (velodyne, m) with gradients w.r.t. the mesh vertices, and (K,) int64
         mesh index of each.
     """
-    prep = scan if isinstance(scan, PreparedScan) else prepare_scan(scan, ring_ids)
-    tr = trace_meshes(prep, meshes)
+    prep, mts, culls = _prepared(scan, meshes, ring_ids)
+    tr = _trace(prep, mts, culls)
     sel = np.flatnonzero(~tr.hidden & lm.in_range(tr.t.detach().numpy()))
-    rays = prep.pattern.rays
     ray = tr.ray[sel]
-    pts = torch.from_numpy(rays.origins[ray]) + tr.t[torch.from_numpy(sel)][:, None] * torch.from_numpy(
-        rays.directions[ray])
+    ray_o, ray_d = prep.pattern.ray_geometry(ray)
+    pts = torch.from_numpy(ray_o) + tr.t[torch.from_numpy(sel)][:, None] * torch.from_numpy(ray_d)
     return pts, tr.mesh[sel]

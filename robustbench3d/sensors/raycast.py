@@ -213,15 +213,10 @@ def _recompute(vertices: torch.Tensor, faces_t: torch.Tensor, d: torch.Tensor, o
                           None if h is None else h.index_select(0, ray))
 
 
-def _search(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, table: torch.Tensor, d: torch.Tensor,
-            origin: torch.Tensor, h: torch.Tensor | None, axis: torch.Tensor, t_min: float,
-            tol: float) -> tuple[torch.Tensor, int]:
-    """No-grad nearest face per ray: (face (R,) int64, -1 on a miss; number of ray-triangle tests).
-
-    Faces are grouped in clusters of :data:`CLUSTER_SIZE` consecutive faces; a ray is tested (:func:`_test_pairs`)
-    against the faces of the clusters whose bounding sphere it passes through (a ray-sphere GEMM)."""
+def _cluster_spheres(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bounding spheres (centres (C, 3), radii (C,)) of the clusters of :data:`CLUSTER_SIZE` consecutive faces,
+    inflated (barycentric tolerance, rounding)."""
     n_faces = len(v0)
-    # cluster bounding spheres (inflated: barycentric tolerance, rounding)
     n_cl = (n_faces + CLUSTER_SIZE - 1) // CLUSTER_SIZE
     pad = n_cl * CLUSTER_SIZE - n_faces
     corners = torch.stack([v0, v0 + e1, v0 + e2], 1)  # (F, 3, 3)
@@ -230,10 +225,37 @@ def _search(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, table: torch.T
     corners = corners.reshape(n_cl, 3 * CLUSTER_SIZE, 3)
     centre = 0.5 * (corners.amin(1) + corners.amax(1))
     radius = torch.linalg.norm(corners - centre[:, None, :], dim=-1).amax(1)
-    radius = radius * (1 + 1e-3) + 1e-9
+    return centre, radius * (1 + 1e-3) + 1e-9
+
+
+def _sphere_pairs(centre: torch.Tensor, radius: torch.Tensor, n_faces: int, dc: torch.Tensor, hc: torch.Tensor,
+                  origin: torch.Tensor, axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ray (K,) positions in ``dc``, face (K,)) pairs of the rays (unit ``dc`` (Rc, 3), offsets ``hc`` (Rc,))
+    passing through the bounding sphere of the face's cluster (a ray-sphere GEMM)."""
     w0 = centre - origin[None, :]  # centre - ray origin = w0 - h a
     w0a = w0 @ axis
     w0sq = (w0 * w0).sum(-1)
+    proj = dc @ w0.T - hc[:, None] * (dc @ axis)[:, None]  # (Rc, C) t of the closest approach
+    dist2 = w0sq[None, :] - 2 * hc[:, None] * w0a[None, :] + (hc * hc)[:, None] - proj * proj
+    near = (dist2 <= radius[None, :] ** 2) & (proj > -radius[None, :])
+    ray_c, cl = torch.nonzero(near, as_tuple=True)
+    ray = ray_c.repeat_interleave(CLUSTER_SIZE)
+    fc = (cl[:, None] * CLUSTER_SIZE + torch.arange(CLUSTER_SIZE, device=dc.device)[None, :]).reshape(-1)
+    if len(centre) * CLUSTER_SIZE > n_faces:
+        inside = fc < n_faces
+        ray, fc = ray[inside], fc[inside]
+    return ray, fc
+
+
+def _search(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, table: torch.Tensor, d: torch.Tensor,
+            origin: torch.Tensor, h: torch.Tensor | None, axis: torch.Tensor, t_min: float,
+            tol: float) -> tuple[torch.Tensor, int]:
+    """No-grad nearest face per ray: (face (R,) int64, -1 on a miss; number of ray-triangle tests).
+
+    Faces are grouped in clusters of :data:`CLUSTER_SIZE` consecutive faces; a ray is tested (:func:`_test_pairs`)
+    against the faces of the clusters whose bounding sphere it passes through (a ray-sphere GEMM)."""
+    n_faces = len(v0)
+    centre, radius = _cluster_spheres(v0, e1, e2)
     n_rays = len(d)
     hz = torch.zeros(n_rays, dtype=d.dtype, device=d.device) if h is None else h
     face = torch.full((n_rays,), -1, dtype=torch.int64, device=d.device)
@@ -241,15 +263,7 @@ def _search(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, table: torch.T
     step = max(1, SEARCH_CHUNK_PAIRS // max(n_faces, 1))
     for lo in range(0, n_rays, step):
         dc, hc = d[lo:lo + step], hz[lo:lo + step]
-        proj = dc @ w0.T - hc[:, None] * (dc @ axis)[:, None]  # (Rc, C) t of the closest approach
-        dist2 = w0sq[None, :] - 2 * hc[:, None] * w0a[None, :] + (hc * hc)[:, None] - proj * proj
-        near = (dist2 <= radius[None, :] ** 2) & (proj > -radius[None, :])
-        ray_c, cl = torch.nonzero(near, as_tuple=True)
-        ray = ray_c.repeat_interleave(CLUSTER_SIZE)
-        fc = (cl[:, None] * CLUSTER_SIZE + torch.arange(CLUSTER_SIZE, device=d.device)[None, :]).reshape(-1)
-        if pad:
-            inside = fc < n_faces
-            ray, fc = ray[inside], fc[inside]
+        ray, fc = _sphere_pairs(centre, radius, n_faces, dc, hc, origin, axis)
         tests += len(fc)
         if len(fc) == 0:
             continue
@@ -257,6 +271,36 @@ def _search(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, table: torch.T
         if len(tc):
             face[lo:lo + step] = _nearest(ray.index_select(0, ok), fc.index_select(0, ok), tc, len(dc), n_faces)
     return face, tests
+
+
+def _search_groups(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, table: torch.Tensor, d: torch.Tensor,
+                   origin: torch.Tensor, h: torch.Tensor | None, axis: torch.Tensor, t_min: float, tol: float,
+                   groups: Sequence[tuple[torch.Tensor, int, int]]) -> tuple[torch.Tensor, int]:
+    """:func:`_search` where each group (rays (K,) int64, first face, end face) tests its rays against its
+    faces only (clusters formed within the group); the nearest face per ray is kept over all groups."""
+    n_rays, n_faces = len(d), len(v0)
+    hz = torch.zeros(n_rays, dtype=d.dtype, device=d.device) if h is None else h
+    rays, faces = [], []
+    for gr, f0, f1 in groups:
+        if len(gr) == 0 or f1 <= f0:
+            continue
+        centre, radius = _cluster_spheres(v0[f0:f1], e1[f0:f1], e2[f0:f1])
+        step = max(1, SEARCH_CHUNK_PAIRS // (f1 - f0))
+        for lo in range(0, len(gr), step):
+            rc = gr[lo:lo + step]
+            ray, fc = _sphere_pairs(centre, radius, f1 - f0, d.index_select(0, rc), hz.index_select(0, rc),
+                                    origin, axis)
+            rays.append(rc.index_select(0, ray))
+            faces.append(fc + f0)
+    face = torch.full((n_rays,), -1, dtype=torch.int64, device=d.device)
+    if not rays:
+        return face, 0
+    ray, fc = torch.cat(rays), torch.cat(faces)
+    if len(fc):
+        ok, tc = _test_pairs(table, d.T.contiguous(), h, ray, fc, t_min, tol)
+        if len(tc):
+            face = _nearest(ray.index_select(0, ok), fc.index_select(0, ok), tc, n_rays, n_faces)
+    return face, len(fc)
 
 
 def back_faces(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray) -> np.ndarray | None:
@@ -372,7 +416,8 @@ def _hits(p: _Prepared, face: torch.Tensor, tests: int) -> RayHits:
 
 def cast_rays(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Tensor, origin: torch.Tensor,
               origin_offset: torch.Tensor | None = None, offset_axis: Sequence[float] = (0.0, 0.0, 1.0), *,
-              t_min: float = 1e-6, cos_min: float = 1e-3, skip_faces: torch.Tensor | None = None) -> RayHits:
+              t_min: float = 1e-6, cos_min: float = 1e-3, skip_faces: torch.Tensor | None = None,
+              groups: Sequence[tuple[np.ndarray, int, int]] | None = None) -> RayHits:
     """Nearest hit of each ray origin_r + t * d_r, origin_r = origin + origin_offset[r] * offset_axis.
 
     Args:
@@ -385,6 +430,10 @@ def cast_rays(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Ten
         t_min: hits at t <= t_min are ignored.
         cos_min: hits with |cos(incidence)| <= cos_min are ignored (grazing rays).
         skip_faces: (F,) bool, faces never hit (e.g. :func:`back_faces`), or None.
+        groups: None (every ray against every face), or (rays (K,) int indices, first face, end face) per
+            group (e.g. per mesh: the rays of its cull and its faces): a ray is tested only against the faces
+            of its groups (the same hits as casting each group alone and keeping the nearest, equal t: the
+            smaller face index; much cheaper than one cast of all rays at all faces).
     Returns:
         :class:`RayHits`; t, u, v carry gradients w.r.t. ``vertices`` (finite everywhere).
     """
@@ -396,10 +445,26 @@ def cast_rays(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Ten
             if skip is not None and len(skip) != len(p.faces):
                 raise ValueError(f"cast_rays: field 'skip_faces': {len(skip)} flags for {len(p.faces)} faces")
             v0, e1, e2, table = _face_geometry(p, cos_min, skip)
-            face, tests = _search(v0, e1, e2, table, p.d, p.origin, p.h, p.axis, t_min, p.tol)
+            if groups is None:
+                face, tests = _search(v0, e1, e2, table, p.d, p.origin, p.h, p.axis, t_min, p.tol)
+            else:
+                face, tests = _search_groups(v0, e1, e2, table, p.d, p.origin, p.h, p.axis, t_min, p.tol,
+                                             _check_groups(groups, n_rays, len(p.faces), p.d.device))
         else:
             face, tests = torch.full((n_rays,), -1, dtype=torch.int64, device=p.d.device), 0
     return _hits(p, face, tests)
+
+
+def _check_groups(groups: Sequence[tuple[np.ndarray, int, int]], n_rays: int, n_faces: int,
+                  device: torch.device) -> list[tuple[torch.Tensor, int, int]]:
+    out = []
+    for i, (rays, f0, f1) in enumerate(groups):
+        r = _as_tensor(rays, torch.int64, device).reshape(-1)
+        if not 0 <= int(f0) <= int(f1) <= n_faces or (len(r) and (int(r.min()) < 0 or int(r.max()) >= n_rays)):
+            raise ValueError(f"cast_rays: field 'groups[{i}]': rays must index {n_rays} rays and "
+                             f"faces [{f0}, {f1}) lie in [0, {n_faces}]")
+        out.append((r, int(f0), int(f1)))
+    return out
 
 
 def cast_ray_pairs(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Tensor, origin: torch.Tensor,
