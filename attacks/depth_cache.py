@@ -123,9 +123,15 @@ class CroppedDepth:
         iu, iv = np.rint(gu).astype(np.int64), np.rint(gv).astype(np.int64)
         on_grid = (np.abs(gu - iu) < 1e-6) & (np.abs(gv - iv) < 1e-6)
         out = np.full(len(u), np.nan)
+        todo = np.flatnonzero(on_grid)  # queries still without a depth (the boxes shrink it)
         for (u0, v0, u1, v1), d in zip(self.boxes, self.depths, strict=True):
-            k = on_grid & np.isnan(out) & (iu >= u0 * s) & (iu < u1 * s) & (iv >= v0 * s) & (iv < v1 * s)
-            out[k] = d[iv[k] - v0 * s, iu[k] - u0 * s]
+            tu, tv = iu[todo], iv[todo]
+            k = (tu >= u0 * s) & (tu < u1 * s) & (tv >= v0 * s) & (tv < v1 * s)
+            got = d[tv[k] - v0 * s, tu[k] - u0 * s]
+            out[todo[k]] = got
+            left = ~k
+            left[k] = np.isnan(got)
+            todo = todo[left]
         missing = np.isnan(out)
         if missing.any():
             if self._fallback is None:

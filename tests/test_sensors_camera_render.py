@@ -236,3 +236,39 @@ def test_bad_input_names_the_field():
         render_camera(black, calib, [(TRI, TRI_FACES, np.ones((3, 3)))], supersample=0)
     with pytest.raises(ValueError, match="field 'image'"):
         render_camera(black.astype(np.float32), calib, [])
+
+
+def test_candidate_pair_chunks_equal_one_pass_and_lie_in_the_face_boxes():
+    """Chunked candidate pairs (two meshes: a masked region) concatenate to the one-pass pairs, every chunk
+    within its bound unless one face's box is larger, and each pair's sample lies in its face's box."""
+    from robustbench3d.sensors.camera_render import (
+        _candidate_pairs,
+        _check_meshes,
+        _face_sample_boxes,
+        _pixel_set,
+    )
+
+    calib = DAY_0926.calib
+    v, f = icosphere(2, 0.4)
+    meshes = _check_meshes([(v + np.array([-2.0, 0.0, 10.0]), f, np.full_like(v, 0.5)),
+                            (v + np.array([1.0, -0.6, 14.0]), f, np.full_like(v, 0.5))])
+    region, _, _ = _pixel_set(calib, meshes, DAY_0926.image_size, False)
+    assert not region.mask.all()
+    s = 3
+    verts = np.concatenate([m[0].numpy() for m in meshes])
+    faces = np.concatenate([f, f + len(v)])
+    boxes = _face_sample_boxes(calib, verts, faces, s, region.rect)
+    (one_s, one_f), = list(_candidate_pairs(boxes, region, s))
+    chunks = list(_candidate_pairs(boxes, region, s, 1000))
+    assert len(chunks) > 5
+    counts = (boxes[:, 2] - boxes[:, 0]).clip(0) * (boxes[:, 3] - boxes[:, 1]).clip(0)
+    assert all(len(c[0]) <= max(1000, counts.max()) for c in chunks)
+    assert np.array_equal(np.concatenate([c[0] for c in chunks]), one_s)
+    assert np.array_equal(np.concatenate([c[1] for c in chunks]), one_f)
+    # sample k of pixel region.pixels[k // s^2], sub-pixel (i, j) = divmod(k % s^2, s) -> absolute sample grid
+    pv, pu = np.divmod(region.pixels[one_s // (s * s)], DAY_0926.image_size[0])
+    i, j = np.divmod(one_s % (s * s), s)
+    col, row = pu * s + j, pv * s + i
+    b = boxes[one_f]
+    assert np.all((col >= b[:, 0]) & (col < b[:, 2]) & (row >= b[:, 1]) & (row < b[:, 3]))
+    assert len(one_s) == len(np.unique(one_s * len(faces) + one_f)) > 1000

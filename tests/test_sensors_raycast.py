@@ -4,12 +4,14 @@ from inside, all-miss)."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
 
 from robustbench3d.sensors.mesh import icosphere
-from robustbench3d.sensors.raycast import back_faces, cast_ray_pairs, cast_rays
+from robustbench3d.sensors.raycast import back_faces, cast_ray_pair_chunks, cast_ray_pairs, cast_rays
 
 torch.set_num_threads(1)
 F64 = torch.float64
@@ -246,6 +248,25 @@ def test_pairs_entry_point_equals_cast_rays_and_the_textbook_reference():
     with pytest.raises(ValueError, match="field 'ray_index'"):
         cast_ray_pairs(vt, torch.as_tensor(f), _t(d), _t(origin), torch.tensor([len(d)]), torch.tensor([0]))
 
+
+def test_pair_chunks_give_the_hits_of_one_call():
+    """The pairs tested in uneven chunks (some empty) give cast_ray_pairs' hits and gradients bit for bit."""
+    rng = np.random.default_rng(5)
+    v, f = _blob()
+    d = _rays_at(np.array([8.0, 0.5, 0.2]), 300, 0.06, rng)
+    vt = torch.tensor(v, requires_grad=True)
+    ray_all = torch.arange(len(d)).repeat_interleave(len(f))
+    face_all = torch.arange(len(f)).repeat(len(d))
+    one = cast_ray_pairs(vt, torch.as_tensor(f), _t(d), _t(np.zeros(3)), ray_all, face_all)
+    cuts = [0, 7, 7, 5000, len(ray_all) // 2, len(ray_all)]
+    chunks = [(ray_all[a:b], face_all[a:b]) for a, b in itertools.pairwise(cuts)]
+    many = cast_ray_pair_chunks(vt, torch.as_tensor(f), _t(d), _t(np.zeros(3)), iter(chunks))
+    assert one.hit.any() and many.tests == one.tests == len(ray_all)
+    assert torch.equal(many.hit, one.hit) and torch.equal(many.face, one.face)
+    for a, b in ((many.t, one.t), (many.u, one.u), (many.v, one.v)):
+        assert torch.equal(a.detach(), b.detach())
+    with pytest.raises(ValueError, match="field 'face_index'"):
+        cast_ray_pair_chunks(vt, torch.as_tensor(f), _t(d), _t(np.zeros(3)), [(ray_all[:3], face_all[:2])])
 
 def test_back_faces_hand_computed_tetrahedron():
     """A unit right tetrahedron (outward faces) seen from (2, 2, 2): only the slanted face x + y + z = 1

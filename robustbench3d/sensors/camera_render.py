@@ -53,7 +53,7 @@ constant; coverage changes only by whole samples.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -63,10 +63,12 @@ import torch
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.sensors.camera_depth import DepthSource, camera_centre_rect, pixel_rays_rect
 from robustbench3d.sensors.camera_model import Lighting
-from robustbench3d.sensors.raycast import back_faces, cast_ray_pairs, cast_rays
+from robustbench3d.sensors.raycast import back_faces, cast_ray_pair_chunks, cast_rays
 
 #: Absolute widening (pixels) of each face's projected box in the candidate cull (see the module docstring).
 BOX_MARGIN_PX = 1e-3
+#: Candidate (sample, face) pairs tested per chunk (bounds the ray test's temporaries to about 30 MB).
+PAIR_CHUNK = 1 << 17
 #: Vertices nearer than this camera-2 depth (m) count as behind the camera for the boxes.
 _NEAR = 1e-6
 
@@ -214,24 +216,46 @@ def _face_sample_boxes(calib: Calibration, vertices: np.ndarray, faces: np.ndarr
     return box.astype(np.int64)
 
 
-def _candidate_pairs(boxes: np.ndarray, region: _Region, s: int) -> tuple[np.ndarray, np.ndarray]:
+def _candidate_pairs(boxes: np.ndarray, region: _Region, s: int,
+                     chunk: int | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Candidate (sample, face) pairs: every sample of each face's box (:func:`_face_sample_boxes`) whose
-    pixel is rendered. Samples are numbered pixel-major in ``region.pixels`` order (s^2 per pixel, sub-pixel
-    row-major)."""
+    pixel is rendered, face-major and row-major within a box. Samples are numbered pixel-major in
+    ``region.pixels`` order (s^2 per pixel, sub-pixel row-major). Yields (samples, faces) in chunks of whole
+    faces of at most ``chunk`` pairs each (one face's if larger), all in one chunk for None."""
     width = np.maximum(boxes[:, 2] - boxes[:, 0], 0)
-    count = width * np.maximum(boxes[:, 3] - boxes[:, 1], 0)
-    face = np.repeat(np.arange(len(boxes)), count)
-    k = np.arange(len(face)) - np.repeat(np.cumsum(count) - count, count)
-    dr, dc = np.divmod(k, width[face])
-    pv, i = np.divmod(boxes[face, 1] + dr - region.rect[1] * s, s)  # pixel row in the region, sub-pixel row
-    pu, j = np.divmod(boxes[face, 0] + dc - region.rect[0] * s, s)
-    local = pv * region.mask.shape[1] + pu
-    sub = i * s + j
-    if region.mask.all():  # one box: every candidate's pixel is rendered, numbered row-major
-        return local * (s * s) + sub, face
-    keep = region.mask.reshape(-1)[local]
-    pos = np.cumsum(region.mask.reshape(-1)) - 1  # position of a pixel of the mask in region.pixels
-    return pos[local[keep]] * (s * s) + sub[keep], face[keep]
+    height = np.maximum(boxes[:, 3] - boxes[:, 1], 0)
+    nonempty = np.flatnonzero(width * height)
+    if len(nonempty) == 0:
+        return
+    mask = region.mask.reshape(-1)
+    mh, mw = region.mask.shape
+    (pv, i), (pu, j) = np.divmod(np.arange(mh * s), s), np.divmod(np.arange(mw * s), s)  # per sample row / column
+    whole = bool(mask.all())  # one box: every candidate's pixel is rendered, numbered row-major
+    if whole:
+        row_part, col_part = pv * (mw * s * s) + i * s, pu * (s * s) + j  # sample = row_part + col_part
+    else:
+        pos = np.where(mask, np.cumsum(mask) - 1, -1)  # position of a pixel of the mask in region.pixels
+        row_local, row_sub = pv * mw, i * s
+    ends = np.cumsum(width[nonempty] * height[nonempty])
+    start = 0
+    while start < len(nonempty):
+        done = ends[start - 1] if start else 0
+        stop = len(nonempty) if chunk is None else max(start + 1, int(np.searchsorted(ends, done + chunk, "right")))
+        f = nonempty[start:stop]
+        start = stop
+        h, w = height[f], width[f]
+        # one entry per box row (region sample row ``row``), then one per sample of the row (column ``col``)
+        row = np.repeat(boxes[f, 1] - region.rect[1] * s - (np.cumsum(h) - h), h) + np.arange(h.sum())
+        rw = np.repeat(w, h)
+        col = np.repeat(np.repeat(boxes[f, 0] - region.rect[0] * s, h) - (np.cumsum(rw) - rw), rw)
+        col += np.arange(len(col))
+        face = np.repeat(np.repeat(f, h), rw)
+        if whole:
+            yield np.repeat(row_part[row], rw) + col_part[col], face
+            continue
+        at = pos[np.repeat(row_local[row], rw) + pu[col]]
+        keep = at >= 0
+        yield (at * (s * s) + np.repeat(row_sub[row], rw) + j[col])[keep], face[keep]
 
 
 def _as_tensor(x: Any, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -290,8 +314,8 @@ def _render_pixels(base: torch.Tensor, w: int, calib: Calibration,
     else:
         boxes = _face_sample_boxes(calib, verts.detach().cpu().numpy().astype(np.float64), faces, s, region.rect,
                                    culled)
-        sample_idx, face_idx = _candidate_pairs(boxes, region, s)
-        hits = cast_ray_pairs(verts, faces_t, dirs, origin, torch.from_numpy(sample_idx), torch.from_numpy(face_idx))
+        pairs = ((torch.from_numpy(a), torch.from_numpy(b)) for a, b in _candidate_pairs(boxes, region, s, PAIR_CHUNK))
+        hits = cast_ray_pair_chunks(verts, faces_t, dirs, origin, pairs, name="render_camera")
         cast = None
     hit_t = torch.nonzero(hits.hit).reshape(-1)
     samples = hit_t.numpy() if cast is None else cast[hit_t.numpy()]
@@ -339,7 +363,7 @@ def camera_ray_tests(calib: Calibration, meshes: Sequence[MeshInput], image_size
     faces = np.concatenate([m[1] + off for m, off in zip(checked, offsets, strict=True)])
     boxes = _face_sample_boxes(calib, verts, faces, supersample, region.rect,
                                _culled_faces(checked, camera_centre_rect(calib)))
-    return len(region.pixels) * supersample ** 2, len(_candidate_pairs(boxes, region, supersample)[0])
+    return len(region.pixels) * supersample ** 2, sum(len(a) for a, _ in _candidate_pairs(boxes, region, supersample))
 
 
 def _sphere_cull(dirs: np.ndarray, origin: np.ndarray, meshes: list[np.ndarray]) -> np.ndarray:
@@ -427,7 +451,7 @@ def render_camera(image: np.ndarray, calib: Calibration, meshes: Sequence[MeshIn
                   full_image: bool = False) -> CameraRenderResult:
     """Render meshes into a uint8 (H, W, 3) image (numpy in, numpy out; float64 geometry, no gradients).
 
-    The same computation as :func:`render_camera_torch` (arguments alike), run under ``no_grad`` on
+    The same computation as :func:`render_camera_torch` (arguments alike), run under ``inference_mode`` on
     image / 255; rendered pixels are rounded back to uint8, all others are copied unchanged.
     """
     _check_supersample(supersample)
@@ -442,7 +466,7 @@ def render_camera(image: np.ndarray, calib: Calibration, meshes: Sequence[MeshIn
         return CameraRenderResult(out, [], [], alpha)
     region, boxes, status = _pixel_set(calib, checked, (w, h), full_image)
     if region is not None:
-        with torch.no_grad():
+        with torch.inference_mode():
             base = torch.from_numpy(image.reshape(-1, 3)[region.pixels].astype(np.float64)) / 255.0
             values, cover = _render_pixels(base, w, calib, checked, region, supersample, scene_depth,
                                            _resolve_lighting(lighting, scene_depth), full_image)

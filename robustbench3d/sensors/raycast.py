@@ -29,7 +29,7 @@ Barycentric tolerance 1e-6 (float64) / 1e-5 (float32) so rays through edges and 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -46,7 +46,8 @@ _SLIVER = {torch.float64: 1e-10, torch.float32: 1e-5}
 #: Barycentric tolerance: rays tangent to an edge or through a vertex still hit one of its faces.
 _BARY_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 
-__all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "RayHits", "back_faces", "cast_ray_pairs", "cast_rays"]
+__all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "RayHits", "back_faces", "cast_ray_pair_chunks", "cast_ray_pairs",
+           "cast_rays"]
 
 
 @dataclass(frozen=True)
@@ -478,23 +479,44 @@ def cast_ray_pairs(vertices: torch.Tensor, faces: torch.Tensor, directions: torc
     the nearest hit per ray is kept (equal t: the smallest face index), and t, u, v are recomputed with
     gradients on the winning pairs only. The result equals :func:`cast_rays`' wherever the pairs include
     every face a ray can hit. Arguments as :func:`cast_rays`, plus ray_index, face_index (P,) int64;
-    ``RayHits.tests`` = P.
+    ``RayHits.tests`` = P. :func:`cast_ray_pair_chunks` takes the pairs in chunks (bounded memory).
     """
-    p = _prepare(vertices, faces, directions, origin, origin_offset, offset_axis, "cast_ray_pairs")
+    return cast_ray_pair_chunks(vertices, faces, directions, origin, [(ray_index, face_index)], origin_offset,
+                                offset_axis, t_min=t_min, cos_min=cos_min, name="cast_ray_pairs")
+
+
+def cast_ray_pair_chunks(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Tensor, origin: torch.Tensor,
+                         chunks: Iterable[tuple[torch.Tensor, torch.Tensor]],
+                         origin_offset: torch.Tensor | None = None, offset_axis: Sequence[float] = (0.0, 0.0, 1.0),
+                         *, t_min: float = 1e-6, cos_min: float = 1e-3, name: str = "cast_ray_pair_chunks") -> RayHits:
+    """:func:`cast_ray_pairs` of the concatenated (ray_index, face_index) ``chunks`` (e.g. a generator), tested
+    one chunk at a time: the same hits as one call with all pairs (the test is element-wise and the nearest
+    hit is taken over all chunks), with temporaries bounded by the largest chunk."""
+    p = _prepare(vertices, faces, directions, origin, origin_offset, offset_axis, name)
     dev = p.d.device
-    ray = _as_tensor(ray_index, torch.int64, dev).reshape(-1)
-    fc = _as_tensor(face_index, torch.int64, dev).reshape(-1)
     n_rays, n_faces = len(p.d), len(p.faces)
-    if len(ray) != len(fc):
-        raise ValueError(f"cast_ray_pairs: field 'face_index': {len(fc)} faces for {len(ray)} rays")
-    if len(ray) and (int(ray.min()) < 0 or int(ray.max()) >= n_rays or int(fc.min()) < 0
-                     or int(fc.max()) >= n_faces):
-        raise ValueError(f"cast_ray_pairs: field 'ray_index': pairs must index {n_rays} rays and {n_faces} faces")
+    rays, faces_hit, ts = [], [], []
+    tests = 0
     with torch.no_grad():
+        table = d_cols = None
+        for ray_index, face_index in chunks:
+            ray = _as_tensor(ray_index, torch.int64, dev).reshape(-1)
+            fc = _as_tensor(face_index, torch.int64, dev).reshape(-1)
+            if len(ray) != len(fc):
+                raise ValueError(f"{name}: field 'face_index': {len(fc)} faces for {len(ray)} rays")
+            if len(ray) and (int(ray.min()) < 0 or int(ray.max()) >= n_rays or int(fc.min()) < 0
+                             or int(fc.max()) >= n_faces):
+                raise ValueError(f"{name}: field 'ray_index': pairs must index {n_rays} rays and {n_faces} faces")
+            tests += len(ray)
+            if len(ray) == 0:
+                continue
+            if table is None:
+                table, d_cols = _face_geometry(p, cos_min)[3], p.d.T.contiguous()
+            ok, t = _test_pairs(table, d_cols, p.h, ray, fc, t_min, p.tol)
+            rays.append(ray.index_select(0, ok))
+            faces_hit.append(fc.index_select(0, ok))
+            ts.append(t)
         face = torch.full((n_rays,), -1, dtype=torch.int64, device=dev)
-        if len(ray):
-            table = _face_geometry(p, cos_min)[3]
-            ok, t = _test_pairs(table, p.d.T.contiguous(), p.h, ray, fc, t_min, p.tol)
-            if len(t):
-                face = _nearest(ray.index_select(0, ok), fc.index_select(0, ok), t, n_rays, n_faces)
-    return _hits(p, face, len(ray))
+        if ts and sum(len(t) for t in ts):
+            face = _nearest(torch.cat(rays), torch.cat(faces_hit), torch.cat(ts), n_rays, n_faces)
+    return _hits(p, face, tests)
