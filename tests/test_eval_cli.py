@@ -166,3 +166,29 @@ def test_cli_module_imports_no_numpy() -> None:
     code = "import sys, robustbench3d.eval.cli; print('numpy' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_ap_table_and_json_text_by_hand(tmp_path: Path) -> None:
+    from robustbench3d.eval.report import ap_table, write_json
+
+    result = {
+        "meta": {"classes": ["Car", "Cyclist"], "min_overlap": {"Car": {"3d": 0.7}}, "evaluator": "robustbench3d",
+                 "version": "1.0", "frames": 3,
+                 "skipped": [{"class": "Cyclist", "metric": "3d", "reason": "no detections"}],
+                 "notes": ["first", "second"]},
+        "Car": {"3d": {"R40": {"easy": 88.5, "moderate": 7.25, "hard": 100.0},
+                       "R11": {"easy": 1000 / 11, "moderate": 100 / 11, "hard": 0.0}}},
+    }   # no "Cyclist" entry: its metric was skipped
+    assert ap_table(result).split("\n") == [
+        "KITTI AP in % (robustbench3d 1.0, devkit semantics), 3 frames",
+        " " * 20 + " easy  moderate    hard",                     # column widths 18, 5, 8, 6
+        "Car 3D AP@0.70 R40  88.50      7.25  100.00",
+        "Car 3D AP@0.70 R11  90.91      9.09    0.00",
+        "skipped: Cyclist 3d: no detections",
+        "note: first",
+        "note: second",
+    ]
+    del result["meta"]["skipped"], result["meta"]["notes"]
+    assert ap_table(result).count("\n") == 3
+    write_json(tmp_path / "r.json", {"a": [1, 2]})
+    assert (tmp_path / "r.json").read_text() == '{\n  "a": [\n    1,\n    2\n  ]\n}\n'

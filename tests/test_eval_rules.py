@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from robustbench3d.eval import evaluate
-from robustbench3d.eval.precision import average_precision, interpolate, score_thresholds
+from robustbench3d.eval.precision import average_precision, interpolate, ratio, score_thresholds
 from robustbench3d.kitti import Labels
 
 N = 41  # frames per case: enough GT for AP to reach 100
@@ -87,6 +87,32 @@ def test_thresholds_hand_cases() -> None:
     assert t.tolist() == [0.9] * 21 + [0.8] * 20
     assert score_thresholds(np.array([]), 10).size == 0
     assert score_thresholds(np.array([0.5]), 0).size == 0
+
+
+def test_thresholds_stop_at_41_and_are_float64() -> None:
+    # 100 TPs of 10 GT: each left recall (i + 1) / 10 is ahead of the step c = k / 40, so every score
+    # is taken in order until the devkit's 41 samples are full.
+    scores = 1 - np.arange(100) / 200
+    t = score_thresholds(scores, 10)
+    assert t.tolist() == scores[:41].tolist()
+    # devkit doubles whatever the input type (thresholds are compared with float64 scores)
+    for given in (np.array([3, 1, 2]), np.array([0.75, 0.25, 0.5], dtype=np.float32)):
+        t = score_thresholds(given, 3)
+        assert t.dtype == np.float64 and t.tolist() == sorted(given.tolist(), reverse=True)
+
+
+def test_ratio_is_zero_where_the_denominator_is_zero() -> None:
+    assert ratio(np.array([1, 2, 3]), np.array([2, 0, 4])).tolist() == [0.5, 0.0, 0.75]
+    # broadcasting either way: (2, 1) / (3,) and (3,) / (2, 1)
+    assert ratio(np.array([[1.0], [2.0]]), np.array([1.0, 0.0, 4.0])).tolist() == [[1.0, 0.0, 0.25],
+                                                                                 [2.0, 0.0, 0.5]]
+    assert ratio(np.array([1.0, 0.0, 4.0]), np.array([[2.0], [0.0]])).tolist() == [[0.5, 0.0, 2.0],
+                                                                                 [0.0, 0.0, 0.0]]
+    # zeros written, not left uninitialised: the result reuses freshly freed memory full of 7s
+    num, den = np.ones(64), np.zeros(64)
+    junk = np.full(64, 7.0)
+    del junk
+    assert not ratio(num, den).any()
 
 
 # ---- difficulty: height, occlusion, truncation boundaries ----------------------------------------------
@@ -270,3 +296,87 @@ def test_missed_objects_cap_recall() -> None:
     r = run([(obj(),)] * 82, [(det(),)] * 41 + [()] * 41)
     assert ap(r, "bev") == pytest.approx([50.0] * 3)
     assert ap(r, "bev", "R11") == pytest.approx([600 / 11] * 3)
+
+
+def test_each_box_metric_runs_alone() -> None:
+    # Perfect detections of 41 GT per frame set: every metric alone gives 100, and only it is reported.
+    for metric in ("3d", "bev", "2d"):
+        r = run([(obj(),)] * N, [(det(),)] * N, metrics=(metric,))
+        assert ap(r, metric) == [100.0] * 3
+        assert "3d" not in r["Car"] or metric == "3d"
+
+
+def test_name_errors_are_exact() -> None:
+    with pytest.raises(ValueError) as info:
+        run([()], [()], classes=("car", "Bus"))
+    assert str(info.value) == "unknown class 'Bus'; expected some of Car, Pedestrian, Cyclist"
+    with pytest.raises(ValueError) as info:
+        run([()], [()], metrics=())
+    assert str(info.value) == "no metric requested"
+
+
+def test_difficulty_status_codes_by_hand() -> None:
+    """gt_status / det_status / detection_height_px on one frame, every code worked out by hand
+    (MIN_HEIGHT 40/25/25 px, MAX_OCCLUSION 0/1/2, MAX_TRUNCATION 0.15/0.3/0.5)."""
+    from robustbench3d.eval.difficulty import det_status, detection_height_px, gt_status
+    from robustbench3d.eval.table import ObjectTable
+
+    gt = ObjectTable.from_labels([frame(
+        obj(box=(0, 100, 10, 150)),                        # h 50, visible: counts everywhere
+        obj(box=(0, 100, 10, 130), occ=1, trunc=0.2),      # h 30, partly occluded: not easy
+        obj(box=(0, 100, 10, 140)),                        # h exactly 40: ignored in easy (needs > 40)
+        obj("Van"),                                        # neighbour class: ignored
+        obj("Pedestrian"),                                 # other class: not involved
+        obj("DontCare", trunc=-1, occ=-1, dims=(-1, -1, -1)),
+        obj(occ=3),                                        # occlusion unknown: ignored everywhere
+        obj(trunc=0.5),                                    # truncated exactly 0.5: hard only
+    )], scored=False)
+    status = gt_status(gt, "Car")
+    assert status.dtype == np.int8 and status.shape == (3, 8)
+    assert status.tolist() == [[0, 1, 1, 1, -1, -1, 1, 1],
+                               [0, 0, 0, 1, -1, -1, 1, 1],
+                               [0, 0, 0, 1, -1, -1, 1, 0]]
+    dt = ObjectTable.from_labels([frame(
+        det(box=(0, 100, 10, 139.9)),                      # 39.9 -> 39 px: too small for easy only
+        det(box=(0, 100, 10, 140)),                        # exactly 40 px: counts
+        det(type_="Pedestrian", box=(0, 100, 10, 200)),          # other class: not involved
+        det(type_="Pedestrian", box=(0, 100, 10, 124.99)),       # 24 px: ignored whatever the class
+        det(box=(0, 200, 10, 100)),                        # top below bottom: |h| = 100
+        scored=True)], scored=True)
+    assert detection_height_px(dt).tolist() == [39, 40, 100, 24, 100]
+    status = det_status(dt, "Car")
+    assert status.dtype == np.int8 and status.shape == (3, 5)
+    assert status.tolist() == [[1, 0, -1, 1, 0], [0, 0, -1, 1, 0], [0, 0, -1, 1, 0]]
+    # the devkit's int32 cast: up to 2^31 - 1 truncated, from 2^31 on INT32_MIN (x86)
+    huge = ObjectTable.from_labels([frame(*(det(box=(0, 0, 10, b)) for b in
+                                            (2.0**31 - 0.5, 2.0**31, 3e9, 1e10, 1e300)), scored=True)],
+                                   scored=True)
+    heights = detection_height_px(huge)
+    assert heights.dtype == np.int64 and heights.tolist() == [2**31 - 1] + [-(2**31)] * 4
+
+
+def test_object_table_columns_dtypes_and_errors() -> None:
+    from robustbench3d.eval.table import ObjectTable
+
+    table = ObjectTable.from_labels([frame(obj(occ=2, trunc=0.25)), frame(), frame(obj("Van"), obj())], scored=False)
+    assert table.frame.tolist() == [0, 2, 2] and table.type.tolist() == [0, 1, 0] and table.n_frames == 3
+    assert table.occluded.tolist() == [2, 0, 0] and table.truncated.tolist() == [0.25, 0.0, 0.0]
+    assert table.frame.dtype == table.type.dtype == table.occluded.dtype == np.int64
+    assert table.box3d[0].tolist() == [1.5, 1.6, 3.9, 0.0, 1.7, 20.0, 0.0] and table.score is None
+    for frames in ([], [frame(), frame()]):
+        for scored in (False, True):
+            empty = ObjectTable.from_labels(frames, scored=scored)
+            assert len(empty) == 0 and empty.n_frames == len(frames) and empty.truncated.shape == (0,)
+            assert empty.type.dtype == empty.occluded.dtype == np.int64 and empty.box3d.shape == (0, 7)
+            assert (empty.score is None) != scored
+    with pytest.raises(ValueError) as info:
+        ObjectTable.from_labels([frame(obj())], scored=True)
+    assert str(info.value) == "detections must carry scores (16-column results)"
+    with pytest.raises(ValueError) as info:
+        ObjectTable.from_labels([frame(obj("Bus"), obj("Auto"))], scored=False)
+    assert str(info.value) == "unknown object type(s) ['Auto', 'Bus']; expected KITTI types"
+    # from_columns keeps the documented int64 columns for narrower index arrays too
+    numeric = np.arange(14.0)[None].repeat(2, axis=0)
+    cols = ObjectTable.from_columns(np.array([0, 1], np.int32), np.array([3, 8], np.int32), numeric, 2, False)
+    assert cols.frame.dtype == cols.type.dtype == cols.occluded.dtype == np.int64
+    assert cols.type.tolist() == [3, 8] and cols.occluded.tolist() == [1, 1] and cols.bbox[0].tolist() == [3, 4, 5, 6]

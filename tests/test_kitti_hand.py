@@ -10,7 +10,7 @@ import pytest
 
 from robustbench3d.errors import DataFormatError
 from robustbench3d.kitti.calib import Calibration, parse_calibration, read_calibration, write_calibration
-from robustbench3d.kitti.labels import Labels, parse_labels, read_labels, write_labels
+from robustbench3d.kitti.labels import Labels, impossible_rows, parse_labels, read_labels, write_labels
 
 # P2: f = 700, c = (600, 180), P2[:, 3] = (70, 14, 0.5); R0_rect: 90° about y (x -> -z, z -> x);
 # Tr_velo_to_cam: the axis permutation (-y, -z, x) plus a shift of (0.1, -0.2, 0.3).
@@ -186,3 +186,96 @@ def test_label_edge_cases():
         parse_labels(GOOD.replace("Car", "Bus"))
     assert info.value.problem == ("unknown object type 'Bus'; expected one of Car, Van, Truck, Pedestrian, "
                                   "Person_sitting, Cyclist, Tram, Misc, DontCare")
+
+
+# ---- ground-truth value rules at their boundaries (labels._value_checks / _check_values) -------
+TRUNC_RULE = "expected a fraction in 0..1 (or -1 for unknown)"
+BBOX_RULE = "expected left <= right and top <= bottom"
+DIMS_RULE = "height, width, length must be >= 0 (or -1 -1 -1 for no 3D box)"
+
+
+def _gt_row(t: str = "0.25", bbox: str = "10 20 30 40", dims: str = "1.5 1.6 3.9") -> str:
+    """A ground-truth row: type, truncated, occluded 0, alpha 0.5, bbox, dims, location, rotation_y."""
+    return f"Car {t} 0 0.5 {bbox} {dims} 1 2 30 0.25"
+
+
+@pytest.mark.parametrize(("row", "column", "value"), [
+    (_gt_row(t="0"), "truncated", [0.0]),
+    (_gt_row(t="1"), "truncated", [1.0]),
+    (_gt_row(t="1.00"), "truncated", [1.0]),
+    (_gt_row(t="-1"), "truncated", [-1.0]),
+    (_gt_row(bbox="10 20 10 40"), "bbox", [10.0, 20.0, 10.0, 40.0]),      # left == right
+    (_gt_row(bbox="10 20 30 20"), "bbox", [10.0, 20.0, 30.0, 20.0]),      # top == bottom
+    (_gt_row(bbox="7 7 7 7"), "bbox", [7.0, 7.0, 7.0, 7.0]),
+    (_gt_row(dims="0 0 0"), "dimensions", [0.0, 0.0, 0.0]),
+    (_gt_row(dims="0 1.6 3.9"), "dimensions", [0.0, 1.6, 3.9]),
+    (_gt_row(dims="-1 -1 -1"), "dimensions", [-1.0, -1.0, -1.0]),       # KITTI's "no 3D box"
+])
+def test_ground_truth_boundary_values_are_accepted(row, column, value):
+    lab = parse_labels(row + "\n", scored=False)
+    assert np.atleast_1d(getattr(lab, column)[0]).tolist() == value
+
+
+@pytest.mark.parametrize(("row", "field", "problem"), [
+    (_gt_row(t="1.5"), "truncated", f"{TRUNC_RULE}, got 1.5"),
+    (_gt_row(t="1.01"), "truncated", f"{TRUNC_RULE}, got 1.01"),
+    (_gt_row(t="-0.01"), "truncated", f"{TRUNC_RULE}, got -0.01"),
+    (_gt_row(t="-1.5"), "truncated", f"{TRUNC_RULE}, got -1.5"),
+    (_gt_row(bbox="31 20 30 40"), "bbox", f"{BBOX_RULE}, got 31 20 30 40"),   # left > right only
+    (_gt_row(bbox="10 41 30 40"), "bbox", f"{BBOX_RULE}, got 10 41 30 40"),   # top > bottom only
+    (_gt_row(dims="-0.01 1.6 3.9"), "dimensions", f"{DIMS_RULE}, got -0.01 1.6 3.9"),
+    (_gt_row(dims="1.5 1.6 -3.9"), "dimensions", f"{DIMS_RULE}, got 1.5 1.6 -3.9"),
+    (_gt_row(dims="-1 -1 0"), "dimensions", f"{DIMS_RULE}, got -1 -1 0"),     # not the placeholder
+    (_gt_row(dims="-2 -1 -1"), "dimensions", f"{DIMS_RULE}, got -2 -1 -1"),
+    (_gt_row(dims="-1 -1 -1.5"), "dimensions", f"{DIMS_RULE}, got -1 -1 -1.5"),
+])
+def test_ground_truth_value_errors_exact_message(row, field, problem):
+    # the bad row is the second non-blank row, on line 4
+    text = f"\n{_gt_row()}\n\n{row}\n"
+    with pytest.raises(DataFormatError) as info:
+        parse_labels(text, "label_2/000009.txt", scored=False)
+    assert str(info.value) == f"label_2/000009.txt:4: field '{field}': {problem}"
+    assert (info.value.line, info.value.field, info.value.problem) == (4, field, problem)
+    with pytest.raises(DataFormatError) as info:             # the default file name
+        parse_labels(row)
+    assert str(info.value) == f"<string>:1: field '{field}': {problem}"
+
+
+@pytest.mark.parametrize(("rows", "line", "field", "got"), [
+    # one row breaking several rules: the first rule (truncated, bbox, dimensions) is named
+    ([_gt_row(t="2", bbox="30 20 10 40")], 1, "truncated", "2"),
+    ([_gt_row(t="2", dims="1 -1 1")], 1, "truncated", "2"),
+    ([_gt_row(bbox="30 20 10 40", dims="1 -1 1")], 1, "bbox", "30 20 10 40"),
+    # several bad rows: the first row is named, whatever rule it breaks
+    ([_gt_row(), _gt_row(dims="1 -1 1"), _gt_row(t="2"), _gt_row(bbox="30 20 10 40")], 2, "dimensions", "1 -1 1"),
+    ([_gt_row(bbox="30 20 10 40"), _gt_row(t="2"), _gt_row(t="3")], 1, "bbox", "30 20 10 40"),
+    ([_gt_row(), _gt_row(t="3"), _gt_row(t="2"), _gt_row(bbox="30 20 10 40")], 2, "truncated", "3"),
+])
+def test_ground_truth_first_bad_row_then_first_rule_is_named(rows, line, field, got):
+    with pytest.raises(DataFormatError) as info:
+        parse_labels("\n".join(rows), "gt.txt")
+    assert (info.value.line, info.value.field) == (line, field)
+    assert info.value.problem.endswith(f", got {got}")
+
+
+def test_result_rows_skip_the_ground_truth_rules():
+    bad = _gt_row(t="2", bbox="30 20 10 40", dims="-1 -2 -3")
+    for scored in (True, None):
+        lab = parse_labels(bad + " 0.75\n", scored=scored)
+        assert lab.truncated.tolist() == [2.0] and lab.dimensions.tolist() == [[-1.0, -2.0, -3.0]]
+    with pytest.raises(DataFormatError, match=r"^<string>:1: field 'truncated': "):
+        parse_labels(bad)
+
+
+def test_impossible_rows_by_hand():
+    rows = [_gt_row(), _gt_row(t="1.5"), _gt_row(bbox="30 20 10 40"), _gt_row(dims="1 -1 1"),
+            _gt_row(t="-1", dims="-1 -1 -1"), _gt_row(t="1", bbox="5 5 5 5", dims="0 0 0"),
+            _gt_row(t="2", bbox="30 20 10 40", dims="1 -1 1")]
+    numeric = np.array([[float(v) for v in row.split()[1:]] for row in rows])
+    assert impossible_rows(numeric).tolist() == [False, True, True, True, False, False, True]
+    assert impossible_rows(numeric[:1]).tolist() == [False] and impossible_rows(numeric[:0]).tolist() == []
+
+
+def test_write_labels_default_is_the_devkit_two_decimals(tmp_path):
+    write_labels(tmp_path / "b.txt", parse_labels(LABEL_TEXT))
+    assert (tmp_path / "b.txt").read_text() == LABEL_TEXT.replace("\n\n", "\n").replace("   \n", "\n")

@@ -192,6 +192,28 @@ def test_image_to_tensor_by_hand():
     assert t[0, 0, 0, 0].item() == 0.0
 
 
+def test_image_to_tensor_takes_read_only_images_silently():
+    """read_image gives np.asarray of a PIL image, which is read-only; torch warns (once per
+    process, so every time under set_warn_always) when handed one, which the copy avoids."""
+    import warnings
+
+    import torch
+
+    from robustbench3d.victims.yolo.letterbox import image_to_tensor
+
+    img = np.array([[[0, 51, 255]]], dtype=np.uint8)
+    img.flags.writeable = False
+    was = torch.is_warn_always_enabled()
+    torch.set_warn_always(True)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            t = image_to_tensor(img)
+    finally:
+        torch.set_warn_always(was)
+    assert t[0, :, 0, 0].tolist() == pytest.approx([0.0, 0.2, 1.0])
+
+
 def test_box_conversions_and_torch_iou_by_hand():
     import torch
 

@@ -90,3 +90,22 @@ def test_corners_match_the_kitti_box_of_the_same_object():
         ours = corners_from_center(centre[None], np.array([ry]), np.array([[l, w, h]]))
         ref = box_corners(np.array([[h, w, l]]), bottom[None], np.array([ry]))
         assert np.allclose(ours, ref)
+
+
+def test_float32_network_outputs_decode_in_float64():
+    """Heads arrive as float32 (torch, ONNX Runtime) and class ids may sit in a float array; the
+    decode is float64 arithmetic on the exact input values, by hand."""
+    cls32, zero32 = np.array([11.0, 1.0], dtype=np.float32), np.zeros(2, dtype=np.float32)
+    angle = class_to_angle(cls32, zero32, to_label_format=False)
+    assert angle.dtype == np.float64
+    assert angle.tolist() == pytest.approx([11 * np.pi / 6, np.pi / 6], rel=1e-15)   # float32 is off by ~2e-8
+    assert class_to_angle(cls32, zero32).tolist() == pytest.approx([-np.pi / 6, np.pi / 6], rel=1e-14)
+    assert class_to_size(np.array([3.0, 0.0]), np.zeros((2, 3))).tolist() == [
+        [0.84422524, 0.66068622, 1.76255119], [3.88311640418, 1.62856739989, 1.52563191462]]
+    h32 = np.float32(0.3)
+    a = float(h32)                                           # the float32's exact value
+    corners = corners_from_center(np.zeros((1, 3)), np.array([h32]), np.array([[4.0, 2.0, 1.0]]))
+    assert corners.dtype == np.float64
+    # corner 0: local (l/2, h/2, w/2) = (2, 0.5, 1) rotated by a about y
+    assert corners[0, 0].tolist() == pytest.approx(
+        [2 * np.cos(a) + np.sin(a), 0.5, -2 * np.sin(a) + np.cos(a)], rel=1e-13)
