@@ -56,12 +56,6 @@ class CheckReport:
         return not self.violations
 
 
-def _rows(scan: Any) -> Any:
-    import numpy as np
-
-    return np.ascontiguousarray(scan, dtype="<f4").view(np.dtype((np.void, 16))).reshape(-1)
-
-
 def surface_distance(points: Any, triangles: Any, chunk: int = 128) -> Any:
     """(K,) distance of each point to the nearest of the (F, 3, 3) triangles (brute force, trimesh)."""
     import numpy as np
@@ -159,6 +153,7 @@ def check_frame(attacked: Path, clean: Path, frame_id: str, report: CheckReport,
     import trimesh
 
     from robustbench3d.kitti import KittiDataset
+    from robustbench3d.kitti.velodyne import scan_rows
     from robustbench3d.sensors.lidar_beams import scan_ring_ids
 
     a_ds, c_ds = KittiDataset(attacked, split=None), KittiDataset(clean, split=None)
@@ -180,7 +175,7 @@ def check_frame(attacked: Path, clean: Path, frame_id: str, report: CheckReport,
         bad(f"{frame_id}: the objects PLY has {len(mesh.vertices)} vertices for {n_obj} objects")
         return
     c_scan, a_scan = c_ds.scan(frame_id), a_ds.scan(frame_id)
-    c_rows, a_rows = _rows(c_scan), _rows(a_scan)
+    c_rows, a_rows = scan_rows(c_scan), scan_rows(a_scan)
     kept = np.isin(c_rows, a_rows)
     added = a_scan[~np.isin(a_rows, c_rows)]
     ring = scan_ring_ids(c_scan)

@@ -153,6 +153,7 @@ def attacked_frame(ds, frame, reference: str, seed: int):
 
     from robustbench3d.attack_apply import resolve_attack
     from robustbench3d.attacks.base import target_cars
+    from robustbench3d.kitti.velodyne import scan_rows
     from robustbench3d.runner.cell import attack_rng
 
     _, attack = resolve_attack(reference)
@@ -161,9 +162,7 @@ def attacked_frame(ds, frame, reference: str, seed: int):
     if len(targets) == 0:
         return frame, np.zeros((0, 4), np.float32)
     attacked = attack.apply(frame, targets, attack_rng(seed, frame.frame_id))
-    clean_rows = np.ascontiguousarray(frame.scan, "<f4").view(np.dtype((np.void, 16))).reshape(-1)
-    rows = np.ascontiguousarray(attacked.scan, "<f4").view(np.dtype((np.void, 16))).reshape(-1)
-    return attacked, attacked.scan[~np.isin(rows, clean_rows)]
+    return attacked, attacked.scan[~np.isin(scan_rows(attacked.scan), scan_rows(frame.scan))]
 
 
 def _attacked_picture(ds, frame, reference: str, seed: int, dets, bev_range: float):

@@ -29,3 +29,10 @@ def write_scan(path: str | Path, scan: np.ndarray) -> None:
     if scan.ndim != 2 or scan.shape[1] != 4:
         raise ValueError(f"scan must be (N, 4), got {scan.shape}")
     atomic_write_bytes(path, np.ascontiguousarray(scan, dtype="<f4").tobytes())
+
+
+def scan_rows(scan: np.ndarray) -> np.ndarray:
+    """(N,) one opaque 16-byte value per point of an (N, 4) scan (its float32 bytes), so whole points
+    compare with ``np.isin`` (e.g. which points an attack added or removed)."""
+    return np.ascontiguousarray(scan, dtype="<f4").view(np.dtype((np.void, 16))).reshape(-1)
+
