@@ -58,6 +58,89 @@ def test_best_f1_threshold_and_matched_cars_by_hand():
     assert not any(m.any() for m in matched_ground_truth(gt, empty, None).matched)
 
 
+
+def frame_labels(frames: list[list[str]], scored: bool) -> list:
+    """Labels of frames 000000, 000001, ... from their rows."""
+    return [parse_labels("".join(r + "\n" for r in rows), f"{i:06d}.txt", scored=scored)
+            for i, rows in enumerate(frames)]
+
+
+# One frame, two moderate cars G1 (x=-4) and G2 (x=4) at z=20; false positives far from both (z=60).
+TWO_CARS = [[car(-4, 20), car(4, 20)]]
+
+
+def test_best_f1_threshold_prefers_fewer_false_positives_by_hand():
+    gt = frame_labels(TWO_CARS, False)
+    # TPs G1 at 0.9 and G2 at 0.5 are the sampled thresholds; FPs at 0.8, 0.7, 0.6 (n_gt = 2).
+    dt = frame_labels([[car(-4, 20, 0.9), car(4, 20, 0.5), car(0, 60, 0.8), car(10, 60, 0.7),
+                        car(-10, 60, 0.6)]], True)
+    # t=0.9: TP 1, FP 0, FN 1: F1 = 2/(2+0+1) = 2/3; t=0.5: TP 2, FP 3, FN 0: F1 = 4/(4+3) = 4/7 < 2/3.
+    # (2TP * denominator, 2TP - FP + FN or 2/TP + FP + FN would pick 0.5.)
+    assert best_f1_threshold(gt, dt) == 0.9
+    # With one false positive fewer above 0.5 nothing changes at 0.9, 0.5 gives 4/(4+2) = 2/3: a tie, and
+    # ties go to the highest threshold.
+    tie = frame_labels([[car(-4, 20, 0.9), car(4, 20, 0.6), car(0, 60, 0.8), car(10, 60, 0.7)]], True)
+    assert best_f1_threshold(gt, tie) == 0.9
+    # With a single FP (0.8) the lower threshold wins: t=0.6: 4/(4+1) = 4/5 > 2/3.
+    one_fp = frame_labels([[car(-4, 20, 0.9), car(4, 20, 0.6), car(0, 60, 0.8)]], True)
+    assert best_f1_threshold(gt, one_fp) == 0.6
+
+
+# G1 moderate (and easy), G2 occluded 2 (hard only), a Van (a neighbour class: never counted for Car).
+MIXED = [[car(-4, 20), "Car 0.00 2 0.00 100 100 200 180 1.50 1.60 4.00 4 1.60 20 0.00", car(0, 40, kind="Van")]]
+MIXED_DT = [[car(-4, 20, 0.9), car(4, 20, 0.8)]]
+
+
+def test_best_f1_threshold_uses_the_requested_difficulty_only():
+    gt, dt = frame_labels(MIXED, False), frame_labels(MIXED_DT, True)
+    # Moderate: n_gt 1 (G1), the 0.8 detection of the ignored G2 is neither TP nor FP; thresholds [0.9]:
+    # F1 = 2/(2+0+0) = 1 -> 0.9. (Taking the easy and hard thresholds instead: hard's t=0.8 has TP 2
+    # with FN = 1 - 2, F1 = 4/3 -> 0.8.)
+    assert best_f1_threshold(gt, dt) == 0.9
+    assert best_f1_threshold(gt, dt, difficulty="easy") == 0.9
+    # Hard: n_gt 2, thresholds [0.9, 0.8]: F1 = 2/(2+0+1) = 2/3, then 4/(4+0+0) = 1 -> 0.8.
+    assert best_f1_threshold(gt, dt, difficulty="hard") == 0.8
+
+
+def test_matched_ground_truth_counted_rows_and_threshold_by_hand():
+    gt, dt = frame_labels(MIXED, False), frame_labels(MIXED_DT, True)
+    # Moderate counts G1 only; at 0.8 G1 is matched (0.9), G2 is found but not counted, the Van neither.
+    m = matched_ground_truth(gt, dt, 0.8)
+    assert [x.tolist() for x in m.matched] == [[True, False, False]]
+    assert [x.tolist() for x in m.counted] == [[True, False, False]]
+    assert m.threshold == 0.8 and type(m.threshold) is float
+    hard = matched_ground_truth(gt, dt, 0.8, difficulty="hard")
+    assert [x.tolist() for x in hard.matched] == [[True, True, False]]
+    assert [x.tolist() for x in hard.counted] == [[True, True, False]]
+    # No threshold: nothing matched, the counted rows all the same.
+    none = matched_ground_truth(gt, dt, None)
+    assert [x.tolist() for x in none.matched] == [[False, False, False]]
+    assert [x.tolist() for x in none.counted] == [[True, False, False]]
+    assert none.threshold is None
+
+
+def test_matched_ground_truth_splits_rows_per_frame():
+    # Three frames with 1, 0 and 2 GT cars; frame 2's second car (x=4) is missed.
+    gt = frame_labels([[car(-4, 20)], [], [car(-4, 30), car(4, 30)]], False)
+    dt = frame_labels([[car(-4, 20, 0.9)], [], [car(-4, 30, 0.7)]], True)
+    m = matched_ground_truth(gt, dt, 0.5)
+    assert [x.tolist() for x in m.matched] == [[True], [], [True, False]]
+    assert [x.tolist() for x in m.counted] == [[True], [], [True, True]]
+    # No frames at all: empty lists, not one empty frame.
+    for threshold in (None, 0.5):
+        empty = matched_ground_truth([], [], threshold)
+        assert (empty.matched, empty.counted, empty.threshold) == ([], [], threshold)
+    assert best_f1_threshold([], []) is None
+
+
+def test_frame_count_mismatch_is_an_error():
+    gt, dt = labels(GT, False), labels(CLEAN, True)
+    with pytest.raises(ValueError, match=r"^2 ground-truth frames but 1 detection frames$"):
+        matched_ground_truth(gt, dt[:1], 0.7)
+    with pytest.raises(ValueError, match=r"^1 ground-truth frames but 2 detection frames$"):
+        best_f1_threshold(gt[:1], dt)
+
+
 def ap_table(e: float, m: float, h: float) -> dict:
     return {"easy": e, "moderate": m, "hard": h}
 
