@@ -22,7 +22,7 @@ import numpy as np
 
 from robustbench3d.sensors.hdl64e import AZIMUTH_QUANTUM_DEG, HDL64E, BeamRays, ring_ids_from_azimuth_wrap
 
-#: Per-laser firing offsets of the generator's sensor (``synth.lidar._base_rays``), degrees in [0, 0.045).
+#: Per-laser firing offsets of the generator's sensor (used by ``synth.lidar``), degrees in [0, 0.045).
 GENERATOR_FIRING_OFFSETS_DEG = np.random.default_rng(64).uniform(0.0, AZIMUTH_QUANTUM_DEG / 2, 64)
 #: Nominal azimuth step between firings of one laser, degrees.
 AZIMUTH_STEP_DEG = 2 * AZIMUTH_QUANTUM_DEG

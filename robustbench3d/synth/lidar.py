@@ -19,6 +19,7 @@ import numpy as np
 
 from robustbench3d.sensors import lidar_model as lm
 from robustbench3d.sensors.hdl64e import AZIMUTH_QUANTUM_DEG, HDL64E, MAX_RANGE_M
+from robustbench3d.sensors.lidar_beams import GENERATOR_FIRING_OFFSETS_DEG
 from robustbench3d.synth.materials import RETURN_PROB, Mat
 from robustbench3d.synth.raytrace import SceneGeometry
 from robustbench3d.synth.scene import Scene
@@ -57,9 +58,7 @@ class _Beams(NamedTuple):
 def _base_rays() -> _Beams:
     """One revolution of the default sensor with fixed per-laser firing offsets (like the real unit's
     per-laser rotational corrections), in [0, half the azimuth quantum)."""
-    sensor = HDL64E()
-    offsets = np.random.default_rng(64).uniform(0.0, AZIMUTH_QUANTUM_DEG / 2, sensor.num_lasers)
-    rays = sensor.rays(offsets)
+    rays = HDL64E().rays(GENERATOR_FIRING_OFFSETS_DEG)
     return _Beams(rays.origins.astype(np.float32), np.ascontiguousarray(rays.origins.T),
                   np.ascontiguousarray(rays.directions.T))
 
