@@ -31,11 +31,13 @@ BENCHMARKS: dict[str, str] = {
 
 @dataclass(frozen=True)
 class Measured:
-    """Result of :func:`run_timed_subprocess`: wall seconds and peak RSS (MB) of the child."""
+    """Result of :func:`run_timed_subprocess`: wall seconds, peak RSS (MB) and CPU seconds (user + system, the
+    child and its own children) of the child."""
 
     seconds: float
     peak_rss_mb: float
     stdout: str
+    cpu_seconds: float = 0.0
 
 
 def run_timed_subprocess(argv: list[str], env: dict[str, str] | None = None) -> Measured:
@@ -48,15 +50,16 @@ def run_timed_subprocess(argv: list[str], env: dict[str, str] | None = None) -> 
         "import json,resource,subprocess,sys,time;"
         "t=time.perf_counter();p=subprocess.run(sys.argv[1:],capture_output=True,text=True);"
         "dt=time.perf_counter()-t;"
-        "r=resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss/1024;"
-        "print(json.dumps({'s':dt,'rss':r,'rc':p.returncode,'out':p.stdout,'err':p.stderr}))"
+        "u=resource.getrusage(resource.RUSAGE_CHILDREN);r=u.ru_maxrss/1024;"
+        "print(json.dumps({'s':dt,'rss':r,'cpu':u.ru_utime+u.ru_stime,'rc':p.returncode,'out':p.stdout,"
+        "'err':p.stderr}))"
     )
     proc = subprocess.run([sys.executable, "-c", wrapper, *argv], capture_output=True, text=True,
                           env={**os.environ, **(env or {})}, check=True)
     info = json.loads(proc.stdout)
     if info["rc"] != 0:
         raise RuntimeError(f"benchmarked command failed ({info['rc']}): {' '.join(argv)}\n{info['err']}")
-    return Measured(info["s"], info["rss"], info["out"])
+    return Measured(info["s"], info["rss"], info["out"], info["cpu"])
 
 
 def peak_rss_mb() -> float:

@@ -157,18 +157,21 @@ def test_gradients_match_finite_differences():
                          requires_grad=True)
     faces = np.array([[0, 1, 2], [1, 3, 2]])
     colors = torch.tensor(rng.random((4, 3)), requires_grad=True)
-    photo = torch.tensor(rng.random((10, 12, 3)))
+    photo = torch.tensor(rng.random((10, 12, 3)), requires_grad=True)
     light = Lighting(sun_direction=np.array([-0.6, 0.3, 0.74]) / np.linalg.norm([-0.6, 0.3, 0.74]),
                      sun_color=np.array([1.5, 1.4, 1.2]), sky_zenith=np.array([0.2, 0.3, 0.7]),
                      sky_horizon=np.array([0.6, 0.7, 0.8]), ambient=0.5, haze_distance=3.0, exposure=0.8)
 
-    def fn(v, c):
-        return render_camera_torch(photo, calib, [(v, faces, c)], supersample=2, lighting=light)
+    def fn(v, c, p):
+        return render_camera_torch(p, calib, [(v, faces, c)], supersample=2, lighting=light)
 
-    out = fn(verts, colors)
+    out = fn(verts, colors, photo)
     out.sum().backward()
     assert verts.grad.abs().sum() > 0 and colors.grad.abs().sum() > 0
-    assert torch.autograd.gradcheck(fn, (verts, colors), eps=1e-6, atol=1e-7, rtol=1e-5)
+    # the photo shows through by 1 - alpha: 1 outside, 0 inside, in between on the anti-aliased edge pixels
+    alpha = 1.0 - photo.grad[..., 0]
+    assert (alpha == 0).any() and (alpha == 1).any() and ((alpha > 0) & (alpha < 1)).any()
+    assert torch.autograd.gradcheck(fn, (verts, colors, photo), eps=1e-6, atol=1e-7, rtol=1e-5)
 
 
 def test_scene_depth_hides_exactly_where_nearer():
@@ -238,15 +241,10 @@ def test_bad_input_names_the_field():
         render_camera(black.astype(np.float32), calib, [])
 
 
-def test_candidate_pair_chunks_equal_one_pass_and_lie_in_the_face_boxes():
+def test_candidate_pair_chunks_equal_one_pass_and_lie_in_the_face_spans():
     """Chunked candidate pairs (two meshes: a masked region) concatenate to the one-pass pairs, every chunk
-    within its bound unless one face's box is larger, and each pair's sample lies in its face's box."""
-    from robustbench3d.sensors.camera_render import (
-        _candidate_pairs,
-        _check_meshes,
-        _face_sample_boxes,
-        _pixel_set,
-    )
+    within its bound unless one span is larger, and each pair's sample lies in its face's span."""
+    from robustbench3d.sensors.camera_render import _candidate_pairs, _check_meshes, _Geometry, _pixel_set
 
     calib = DAY_0926.calib
     v, f = icosphere(2, 0.4)
@@ -255,20 +253,68 @@ def test_candidate_pair_chunks_equal_one_pass_and_lie_in_the_face_boxes():
     region, _, _ = _pixel_set(calib, meshes, DAY_0926.image_size, False)
     assert not region.mask.all()
     s = 3
-    verts = np.concatenate([m[0].numpy() for m in meshes])
-    faces = np.concatenate([f, f + len(v)])
-    boxes = _face_sample_boxes(calib, verts, faces, s, region.rect)
-    (one_s, one_f), = list(_candidate_pairs(boxes, region, s))
-    chunks = list(_candidate_pairs(boxes, region, s, 1000))
+    spans = _Geometry.of(meshes, calib).cull.spans(s, region.rect)
+    (one_s, one_f), = list(_candidate_pairs(spans, region, s))
+    chunks = list(_candidate_pairs(spans, region, s, 1000))
     assert len(chunks) > 5
-    counts = (boxes[:, 2] - boxes[:, 0]).clip(0) * (boxes[:, 3] - boxes[:, 1]).clip(0)
-    assert all(len(c[0]) <= max(1000, counts.max()) for c in chunks)
+    assert all(len(c[0]) <= 1000 for c in chunks)
     assert np.array_equal(np.concatenate([c[0] for c in chunks]), one_s)
     assert np.array_equal(np.concatenate([c[1] for c in chunks]), one_f)
     # sample k of pixel region.pixels[k // s^2], sub-pixel (i, j) = divmod(k % s^2, s) -> absolute sample grid
     pv, pu = np.divmod(region.pixels[one_s // (s * s)], DAY_0926.image_size[0])
     i, j = np.divmod(one_s % (s * s), s)
     col, row = pu * s + j, pv * s + i
-    b = boxes[one_f]
-    assert np.all((col >= b[:, 0]) & (col < b[:, 2]) & (row >= b[:, 1]) & (row < b[:, 3]))
-    assert len(one_s) == len(np.unique(one_s * len(faces) + one_f)) > 1000
+    face, srow, c0, c1 = spans
+    key = face * 10**6 + srow  # one span per (face, row)
+    assert len(np.unique(key)) == len(key)
+    at = np.searchsorted(key, one_f * 10**6 + row)
+    assert np.array_equal(key[at], one_f * 10**6 + row)
+    assert np.all((col >= c0[at]) & (col < c1[at]))
+    assert len(one_s) == len(np.unique(one_s * 1000 + one_f)) > 1000
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("distance", [4.0, 10.0, 35.0, 80.0])
+def test_scanline_cull_is_conservative(dtype, distance):
+    """The crop (box + scanline cull of the projected triangles) renders exactly like the full image (every
+    sample near the mesh's bounding sphere against every face), for deformed objects from 4 m to 80 m, seen
+    obliquely, in float64 and float32 (whose rounding the cull's margin must cover)."""
+    from robustbench3d.attacks.object import random_shape
+
+    calib = DAY_0926.calib
+    w, h = DAY_0926.image_size
+    photo = torch.as_tensor(np.random.default_rng(5).random((h, w, 3)), dtype=torch.float32)
+    obj = random_shape(seed=int(distance * 10), amplitude=0.45)
+    meshes = []
+    for k, (x, y) in enumerate([(0.3, 0.1), (-0.35 * distance, 0.4), (0.25 * distance, -0.1)]):
+        yaw = 0.7 * k
+        rot = np.array([[np.cos(yaw), 0.0, np.sin(yaw)], [0.0, 1.0, 0.0], [-np.sin(yaw), 0.0, np.cos(yaw)]])
+        verts = obj.vertices() @ rot.T + np.array([x, y, distance + 0.5 * k])
+        meshes.append((torch.as_tensor(verts, dtype=dtype), obj.faces, torch.tensor(obj.colors, dtype=dtype)))
+    crop = render_camera_torch(photo, calib, meshes, supersample=3)
+    full = render_camera_torch(photo, calib, meshes, supersample=3, full_image=True)
+    assert (crop != photo).any()
+    assert torch.equal(crop, full)
+
+
+def test_interior_pixels_take_one_sample_edges_s_squared():
+    """Adaptive sampling by hand: a pixel whose 8 neighbours' centres show the same mesh as its own is the
+    colour at its centre (one sample, alpha 1); a silhouette pixel is the mean of its s x s samples."""
+    calib = small_calib()
+    black = torch.zeros(30, 40, 3, dtype=torch.float64)
+    cols = np.eye(3)
+    one = render_camera_torch(black, calib, [(TRI, TRI_FACES, cols)], supersample=1, lighting=FLAT)
+    four = render_camera_torch(black, calib, [(TRI, TRI_FACES, cols)], supersample=4, lighting=FLAT)
+    # (20, 15) and (14, 12) are deep inside the triangle: one centre sample, as with s = 1
+    for u, v in [(20, 15), (14, 12), (25, 15)]:
+        assert torch.equal(four[v, u], one[v, u])
+    # pixel (10, 15) lies on the edge u = 10: half its 16 samples are inside, their mean is not the centre's
+    a, b, c = np.array([10.0, 3.0]), np.array([10.0, 27.0]), np.array([32.0, 15.0])
+    expect = np.zeros(3)
+    for dv in (np.arange(4) + 0.5) / 4 - 0.5:
+        for du in (np.arange(4) + 0.5) / 4 - 0.5:
+            lb, lc = np.linalg.solve(np.column_stack([b - a, c - a]), np.array([10 + du, 15 + dv]) - a)
+            if lb >= 0 and lc >= 0 and lb + lc <= 1:
+                expect += display((1 - lb - lc) * cols[0] + lb * cols[1] + lc * cols[2]) / 16
+    np.testing.assert_allclose(four[15, 10].numpy(), expect, atol=1e-12)
+    assert not torch.allclose(four[15, 10], one[15, 10])

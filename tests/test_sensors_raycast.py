@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from robustbench3d.sensors.mesh import icosphere
-from robustbench3d.sensors.raycast import back_faces, cast_ray_pair_chunks, cast_ray_pairs, cast_rays
+from robustbench3d.sensors.raycast import PairCaster, back_faces, cast_ray_pair_chunks, cast_ray_pairs, cast_rays
 
 torch.set_num_threads(1)
 F64 = torch.float64
@@ -267,6 +267,36 @@ def test_pair_chunks_give_the_hits_of_one_call():
         assert torch.equal(a.detach(), b.detach())
     with pytest.raises(ValueError, match="field 'face_index'"):
         cast_ray_pair_chunks(vt, torch.as_tensor(f), _t(d), _t(np.zeros(3)), [(ray_all[:3], face_all[:2])])
+
+def test_pair_caster_searches_then_recomputes_like_cast_ray_pairs():
+    """PairCaster (one table, several searches, one recompute of their winners): the hits, t, u, v and
+    gradients of cast_ray_pairs bit for bit, with the search's t equal to the recomputed t and misses absent."""
+    rng = np.random.default_rng(8)
+    v, f = _blob()
+    d = _rays_at(np.array([8.0, 0.5, 0.2]), 300, 0.09, rng)
+    vt = torch.tensor(v, requires_grad=True)
+    ray_all = torch.arange(len(d)).repeat_interleave(len(f))
+    face_all = torch.arange(len(f)).repeat(len(d))
+    ref = cast_ray_pairs(vt, torch.as_tensor(f), _t(d), _t(np.zeros(3)), ray_all, face_all)
+    assert ref.hit.any() and not ref.hit.all()
+    caster = PairCaster(vt, torch.as_tensor(f), _t(np.zeros(3)))
+    half = len(d) // 2  # two searches over two halves of the rays, one recompute
+    parts = [caster.search(_t(d[:half]), [(ray_all[ray_all < half], face_all[ray_all < half])]),
+             caster.search(_t(d[half:]), [(ray_all[ray_all >= half] - half, face_all[ray_all >= half])])]
+    ray = torch.cat([parts[0][0], parts[1][0] + half])
+    face = torch.cat([parts[0][1], parts[1][1]])
+    assert parts[0][3] + parts[1][3] == len(ray_all)
+    assert torch.equal(ray, torch.nonzero(ref.hit).reshape(-1)) and torch.equal(face, ref.face[ray])
+    t, u, w = caster.recompute(_t(d)[ray], face)
+    for a, b in ((t, ref.t[ray]), (u, ref.u[ray]), (w, ref.v[ray])):
+        assert torch.equal(a.detach(), b.detach())
+    np.testing.assert_allclose(torch.cat([parts[0][2], parts[1][2]]).numpy(), t.detach().numpy(), rtol=1e-12)
+    (ga,) = torch.autograd.grad((t + 2 * u - w).sum(), vt)
+    (gb,) = torch.autograd.grad((ref.t + 2 * ref.u - ref.v).sum(), vt)
+    assert torch.equal(ga, gb) and ga.abs().sum() > 0
+    empty = caster.recompute(_t(np.zeros((0, 3))), torch.zeros(0, dtype=torch.int64))[0]
+    assert empty.shape == (0,) and empty.requires_grad
+
 
 def test_back_faces_hand_computed_tetrahedron():
     """A unit right tetrahedron (outward faces) seen from (2, 2, 2): only the slanted face x + y + z = 1

@@ -57,10 +57,14 @@ def camera_centre_rect(calib: Calibration) -> np.ndarray:
 def pixel_rays_rect(calib: Calibration, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """(N, 3) float64 unit directions in rect of the camera-2 rays through image positions (u, v)."""
     kinv = np.linalg.inv(calib.P2[:, :3])
+    u = np.asarray(u, np.float64).reshape(-1)
+    v = np.asarray(v, np.float64).reshape(-1)
     # element-wise (no GEMM): a position's ray does not depend on the other positions queried with it
-    d = (np.asarray(u, np.float64).reshape(-1, 1) * kinv[:, 0] + np.asarray(v, np.float64).reshape(-1, 1) * kinv[:, 1]
-         + kinv[:, 2])
-    return d / np.sqrt((d * d).sum(axis=1, keepdims=True))
+    d = np.empty((3, len(u)))
+    for k in range(3):
+        d[k] = u * kinv[k, 0] + v * kinv[k, 1] + kinv[k, 2]
+    d /= np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    return np.ascontiguousarray(d.T)
 
 
 @dataclass(frozen=True, eq=False)

@@ -8,23 +8,30 @@ rendered (:attr:`CameraRenderResult.status`). A mesh straddling the camera plane
 image as its box. The boxes of all meshes are rendered together, so meshes overlapping in a pixel
 resolve by depth.
 
-Each rendered pixel gets s x s samples (``supersample`` = s) at the centres of an s x s grid of
-sub-pixels; each sample is a ray from the camera-2 centre (-K^-1 P2[:, 3] in rect). Rays meet the
-meshes in the same Möller–Trumbore core as the LiDAR (:mod:`robustbench3d.sensors.raycast`), culled as
-a sparse rasteriser does: each face's projected vertices give a screen box (widened by
-:data:`BOX_MARGIN_PX` plus 1e-5 of its size, which covers the core's barycentric tolerance and rounding),
-the samples inside it (and inside the rendered pixels) become candidate (sample, face) pairs
-(``repeat_interleave`` over the boxes), which :func:`~robustbench3d.sensors.raycast.cast_ray_pairs` tests
-under no_grad, keeps the nearest hit per sample (ties: smallest face id) and recomputes with gradients
-on the winners only. Back faces of a closed star-shaped mesh seen from outside its bounding sphere get no
-pairs (:func:`~robustbench3d.sensors.raycast.back_faces`, which states the condition; the full-image
-reference skips the same faces). A face whose vertices are all at camera depth <= 0 cannot be hit by a ray through
+Sampling (adaptive anti-aliasing): each rendered pixel first gets one sample at its centre. A pixel whose
+centre shows another mesh (or none) than one of its 8 neighbours' centres lies on a silhouette or an
+occlusion edge and is refined to s x s samples (``supersample`` = s) at the centres of an s x s grid of
+sub-pixels; every other pixel keeps its centre sample (the generator renders its scene with one ray per
+pixel, so object interiors look like the scene's surfaces, and soft edges are where they differ). Each
+sample is a ray from the camera-2 centre (-K^-1 P2[:, 3] in rect). Rays meet the meshes in the same
+Möller–Trumbore core as the LiDAR (:class:`robustbench3d.sensors.raycast.PairCaster`: one per-face table,
+a no-grad search of candidate (sample, face) pairs keeping the nearest hit per sample, ties to the
+smallest face id, then one recompute with gradients on the winners of both passes), culled as a scanline
+rasteriser does: each face's projected vertices give a screen box (widened by :data:`BOX_MARGIN_PX` plus
+1e-5 of its size, which covers the core's barycentric tolerance and rounding), and in each sample row of the
+box only the columns whose 2D barycentrics are all >= -delta (:meth:`_FaceCull.spans`, a margin covering
+the core's tolerance, its rounding in the geometry dtype and perspective) become candidates. Back faces
+of a closed star-shaped mesh seen from outside its bounding sphere get no pairs
+(:func:`~robustbench3d.sensors.raycast.back_faces`, which states the condition; the full-image reference
+skips the same faces). A face whose vertices are all at camera depth <= 0 cannot be hit by a ray through
 the image (every hit has depth t * (K[2] . d) > 0) and gets no pairs; a face with a vertex at depth <= 1e-6
 (crossing the camera plane: its projection is unbounded) gets the whole rendered region as its box (not
-split: this only happens for an object within its own size of the camera). The box cull is
-conservative, so a crop renders exactly like the full image; ``full_image=True`` is an independent
-reference that casts every sample of the image with :func:`~robustbench3d.sensors.raycast.cast_rays`
-(its own 3D bounding-sphere cull).
+split: this only happens for an object within its own size of the camera). The cull is conservative, so a
+crop renders exactly like the full image; ``full_image=True`` is an independent reference that pairs every
+sample of the image near a mesh's bounding sphere with every face (same sampling rule, no boxes, no spans).
+Measured against 8 x 8 samples on every pixel (a random-shape object at 10 m): mean |difference| 1.7 8-bit
+levels, against 0.6 for 3 x 3 samples everywhere and 3.2 for one sample per pixel, at a third of the rays of
+3 x 3 everywhere.
 
 A sample hitting face f at barycentrics (u, v) and distance t is coloured with the vertex colours
 c = (1 - u - v) c0 + u c1 + v c2 (linear-RGB albedo in [0, 1], like the generator's paint), shaded with
@@ -41,11 +48,13 @@ The lighting is the embedded scene's when the depth source knows it
 (:class:`robustbench3d.synth.scene_depth.SceneRayDepth`), else :data:`DEFAULT_LIGHTING` (or the
 ``lighting`` argument). A sample is hidden where the scene depth (:mod:`robustbench3d.sensors.camera_depth`:
 camera-2 depth, i.e. rect z relative to the camera centre) is smaller than the sample's depth t * (K[2] . d).
-With alpha = (visible samples) / s^2 the pixel is
+With w = 1 for a centre sample and 1 / s^2 for a refined pixel's samples, alpha = sum_visible w and the
+pixel is
 
-    out = photo + sum_visible (colour_k - photo) / s^2 = alpha * mean_visible(colour) + (1 - alpha) * photo,
+    out = photo + sum_visible w_k (colour_k - photo) = alpha * mean_visible(colour) + (1 - alpha) * photo,
 
-in display values (the photo's [0, 1] values). Gradients: to the colours through the barycentric
+in display values (the photo's [0, 1] values); the shading and compositing run fused with a hand-written
+backward (:class:`_ShadeComposite`). Gradients: to the colours through the barycentric
 interpolation, to the vertices through u, v (interpolation), the face normal (shading) and t (haze).
 The silhouette has **no** gradient: hit/miss, visibility and the nearest-face choice are piecewise
 constant; coverage changes only by whole samples.
@@ -63,12 +72,16 @@ import torch
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.sensors.camera_depth import DepthSource, camera_centre_rect, pixel_rays_rect
 from robustbench3d.sensors.camera_model import Lighting
-from robustbench3d.sensors.raycast import back_faces, cast_ray_pair_chunks, cast_rays
+from robustbench3d.sensors.raycast import PairCaster, back_faces, index_slots
 
 #: Absolute widening (pixels) of each face's projected box in the candidate cull (see the module docstring).
 BOX_MARGIN_PX = 1e-3
 #: Candidate (sample, face) pairs tested per chunk (bounds the ray test's temporaries to about 30 MB).
 PAIR_CHUNK = 1 << 17
+#: 2D barycentric margin of the scanline cull (:meth:`_FaceCull.spans`), before the dtype's rounding term.
+SPAN_MARGIN = 1e-3
+#: Faces whose vertex depths differ by more than this factor skip the scanline cull (keep their box).
+SPAN_DEPTH_RATIO = 20.0
 #: Vertices nearer than this camera-2 depth (m) count as behind the camera for the boxes.
 _NEAR = 1e-6
 
@@ -168,6 +181,55 @@ def shade(albedo: torch.Tensor, normals: torch.Tensor, distance: torch.Tensor, l
     return shade_lit(albedo, irradiance(normals, light), distance, light)
 
 
+class _ShadeComposite(torch.autograd.Function):
+    """Shade the hit samples and composite them over the photo, fused (:func:`shade_lit` and the
+    compositing of the module docstring). With the per-face lit colours ``lit`` (U, 9) = exposure *
+    (c0 | c1 | c2) * irradiance (vertex colours times the face's :func:`irradiance`), a sample (u, v, t) of face
+    slot k shows ``tone(E h (1 - f) + f ((1 - u - v) L0 + u L1 + v L2))``, f = exp(-t / haze) (E the exposure,
+    h the horizon colour, tone the curve of :func:`srgb_tone_curve`), and pixel p of ``base`` (P, 3) becomes
+    ``base_p + sum (colour - base_p) / s^2`` over its visible samples (``owner`` (K,) their pixels).
+    Per-sample tensors are component-major (3, K) so every pass is contiguous; the backward is the chain rule
+    of the same formulas by hand (checked against finite differences) in a few fused passes."""
+
+    @staticmethod
+    def forward(ctx: Any, u: torch.Tensor, v: torch.Tensor, t: torch.Tensor, lit: torch.Tensor, slot: torch.Tensor,
+                owner: torch.Tensor, weight: torch.Tensor, base: torch.Tensor, light: dict) -> torch.Tensor:
+        g = lit.T.contiguous().index_select(1, slot)  # (9, K)
+        l0, d1, d2 = g[0:3], g[3:6] - g[0:3], g[6:9] - g[0:3]
+        fade = torch.exp(t * (-1.0 / light["haze"]))
+        haze = (light["horizon"] * light["exposure"])[:, None]
+        exposed = torch.addcmul(haze * (1.0 - fade), fade, l0 + u * d1 + v * d2)  # (3, K)
+        x = exposed / (1.0 + 0.25 * exposed)
+        curve = 1.055 * torch.pow(torch.clamp(x, min=0.0031308), 1 / 2.4) - 0.055
+        low = x <= 0.0031308
+        y = torch.where(low, 12.92 * x, curve)
+        # d tone / d exposed: the curve's slope (1.055 / 2.4) x^(1/2.4 - 1) = (y + 0.055) / (2.4 x), times dx
+        slope = torch.where(low, torch.full_like(x, 12.92), (y + 0.055) / (2.4 * x)) / (1.0 + 0.25 * exposed) ** 2
+        slope = torch.where((y >= 0.0) & (y <= 1.0), slope, torch.zeros_like(slope))
+        base_t = base.T.to(lit.dtype)  # (3, P)
+        acc = torch.zeros_like(base_t).index_add_(1, owner,
+                                                  (torch.clamp(y, 0.0, 1.0) - base_t.index_select(1, owner)) * weight)
+        ctx.save_for_backward(u, v, fade, d1, d2, exposed - haze, slope * weight, slot, owner, weight)
+        ctx.haze, ctx.n_faces = light["haze"], len(lit)
+        return (base_t + acc).T.to(base.dtype)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple:
+        u, v, fade, d1, d2, exposed_minus_haze, slope, slot, owner, weight = ctx.saved_tensors
+        g_exp = grad.T.to(slope.dtype).index_select(1, owner) * slope  # (3, K), slope includes the weight
+        g_lit = g_exp * fade  # d / d((1 - u - v) L0 + u L1 + v L2)
+        # exposed = E h + f (lit - E h), d f / d t = -f / haze: d exposed / d t = -(exposed - E h) / haze
+        g_t = (g_exp * exposed_minus_haze).sum(0) * (-1.0 / ctx.haze)
+        g_u, g_v = (g_lit * d1).sum(0), (g_lit * d2).sum(0)
+        rows = torch.cat([(1.0 - u - v) * g_lit, u * g_lit, v * g_lit])  # (9, K)
+        g_face = torch.zeros(9, ctx.n_faces, dtype=rows.dtype).index_add_(1, slot, rows).T
+        g_base = None
+        if ctx.needs_input_grad[7]:
+            covered = torch.zeros(len(grad), dtype=weight.dtype).index_add_(0, owner, weight).to(grad.dtype)
+            g_base = grad * (1.0 - covered)[:, None]
+        return g_u, g_v, g_t, g_face, None, None, None, g_base, None
+
+
 def _sample_offsets(s: int) -> np.ndarray:
     return (np.arange(s) + 0.5) / s - 0.5
 
@@ -192,40 +254,149 @@ def _culled_faces(meshes: list[tuple[torch.Tensor, np.ndarray, torch.Tensor]], o
     return np.concatenate(masks)
 
 
-def _face_sample_boxes(calib: Calibration, vertices: np.ndarray, faces: np.ndarray, s: int, rect: Box,
-                       skip: np.ndarray | None = None) -> np.ndarray:
-    """(F, 4) int64 per face the half-open box (c0, r0, c1, r1) of the sample grid (sample column c at
-    u = (c + 0.5) / s - 0.5, row r likewise) that can hold its hits, clipped to ``rect``'s samples; empty
-    for faces that cannot be hit (see the module docstring) and those of ``skip`` (F,) bool."""
-    uv, depth = calib.rect_to_image(vertices)
-    fd = depth[faces]  # (F, 3)
-    unreachable = (fd <= 0).all(axis=1)
-    if skip is not None:
-        unreachable |= skip
-    crossing = (fd <= _NEAR).any(axis=1) & ~unreachable
-    lim = np.array([rect[0], rect[1], rect[2], rect[3]], np.float64) * s  # the region's samples
-    with np.errstate(divide="ignore", invalid="ignore"):
-        fuv = np.where(crossing[:, None, None] | unreachable[:, None, None], 0.0, uv[faces])  # (F, 3, 2)
+@dataclass(frozen=True, eq=False)
+class _FaceCull:
+    """What the sample cull needs of each face (F faces), computed once per render from the float64 vertices.
+
+    Attributes:
+        lo, hi: (F, 2) the projected vertices' box (pixels), widened by the box margin (module docstring).
+        crossing: (F,) faces with a vertex at camera depth <= 1e-6: their box is the whole region.
+        unreachable: (F,) faces that cannot be hit (every vertex behind the camera, or culled back faces).
+        edge: (F, 3, 3) per edge k (opposite vertex k) a, b, c with a x + b y + c >= 0 where the face's 2D
+            barycentric of vertex k is >= -delta_f (the scanline cull of :meth:`spans`).
+        tight: (F,) faces the scanline cull applies to (else whole box rows).
+    """
+
+    lo: np.ndarray
+    hi: np.ndarray
+    crossing: np.ndarray
+    unreachable: np.ndarray
+    edge: np.ndarray
+    tight: np.ndarray
+
+    @classmethod
+    def of(cls, calib: Calibration, vertices: np.ndarray, faces: np.ndarray, skip: np.ndarray | None,
+           dtype: torch.dtype) -> _FaceCull:
+        """Faces (F, 3) of float64 rect ``vertices``; ``skip`` (F,) bool faces never hit; ``dtype`` the ray
+        test's (its rounding widens the scanline margin)."""
+        uv, depth = calib.rect_to_image(vertices)
+        p, fd = uv[faces], depth[faces]  # (F, 3, 2), (F, 3)
+        unreachable = (fd <= 0).all(axis=1)
+        if skip is not None:
+            unreachable |= skip
+        crossing = (fd <= _NEAR).any(axis=1) & ~unreachable
+        fuv = np.where(crossing[:, None, None] | unreachable[:, None, None], 0.0, p)
         lo, hi = fuv.min(axis=1), fuv.max(axis=1)
         margin = BOX_MARGIN_PX + 1e-5 * (hi - lo).max(axis=1, keepdims=True)
-        c_lo = np.ceil((lo - margin + 0.5) * s - 0.5)
-        c_hi = np.floor((hi + margin + 0.5) * s - 0.5) + 1
-    box = np.concatenate([np.clip(c_lo, lim[:2], lim[2:]), np.clip(c_hi, lim[:2], lim[2:])], axis=1)
-    box[crossing] = lim
-    box[unreachable] = 0
-    return box.astype(np.int64)
+        # the scanline cull (see spans), for the faces in front of the camera: delta_f and where it applies
+        edge_fn = np.zeros((len(faces), 3, 3))
+        tight = np.zeros(len(faces), bool)
+        ahead = np.flatnonzero(~crossing & ~unreachable)
+        q, v3 = p[ahead], vertices[faces[ahead]]
+        edge = q[:, [2, 0, 1]] - q[:, [1, 2, 0]]  # edge k runs from vertex (k+1) % 3 to (k+2) % 3
+        area2 = edge[:, 1, 0] * edge[:, 2, 1] - edge[:, 1, 1] * edge[:, 2, 0]  # (p1 - p0) x (p2 - p0)
+        e3 = v3[:, [2, 0, 1]] - v3[:, [1, 2, 0]]
+        n3 = np.cross(e3[:, 2], -e3[:, 1])
+        ray = v3.sum(axis=1) / 3 - camera_centre_rect(calib)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cos = np.abs((n3 * ray).sum(1)) / np.sqrt((n3 * n3).sum(1) * (ray * ray).sum(1))
+            cond = np.sqrt((ray * ray).sum(1) / (e3 * e3).sum(-1).min(1)) / cos
+            delta = SPAN_MARGIN + 64 * float(torch.finfo(dtype).eps) * cond
+            fa = fd[ahead]
+            ok = ((fa.max(1) <= SPAN_DEPTH_RATIO * fa.min(1)) & (np.abs(area2) > 1e-6 * (edge * edge).sum(-1).max(1))
+                  & np.isfinite(delta))
+        sign = np.sign(area2)[:, None]
+        start = q[:, [1, 2, 0]]
+        edge_fn[ahead, :, 0] = -edge[:, :, 1] * sign  # edge function a x + b y + c, positive inside
+        edge_fn[ahead, :, 1] = edge[:, :, 0] * sign
+        edge_fn[ahead, :, 2] = ((edge[:, :, 1] * start[:, :, 0] - edge[:, :, 0] * start[:, :, 1]) * sign
+                                + (np.where(ok, delta, 0.0) * np.abs(area2))[:, None])
+        tight[ahead] = ok
+        return cls(lo - margin, hi + margin, crossing, unreachable, edge_fn, tight)
+
+    def boxes(self, s: int, rect: Box) -> np.ndarray:
+        """(F, 4) int64 per face the half-open box (c0, r0, c1, r1) of the sample grid (sample column c at
+        u = (c + 0.5) / s - 0.5, row r likewise) that can hold its hits, clipped to ``rect``'s samples; empty
+        for the unreachable faces."""
+        lim = np.array(rect, np.float64) * s  # the region's samples
+        with np.errstate(invalid="ignore"):
+            c_lo = np.ceil((self.lo + 0.5) * s - 0.5)
+            c_hi = np.floor((self.hi + 0.5) * s - 0.5) + 1
+        box = np.concatenate([np.clip(c_lo, lim[:2], lim[2:]), np.clip(c_hi, lim[:2], lim[2:])], axis=1)
+        box[self.crossing] = lim
+        box[self.unreachable] = 0
+        return box.astype(np.int64)
+
+    def touching(self, region: _Region) -> np.ndarray:
+        """(F,) bool: the faces whose box overlaps the footprint [c - 0.5, c + 0.5]^2 of a pixel of ``region``'s
+        mask (so they may hit one of its samples, at any supersampling)."""
+        u0, v0 = region.rect[0], region.rect[1]
+        mh, mw = region.mask.shape
+        with np.errstate(invalid="ignore"):
+            box = np.concatenate([np.ceil(self.lo - 0.5), np.floor(self.hi + 0.5) + 1], axis=1)
+        box[self.crossing] = [u0, v0, u0 + mw, v0 + mh]
+        box[self.unreachable] = [u0, v0, u0, v0]
+        box = np.clip(box - np.array([u0, v0, u0, v0]), 0, np.array([mw, mh, mw, mh])).astype(np.int64)
+        area = np.zeros((mh + 1, mw + 1), np.int64)  # summed-area table of the mask
+        area[1:, 1:] = region.mask.cumsum(0).cumsum(1)
+        inside = area[box[:, 3], box[:, 2]] - area[box[:, 1], box[:, 2]] - area[box[:, 3], box[:, 0]] + area[box[:, 1],
+                                                                                                           box[:, 0]]
+        return (inside > 0) & (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
+
+    def spans(self, s: int, rect: Box, faces: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per face and sample row of its box (:meth:`boxes`), the half-open span [c0, c1) of sample columns
+        that can hold its hits: (face, row, c0, c1) int64 arrays of the non-empty spans, face-major, rows
+        ascending (absolute sample grid).
+
+        The scanline cull of the projected triangle: a sample is kept if each of its 2D barycentrics (of the
+        projected vertices) is >= -delta_f, delta_f = :data:`SPAN_MARGIN` plus 64 machine epsilons of the ray
+        test's dtype times the face's conditioning |centre - camera| / (shortest edge * |cos|). The ray test
+        accepts a 3D barycentric >= -1e-5 (plus its rounding), which is a 2D barycentric of the same sign
+        scaled by at most the face's depth ratio; faces whose vertex depths differ by more than
+        :data:`SPAN_DEPTH_RATIO`, that cross the camera plane, or whose projection is a sliver keep their whole
+        box rows. The cull is therefore conservative: it drops only pairs the ray test rejects. ``faces``
+        (F,) bool restricts the spans to those faces (e.g. :meth:`touching` a sparse region)."""
+        boxes = self.boxes(s, rect)
+        if faces is not None:
+            boxes[~faces] = 0
+        height = np.maximum(boxes[:, 3] - boxes[:, 1], 0)
+        nz = np.flatnonzero(height * np.maximum(boxes[:, 2] - boxes[:, 0], 0))
+        h = height[nz]
+        face = np.repeat(nz, h)
+        row = np.repeat(boxes[nz, 1] - (np.cumsum(h) - h), h) + np.arange(h.sum())
+        c0, c1 = boxes[face, 0], boxes[face, 2]
+        t = self.tight[face]
+        ft, y = face[t], (row[t] + 0.5) / s - 0.5
+        e = self.edge[ft]  # (T, 3 edges, a b c)
+        rhs = -(e[:, :, 1] * y[:, None] + e[:, :, 2])  # a x >= rhs
+        af = e[:, :, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = rhs / af
+            lows = np.where(af > 0, x, -np.inf)
+            highs = np.where(af < 0, x, np.inf)
+            lo = np.maximum(np.maximum(lows[:, 0], lows[:, 1]), lows[:, 2])
+            hi = np.minimum(np.minimum(highs[:, 0], highs[:, 1]), highs[:, 2])
+            dead = (af == 0) & (rhs > 0)
+            lo[dead[:, 0] | dead[:, 1] | dead[:, 2]] = np.inf
+            c_lo = np.ceil((lo + 0.5) * s - 0.5)
+            c_hi = np.floor((hi + 0.5) * s - 0.5) + 1
+        b0, b1 = c0[t], c1[t]
+        c0[t] = np.clip(c_lo, b0, b1).astype(np.int64)
+        c1[t] = np.clip(c_hi, b0, b1).astype(np.int64)
+        keep = c1 > c0
+        return face[keep], row[keep], c0[keep], c1[keep]
 
 
-def _candidate_pairs(boxes: np.ndarray, region: _Region, s: int,
+def _candidate_pairs(spans: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], region: _Region, s: int,
                      chunk: int | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """Candidate (sample, face) pairs: every sample of each face's box (:func:`_face_sample_boxes`) whose
-    pixel is rendered, face-major and row-major within a box. Samples are numbered pixel-major in
-    ``region.pixels`` order (s^2 per pixel, sub-pixel row-major). Yields (samples, faces) in chunks of whole
-    faces of at most ``chunk`` pairs each (one face's if larger), all in one chunk for None."""
-    width = np.maximum(boxes[:, 2] - boxes[:, 0], 0)
-    height = np.maximum(boxes[:, 3] - boxes[:, 1], 0)
-    nonempty = np.flatnonzero(width * height)
-    if len(nonempty) == 0:
+    """Candidate (sample, face) pairs: every sample of each span (:meth:`_FaceCull.spans`) whose pixel is rendered,
+    in span order. Samples are numbered pixel-major in ``region.pixels`` order (s^2 per pixel, sub-pixel
+    row-major). Yields (samples, faces) in chunks of whole spans of at most ``chunk`` pairs each (one span's
+    if larger), all in one chunk for None."""
+    face, row, c0, c1 = spans
+    count = c1 - c0
+    if len(count) == 0:
         return
     mask = region.mask.reshape(-1)
     mh, mw = region.mask.shape
@@ -236,26 +407,22 @@ def _candidate_pairs(boxes: np.ndarray, region: _Region, s: int,
     else:
         pos = np.where(mask, np.cumsum(mask) - 1, -1)  # position of a pixel of the mask in region.pixels
         row_local, row_sub = pv * mw, i * s
-    ends = np.cumsum(width[nonempty] * height[nonempty])
+    ends = np.cumsum(count)
     start = 0
-    while start < len(nonempty):
+    while start < len(count):
         done = ends[start - 1] if start else 0
-        stop = len(nonempty) if chunk is None else max(start + 1, int(np.searchsorted(ends, done + chunk, "right")))
-        f = nonempty[start:stop]
+        stop = len(count) if chunk is None else max(start + 1, int(np.searchsorted(ends, done + chunk, "right")))
+        k = count[start:stop]
+        lr = np.repeat(row[start:stop] - region.rect[1] * s, k)  # region-local sample row and column per pair
+        col = np.repeat(c0[start:stop] - region.rect[0] * s - (np.cumsum(k) - k), k) + np.arange(int(k.sum()))
+        fc = np.repeat(face[start:stop], k)
         start = stop
-        h, w = height[f], width[f]
-        # one entry per box row (region sample row ``row``), then one per sample of the row (column ``col``)
-        row = np.repeat(boxes[f, 1] - region.rect[1] * s - (np.cumsum(h) - h), h) + np.arange(h.sum())
-        rw = np.repeat(w, h)
-        col = np.repeat(np.repeat(boxes[f, 0] - region.rect[0] * s, h) - (np.cumsum(rw) - rw), rw)
-        col += np.arange(len(col))
-        face = np.repeat(np.repeat(f, h), rw)
         if whole:
-            yield np.repeat(row_part[row], rw) + col_part[col], face
+            yield row_part[lr] + col_part[col], fc
             continue
-        at = pos[np.repeat(row_local[row], rw) + pu[col]]
+        at = pos[row_local[lr] + pu[col]]
         keep = at >= 0
-        yield (at * (s * s) + np.repeat(row_sub[row], rw) + j[col])[keep], face[keep]
+        yield (at * (s * s) + row_sub[lr] + j[col])[keep], fc[keep]
 
 
 def _as_tensor(x: Any, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -283,87 +450,164 @@ def _check_meshes(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.nd
     return out
 
 
-def _render_pixels(base: torch.Tensor, w: int, calib: Calibration,
-                   meshes: list[tuple[torch.Tensor, np.ndarray, torch.Tensor]],
-                   region: _Region, supersample: int, scene_depth: DepthSource | None, lighting: Lighting,
-                   full_image: bool) -> tuple[torch.Tensor, np.ndarray]:
-    """Render the pixels of ``region`` of an image ``w`` pixels wide whose photo values there are ``base`` (P, 3):
-    (values (P, 3), alpha (P,))."""
-    pixels = region.pixels
-    s, s2 = supersample, supersample * supersample
-    dtype = meshes[0][0].dtype
-    verts = torch.cat([m[0].to(dtype) for m in meshes])
-    colors = torch.cat([m[2].to(dtype) for m in meshes])
-    offsets = np.cumsum([0] + [len(m[0]) for m in meshes[:-1]])
-    faces = np.concatenate([m[1] + off for m, off in zip(meshes, offsets, strict=True)])
-    faces_t = torch.from_numpy(faces)
+@dataclass(frozen=True, eq=False)
+class _Geometry:
+    """The meshes of a render, concatenated: vertices (V, 3) and colours (V, 3) in the geometry dtype, faces
+    (F, 3) (numpy and torch), float64 vertices, the culled back faces (F,) bool, each face's mesh (F,), the
+    camera centre (rect, float64 and as a tensor)."""
 
-    pix_v, pix_u = np.divmod(pixels, w)
+    verts: torch.Tensor
+    colors: torch.Tensor
+    faces: np.ndarray
+    faces_t: torch.Tensor
+    vnp: np.ndarray
+    culled: np.ndarray
+    mesh_of_face: np.ndarray
+    centre: np.ndarray
+    origin: torch.Tensor
+    cull: _FaceCull
+
+    @classmethod
+    def of(cls, meshes: list[tuple[torch.Tensor, np.ndarray, torch.Tensor]], calib: Calibration) -> _Geometry:
+        dtype = meshes[0][0].dtype
+        offsets = np.cumsum([0] + [len(m[0]) for m in meshes[:-1]])
+        faces = np.concatenate([m[1] + off for m, off in zip(meshes, offsets, strict=True)])
+        verts = torch.cat([m[0].to(dtype) for m in meshes])
+        centre = camera_centre_rect(calib)
+        vnp = verts.detach().cpu().numpy().astype(np.float64)
+        culled = _culled_faces(meshes, centre)
+        return cls(verts, torch.cat([m[2].to(dtype) for m in meshes]), faces, torch.from_numpy(faces), vnp, culled,
+                   np.repeat(np.arange(len(meshes)), [len(m[1]) for m in meshes]), centre,
+                   torch.from_numpy(centre).to(dtype), _FaceCull.of(calib, vnp, faces, culled, dtype))
+
+
+@dataclass(frozen=True, eq=False)
+class _Hits:
+    """Visible hits of a set of samples (no grad yet): the sample indices (K,) ascending, their faces (K,) and
+    ray directions (K, 3); the samples cast and the (sample, face) pairs tested."""
+
+    sample: np.ndarray
+    face: torch.Tensor
+    dirs: torch.Tensor
+    cast: int
+    tests: int
+
+    def select(self, keep: np.ndarray) -> _Hits:
+        kt = torch.from_numpy(keep)
+        return _Hits(self.sample[keep], self.face[kt], self.dirs[kt], self.cast, self.tests)
+
+
+def _dense_pairs(rays: np.ndarray, faces: np.ndarray) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+    """Every (ray, face) pair of ``rays`` x ``faces``, in chunks of about :data:`PAIR_CHUNK` pairs."""
+    step = max(1, PAIR_CHUNK // max(len(faces), 1))
+    for i in range(0, len(rays), step):
+        r = rays[i:i + step]
+        yield torch.from_numpy(np.repeat(r, len(faces))), torch.from_numpy(np.tile(faces, len(r)))
+
+
+def _visible_hits(calib: Calibration, g: _Geometry, caster: PairCaster, region: _Region, w: int, s: int,
+                  scene_depth: DepthSource | None, full_image: bool) -> _Hits:
+    """Search the s x s samples of each pixel of ``region`` (numbered pixel-major, s^2 per pixel, sub-pixel
+    row-major) and keep the nearest hits the scene depth does not hide (module docstring)."""
+    pix_v, pix_u = np.divmod(region.pixels, w)
     off = _sample_offsets(s)
     su = (pix_u[:, None] + np.tile(off, s)[None, :]).reshape(-1)  # sample k = (row i, col j), k = i * s + j
     sv = (pix_v[:, None] + np.repeat(off, s)[None, :]).reshape(-1)
     dirs_np = pixel_rays_rect(calib, su, sv)
-    dirs = torch.from_numpy(dirs_np).to(dtype)
-    centre = camera_centre_rect(calib)
-    origin = torch.from_numpy(centre).to(dtype)
-    culled = _culled_faces(meshes, centre)
-    if full_image:  # the reference: every sample near a mesh's bounding sphere, with cast_rays' own cull
-        cast = _sphere_cull(dirs_np, centre, [m[0].detach().cpu().numpy() for m in meshes])
-        hits = cast_rays(verts, faces_t, dirs.index_select(0, torch.from_numpy(cast)), origin,
-                         skip_faces=torch.from_numpy(culled))
+    dirs = torch.from_numpy(dirs_np).to(caster.dtype)
+    if full_image:  # the reference: every sample near a mesh's bounding sphere x every face not culled
+        mesh_verts = [g.vnp[np.unique(g.faces[g.mesh_of_face == i])] for i in range(g.mesh_of_face.max() + 1)]
+        pairs = _dense_pairs(_sphere_cull(dirs_np, g.centre, mesh_verts), np.flatnonzero(~g.culled))
     else:
-        boxes = _face_sample_boxes(calib, verts.detach().cpu().numpy().astype(np.float64), faces, s, region.rect,
-                                   culled)
-        pairs = ((torch.from_numpy(a), torch.from_numpy(b)) for a, b in _candidate_pairs(boxes, region, s, PAIR_CHUNK))
-        hits = cast_ray_pair_chunks(verts, faces_t, dirs, origin, pairs, name="render_camera")
-        cast = None
-    hit_t = torch.nonzero(hits.hit).reshape(-1)
-    samples = hit_t.numpy() if cast is None else cast[hit_t.numpy()]
-    face_t = hits.face.index_select(0, hit_t)
-    t, u, v = hits.t.index_select(0, hit_t), hits.u.index_select(0, hit_t), hits.v.index_select(0, hit_t)
+        pairs = ((torch.from_numpy(a), torch.from_numpy(b))
+                 for a, b in _candidate_pairs(g.cull.spans(s, region.rect, g.cull.touching(region)), region, s,
+                                              PAIR_CHUNK))
+    ray, face, t, tests = caster.search(dirs, pairs, check=False)  # in range by construction
+    hits = _Hits(ray.numpy(), face, dirs.index_select(0, ray), len(su), tests)
+    if scene_depth is None or len(hits.sample) == 0:
+        return hits
+    sample = hits.sample
+    kz = dirs_np[sample] @ calib.P2[2, :3]  # camera-2 depth per unit of ray length
+    scene = np.asarray(scene_depth.depth(su[sample], sv[sample]), np.float64)
+    return hits.select(np.flatnonzero(~(scene < t.numpy().astype(np.float64) * kz)))
 
-    if scene_depth is not None and len(samples):
-        kz = dirs_np[samples] @ calib.P2[2, :3]  # camera-2 depth per unit of ray length
-        scene = np.asarray(scene_depth.depth(su[samples], sv[samples]), np.float64)
-        keep = torch.from_numpy(np.flatnonzero(~(scene < t.detach().cpu().numpy().astype(np.float64) * kz)))
-        samples, face_t, t, u, v = samples[keep.numpy()], face_t[keep], t[keep], u[keep], v[keep]
 
-    # per face of the hits: camera-facing unit normal and the irradiance factor (shade); per sample: albedo
-    used, slot = torch.unique(face_t, return_inverse=True)
+def _edge_pixels(region: _Region, shows: np.ndarray) -> np.ndarray:
+    """(P,) bool over ``region.pixels``: the pixels whose centre shows another mesh (or none, -1) than one of
+    their 8 neighbours' centres (``shows`` (P,) per pixel; pixels outside the region show none)."""
+    mh, mw = region.mask.shape
+    grid = np.full((mh + 2, mw + 2), -1, np.int64)
+    grid[1:-1, 1:-1][region.mask] = shows
+    inner = grid[1:-1, 1:-1]
+    edge = np.zeros((mh, mw), bool)
+    for dv in (-1, 0, 1):
+        for du in (-1, 0, 1):
+            if dv or du:
+                edge |= grid[1 + dv:1 + dv + mh, 1 + du:1 + du + mw] != inner
+    return edge[region.mask]
+
+
+def _render_pixels(base: torch.Tensor, w: int, calib: Calibration,
+                   meshes: list[tuple[torch.Tensor, np.ndarray, torch.Tensor]],
+                   region: _Region, supersample: int, scene_depth: DepthSource | None, lighting: Lighting,
+                   full_image: bool) -> tuple[torch.Tensor, np.ndarray, tuple[int, int]]:
+    """Render the pixels of ``region`` of an image ``w`` pixels wide whose photo values there are ``base`` (P, 3):
+    (values (P, 3), alpha (P,), (samples cast, pairs tested)). Sampling: the module docstring."""
+    s, s2 = supersample, supersample * supersample
+    g = _Geometry.of(meshes, calib)
+    caster = PairCaster(g.verts, g.faces_t, g.origin, name="render_camera")
+    centre = _visible_hits(calib, g, caster, region, w, 1, scene_depth, full_image)
+    parts, owner, weight = [centre], centre.sample, np.ones(len(centre.sample))
+    cast, tests = centre.cast, centre.tests
+    if s > 1:
+        shows = np.full(len(region.pixels), -1, np.int64)
+        shows[centre.sample] = g.mesh_of_face[centre.face.numpy()]
+        edge = _edge_pixels(region, shows)
+        refined = np.flatnonzero(edge)
+        if len(refined):
+            mask = np.zeros_like(region.mask)
+            mask[region.mask] = edge
+            fine = _visible_hits(calib, g, caster, _Region(region.rect, mask, region.pixels[refined]), w, s,
+                                 scene_depth, full_image)
+            keep = np.flatnonzero(~edge[centre.sample])
+            parts = [centre.select(keep), fine]
+            owner = np.concatenate([centre.sample[keep], refined[fine.sample // s2]])
+            weight = np.concatenate([np.ones(len(keep)), np.full(len(fine.sample), 1.0 / s2)])
+            cast, tests = cast + fine.cast, tests + fine.tests
+    face_t = torch.cat([p.face for p in parts])
+    t, u, v = caster.recompute(torch.cat([p.dirs for p in parts]), face_t)
+
+    # per face of the hits: camera-facing unit normal, irradiance and vertex colours; per sample: the fused
+    # shading and compositing of _ShadeComposite
+    verts, faces_t = g.verts, g.faces_t
+    used, slot = index_slots(face_t, len(faces_t))
     fu = faces_t.index_select(0, used)
     a0 = verts.index_select(0, fu[:, 0])
     n = torch.linalg.cross(verts.index_select(0, fu[:, 1]) - a0, verts.index_select(0, fu[:, 2]) - a0, dim=-1)
     n = n / torch.clamp(torch.linalg.norm(n, dim=-1, keepdim=True), min=1e-30)
     # two-sided: turned towards the camera (the sign of n . d is the same for every ray hitting the face)
-    n = torch.where(((a0 - origin) * n).sum(-1, keepdim=True).detach() > 0, -n, n)
-    light = _rect_lighting(lighting, calib, dtype)
-    fv = fu.index_select(0, slot)
-    w0 = (1.0 - u - v)[:, None]
-    albedo = (w0 * colors.index_select(0, fv[:, 0]) + u[:, None] * colors.index_select(0, fv[:, 1])
-              + v[:, None] * colors.index_select(0, fv[:, 2]))
-    colour = shade_lit(albedo, irradiance(n, light).index_select(0, slot), t, light).to(base.dtype)
-    samples_t = torch.from_numpy(samples)
-
-    owner = samples_t // s2
-    acc = torch.zeros_like(base).index_add(0, owner, colour - base[owner])
-    alpha = np.bincount(samples // s2, minlength=len(pixels)) / s2
-    return base + acc / s2, alpha
+    n = torch.where(((a0 - g.origin) * n).sum(-1, keepdim=True).detach() > 0, -n, n)
+    light = _rect_lighting(lighting, calib, verts.dtype)
+    lit = (g.colors.index_select(0, fu.reshape(-1)).reshape(-1, 3, 3) * irradiance(n, light)[:, None, :]
+           * light["exposure"]).reshape(-1, 9)
+    out = _ShadeComposite.apply(u, v, t, lit, slot, torch.from_numpy(owner), torch.from_numpy(weight).to(verts.dtype),
+                                base, light)
+    alpha = np.bincount(owner, weights=weight, minlength=len(region.pixels))
+    return out, alpha, (cast, tests)
 
 
 def camera_ray_tests(calib: Calibration, meshes: Sequence[MeshInput], image_size: tuple[int, int],
                      supersample: int = 3) -> tuple[int, int]:
-    """(samples rendered, candidate (sample, face) pairs tested) of a crop render (for benchmarks)."""
+    """(samples cast, candidate (sample, face) pairs tested) of a crop render (for benchmarks)."""
     _check_supersample(supersample)
     checked = _check_meshes(meshes)
     region = _pixel_set(calib, checked, image_size, False)[0] if checked else None
     if region is None:
         return 0, 0
-    verts = np.concatenate([m[0].detach().cpu().numpy().astype(np.float64) for m in checked])
-    offsets = np.cumsum([0] + [len(m[0]) for m in checked[:-1]])
-    faces = np.concatenate([m[1] + off for m, off in zip(checked, offsets, strict=True)])
-    boxes = _face_sample_boxes(calib, verts, faces, supersample, region.rect,
-                               _culled_faces(checked, camera_centre_rect(calib)))
-    return len(region.pixels) * supersample ** 2, sum(len(a) for a, _ in _candidate_pairs(boxes, region, supersample))
+    with torch.inference_mode():
+        base = torch.zeros(len(region.pixels), 3, dtype=torch.float64)
+        return _render_pixels(base, image_size[0], calib, checked, region, supersample, None, DEFAULT_LIGHTING,
+                              False)[2]
 
 
 def _sphere_cull(dirs: np.ndarray, origin: np.ndarray, meshes: list[np.ndarray]) -> np.ndarray:
@@ -414,6 +658,46 @@ def _check_supersample(supersample: int) -> None:
         raise ValueError(f"render_camera: field 'supersample': must be an integer >= 1, got {supersample!r}")
 
 
+@dataclass(frozen=True, eq=False)
+class CameraCrop:
+    """The rendered pixels of :func:`render_camera_crop_torch`.
+
+    Attributes:
+        pixels: (P,) int64 flat indices v * W + u of the rendered pixels (row-major; empty if none).
+        values: (P, 3) their composited display values in [0, 1], differentiable like the image.
+        rect: (u0, v0, u1, v1) bounding box of the pixels (half-open), None if nothing is rendered.
+    """
+
+    pixels: torch.Tensor
+    values: torch.Tensor
+    rect: Box | None
+
+    def composite(self, image: torch.Tensor) -> torch.Tensor:
+        """The (H, W, 3) image with the crop's pixels replaced (a copy; gradients to both)."""
+        h, w, _ = image.shape
+        return image.reshape(-1, 3).index_put((self.pixels,), self.values).reshape(h, w, 3)
+
+
+def render_camera_crop_torch(image: torch.Tensor, calib: Calibration, meshes: Sequence[MeshInput], *,
+                             scene_depth: DepthSource | None = None, supersample: int = 3,
+                             lighting: Lighting | None = None, full_image: bool = False) -> CameraCrop:
+    """Differentiable camera render of only the pixels the meshes can cover (:class:`CameraCrop`); arguments
+    as :func:`render_camera_torch`, which is ``render_camera_crop_torch(...).composite(image)``. Nothing of
+    the size of the image is computed: a loss on the crop costs only the object's pixels."""
+    _check_supersample(supersample)
+    if image.dim() != 3 or image.shape[2] != 3:
+        raise ValueError(f"render_camera: field 'image': expected (H, W, 3), got {tuple(image.shape)}")
+    checked = _check_meshes(meshes)
+    h, w, _ = image.shape
+    region = _pixel_set(calib, checked, (w, h), full_image)[0] if checked else None
+    if region is None:
+        return CameraCrop(torch.zeros(0, dtype=torch.int64), image.new_zeros(0, 3), None)
+    index = torch.from_numpy(region.pixels)
+    values = _render_pixels(image.reshape(-1, 3).index_select(0, index), w, calib, checked, region, supersample,
+                            scene_depth, _resolve_lighting(lighting, scene_depth), full_image)[0]
+    return CameraCrop(index, values, region.rect)
+
+
 def render_camera_torch(image: torch.Tensor, calib: Calibration, meshes: Sequence[MeshInput], *,
                         scene_depth: DepthSource | None = None, supersample: int = 3,
                         lighting: Lighting | None = None, full_image: bool = False) -> torch.Tensor:
@@ -430,20 +714,9 @@ def render_camera_torch(image: torch.Tensor, calib: Calibration, meshes: Sequenc
         lighting: sun and sky (velodyne directions); default: the depth source's, else DEFAULT_LIGHTING.
         full_image: render every pixel of the image, not only the meshes' boxes (a reference; slow).
     """
-    _check_supersample(supersample)
-    if image.dim() != 3 or image.shape[2] != 3:
-        raise ValueError(f"render_camera: field 'image': expected (H, W, 3), got {tuple(image.shape)}")
-    checked = _check_meshes(meshes)
-    h, w, _ = image.shape
-    if not checked:
-        return image
-    region, _, _ = _pixel_set(calib, checked, (w, h), full_image)
-    if region is None:
-        return image
-    index = torch.from_numpy(region.pixels)
-    values, _ = _render_pixels(image.reshape(-1, 3).index_select(0, index), w, calib, checked, region, supersample,
-                               scene_depth, _resolve_lighting(lighting, scene_depth), full_image)
-    return image.reshape(-1, 3).index_put((index,), values).reshape(h, w, 3)
+    crop = render_camera_crop_torch(image, calib, meshes, scene_depth=scene_depth, supersample=supersample,
+                                    lighting=lighting, full_image=full_image)
+    return image if crop.rect is None else crop.composite(image)
 
 
 def render_camera(image: np.ndarray, calib: Calibration, meshes: Sequence[MeshInput], *,
@@ -468,7 +741,7 @@ def render_camera(image: np.ndarray, calib: Calibration, meshes: Sequence[MeshIn
     if region is not None:
         with torch.inference_mode():
             base = torch.from_numpy(image.reshape(-1, 3)[region.pixels].astype(np.float64)) / 255.0
-            values, cover = _render_pixels(base, w, calib, checked, region, supersample, scene_depth,
+            values, cover, _ = _render_pixels(base, w, calib, checked, region, supersample, scene_depth,
                                            _resolve_lighting(lighting, scene_depth), full_image)
         rendered = np.clip(np.round(values.numpy() * 255.0), 0, 255).astype(np.uint8)
         out.reshape(-1, 3)[region.pixels] = rendered

@@ -30,7 +30,7 @@ Barycentric tolerance 1e-6 (float64) / 1e-5 (float32) so rays through edges and 
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -38,6 +38,8 @@ import torch
 
 #: Rays x faces per chunk of the no-grad search (bounds its memory to about 150 MB even if every pair is tested).
 SEARCH_CHUNK_PAIRS = 1 << 20
+#: Rays per block of the grouped search's batched ray-sphere products (:func:`_group_sphere_pairs`).
+GROUP_RAY_BLOCK = 32
 #: Consecutive faces sharing one bounding sphere in the search (icosphere level L: face k of level L - 1 becomes
 #: faces 4k..4k+3; other meshes work whatever their face order, only faster when it is coherent).
 CLUSTER_SIZE = 4
@@ -46,8 +48,8 @@ _SLIVER = {torch.float64: 1e-10, torch.float32: 1e-5}
 #: Barycentric tolerance: rays tangent to an edge or through a vertex still hit one of its faces.
 _BARY_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 
-__all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "RayHits", "back_faces", "cast_ray_pair_chunks", "cast_ray_pairs",
-           "cast_rays"]
+__all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "PairCaster", "RayHits", "back_faces", "cast_ray_pair_chunks",
+           "cast_ray_pairs", "cast_rays", "index_slots"]
 
 
 @dataclass(frozen=True)
@@ -143,11 +145,17 @@ def _test_pairs(table: torch.Tensor, d_cols: torch.Tensor, h: torch.Tensor | Non
 def _nearest(ray: torch.Tensor, face: torch.Tensor, t: torch.Tensor, n_rays: int, n_faces: int) -> torch.Tensor:
     """(n_rays,) int64 nearest face per ray among the hitting pairs (ray, face, t), -1 where none; equal t
     resolve to the smallest face index (deterministic whatever the pair order)."""
+    return _nearest_t(ray, face, t, n_rays, n_faces)[0]
+
+
+def _nearest_t(ray: torch.Tensor, face: torch.Tensor, t: torch.Tensor, n_rays: int, n_faces: int
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_nearest` and the nearest t per ray (+inf where none)."""
     best = torch.full((n_rays,), float("inf"), dtype=t.dtype, device=t.device).scatter_reduce(0, ray, t, "amin")
     win = t == best.index_select(0, ray)
     first = torch.full((n_rays,), n_faces, dtype=torch.int64, device=t.device)
     first = first.scatter_reduce(0, ray[win], face[win], "amin")
-    return torch.where(first < n_faces, first, torch.full_like(first, -1))
+    return torch.where(first < n_faces, first, torch.full_like(first, -1)), best
 
 
 class _PairTUV(torch.autograd.Function):
@@ -189,6 +197,13 @@ class _PairTUV(torch.autograd.Function):
         return gm, None, None, None
 
 
+def index_slots(index: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(used, slot) of int64 indices (K,) into range(n): the sorted distinct indices and each index's position
+    among them (``torch.unique(index, return_inverse=True)`` in O(K + n), without a sort)."""
+    present = torch.zeros(n, dtype=torch.int64, device=index.device).index_fill_(0, index, 1)
+    return torch.nonzero(present).reshape(-1), (torch.cumsum(present, 0) - 1).index_select(0, index)
+
+
 def _recompute(vertices: torch.Tensor, faces_t: torch.Tensor, d: torch.Tensor, origin: torch.Tensor,
                h: torch.Tensor | None, axis: torch.Tensor, ray: torch.Tensor, face: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -196,7 +211,7 @@ def _recompute(vertices: torch.Tensor, faces_t: torch.Tensor, d: torch.Tensor, o
     (:func:`_face_tables`' vectors, no sign fold) formed with autograd once per face (all faces, or those of
     the pairs when there are fewer pairs than faces), then :class:`_PairTUV` per pair."""
     if len(face) < len(faces_t):
-        used, slot = torch.unique(face, return_inverse=True)
+        used, slot = index_slots(face, len(faces_t))
         f = faces_t.index_select(0, used)
     else:
         slot, f = face, faces_t
@@ -248,6 +263,60 @@ def _sphere_pairs(centre: torch.Tensor, radius: torch.Tensor, n_faces: int, dc: 
     return ray, fc
 
 
+def _group_sphere_pairs(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, d: torch.Tensor, hz: torch.Tensor,
+                        origin: torch.Tensor, axis: torch.Tensor, groups: Sequence[tuple[torch.Tensor, int, int]]
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ray (K,), face (K,)) pairs of :func:`_search_groups` for groups (rays, first face, end face; each with
+    rays) of one cluster count C: per group, its rays through the bounding spheres of its clusters
+    (:func:`_cluster_spheres` of its faces). The groups are batched: their rays in blocks of at most
+    :data:`GROUP_RAY_BLOCK` (one group per block), each block against its group's C spheres with
+    :func:`_sphere_pairs`' arithmetic (a batched product), at most ``SEARCH_CHUNK_PAIRS / CLUSTER_SIZE``
+    (ray, sphere) tests at a time."""
+    dev, cs = d.device, CLUSTER_SIZE
+    f0 = torch.tensor([g[1] for g in groups], dtype=torch.int64, device=dev)
+    f1 = torch.tensor([g[2] for g in groups], dtype=torch.int64, device=dev)
+    n_cl = -(-(groups[0][2] - groups[0][1]) // cs)
+    # The faces of each group's clusters, the last face repeated to fill the last cluster (as _cluster_spheres).
+    slot = torch.minimum(f0[:, None] + torch.arange(n_cl * cs, device=dev)[None, :], f1[:, None] - 1)
+    corners = torch.stack([v0, v0 + e1, v0 + e2], 1).index_select(0, slot.reshape(-1))
+    corners = corners.reshape(len(groups), n_cl, 3 * cs, 3)
+    centre = 0.5 * (corners.amin(2) + corners.amax(2))
+    radius = torch.linalg.norm(corners - centre[:, :, None, :], dim=-1).amax(2) * (1 + 1e-3) + 1e-9
+    # Rays in blocks of one group each.
+    chunk = max(1, SEARCH_CHUNK_PAIRS // cs // n_cl)  # (ray, sphere) tests per product
+    width = max(1, min(GROUP_RAY_BLOCK, chunk))
+    counts = torch.tensor([len(g[0]) for g in groups], dtype=torch.int64, device=dev)
+    blocks = -(-counts // width)
+    group = torch.repeat_interleave(torch.arange(len(groups), device=dev), blocks)
+    first = torch.cumsum(counts, 0) - counts  # each group's first ray in ``rays``
+    rank = torch.arange(len(group), device=dev) - (torch.cumsum(blocks, 0) - blocks).index_select(0, group)
+    pos = (first.index_select(0, group) + rank * width)[:, None] + torch.arange(width, device=dev)[None, :]
+    valid = pos < (first + counts).index_select(0, group)[:, None]
+    rays = torch.cat([g[0] for g in groups])
+    ray_blocks = rays.index_select(0, pos.clamp(max=len(rays) - 1).reshape(-1)).reshape(pos.shape)
+    out_r, out_f = [], []
+    step = max(1, chunk // width)
+    for lo in range(0, len(group), step):
+        bg, rb = group[lo:lo + step], ray_blocks[lo:lo + step]
+        dc = d.index_select(0, rb.reshape(-1)).reshape(len(rb), width, 3)
+        hc = hz.index_select(0, rb.reshape(-1)).reshape(len(rb), width)
+        w0 = centre.index_select(0, bg) - origin  # centre - ray origin = w0 - h a
+        w0a = w0 @ axis
+        w0sq = (w0 * w0).sum(-1)
+        proj = torch.bmm(dc, w0.transpose(1, 2)) - hc[:, :, None] * (dc @ axis)[:, :, None]
+        dist2 = w0sq[:, None, :] - 2 * hc[:, :, None] * w0a[:, None, :] + (hc * hc)[:, :, None] - proj * proj
+        r = radius.index_select(0, bg)[:, None, :]
+        near = (dist2 <= r ** 2) & (proj > -r) & valid[lo:lo + step, :, None]
+        b, k, c = torch.nonzero(near, as_tuple=True)
+        fc = ((f0.index_select(0, bg.index_select(0, b)) + c * cs)[:, None]
+              + torch.arange(cs, device=dev)[None, :]).reshape(-1)
+        ray = rb[b, k].repeat_interleave(cs)
+        inside = fc < f1.index_select(0, bg.index_select(0, b)).repeat_interleave(cs)
+        out_r.append(ray[inside])
+        out_f.append(fc[inside])
+    return torch.cat(out_r), torch.cat(out_f)
+
+
 def _search(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, table: torch.Tensor, d: torch.Tensor,
             origin: torch.Tensor, h: torch.Tensor | None, axis: torch.Tensor, t_min: float,
             tol: float) -> tuple[torch.Tensor, int]:
@@ -281,22 +350,15 @@ def _search_groups(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, table: 
     faces only (clusters formed within the group); the nearest face per ray is kept over all groups."""
     n_rays, n_faces = len(d), len(v0)
     hz = torch.zeros(n_rays, dtype=d.dtype, device=d.device) if h is None else h
-    rays, faces = [], []
-    for gr, f0, f1 in groups:
-        if len(gr) == 0 or f1 <= f0:
-            continue
-        centre, radius = _cluster_spheres(v0[f0:f1], e1[f0:f1], e2[f0:f1])
-        step = max(1, SEARCH_CHUNK_PAIRS // (f1 - f0))
-        for lo in range(0, len(gr), step):
-            rc = gr[lo:lo + step]
-            ray, fc = _sphere_pairs(centre, radius, f1 - f0, d.index_select(0, rc), hz.index_select(0, rc),
-                                    origin, axis)
-            rays.append(rc.index_select(0, ray))
-            faces.append(fc + f0)
+    live = [(gr, f0, f1) for gr, f0, f1 in groups if len(gr) and f1 > f0]
     face = torch.full((n_rays,), -1, dtype=torch.int64, device=d.device)
-    if not rays:
+    if not live:
         return face, 0
-    ray, fc = torch.cat(rays), torch.cat(faces)
+    by_size: dict[int, list[tuple[torch.Tensor, int, int]]] = {}
+    for g in live:  # groups with as many clusters share one batched product
+        by_size.setdefault(-(-(g[2] - g[1]) // CLUSTER_SIZE), []).append(g)
+    pairs = [_group_sphere_pairs(v0, e1, e2, d, hz, origin, axis, same) for same in by_size.values()]
+    ray, fc = torch.cat([r for r, _ in pairs]), torch.cat([f for _, f in pairs])
     if len(fc):
         ok, tc = _test_pairs(table, d.T.contiguous(), h, ray, fc, t_min, tol)
         if len(tc):
@@ -493,30 +555,84 @@ def cast_ray_pair_chunks(vertices: torch.Tensor, faces: torch.Tensor, directions
     one chunk at a time: the same hits as one call with all pairs (the test is element-wise and the nearest
     hit is taken over all chunks), with temporaries bounded by the largest chunk."""
     p = _prepare(vertices, faces, directions, origin, origin_offset, offset_axis, name)
+    with torch.no_grad():
+        table = _face_geometry(p, cos_min)[3] if len(p.faces) else None
+    face, _, tests = _pair_search(p, table, chunks, t_min, name)
+    return _hits(p, face, tests)
+
+
+class PairCaster:
+    """Casts of candidate (ray, face) pairs from one shared origin against one triangle mesh, with the
+    per-face test table (:func:`_face_tables`) built once for every cast: :meth:`search` (no grad, the
+    kernel of :func:`cast_ray_pairs`) finds the nearest face of each ray, :meth:`recompute` gives t, u, v with
+    gradients w.r.t. the vertices for (direction, face) pairs, e.g. the winners of several searches at once.
+
+    Args: as :func:`cast_rays` (``vertices`` may require grad); ``name`` prefixes error messages.
+    """
+
+    def __init__(self, vertices: torch.Tensor, faces: torch.Tensor, origin: torch.Tensor, *, t_min: float = 1e-6,
+                 cos_min: float = 1e-3, name: str = "PairCaster") -> None:
+        self.name, self.t_min = name, t_min
+        self._p = _prepare(vertices, faces, np.zeros((0, 3)), origin, None, (0.0, 0.0, 1.0), name)
+        with torch.no_grad():
+            self._table = _face_geometry(self._p, cos_min)[3] if len(self._p.faces) else None
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self._p.vertices.dtype
+
+    def search(self, directions: torch.Tensor, chunks: Iterable[tuple[torch.Tensor, torch.Tensor]], *,
+               check: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+        """No grad: (rays (K,) ascending, their nearest faces (K,), the test's t (K,), pairs tested) of the rays
+        (unit directions (R, 3)) that hit a face of their candidate pairs (``chunks`` of (ray_index, face_index)
+        as :func:`cast_ray_pair_chunks`; equal t: the smallest face index). ``check=False`` skips the range
+        check of the pairs (for a caller whose cull builds them in range)."""
+        d = _as_tensor(directions, self.dtype, self._p.vertices.device).reshape(-1, 3)
+        face, best, tests = _pair_search(replace(self._p, d=d), self._table, chunks, self.t_min, self.name, check)
+        ray = torch.nonzero(face >= 0).reshape(-1)
+        return ray, face.index_select(0, ray), best.index_select(0, ray), tests
+
+    def recompute(self, directions: torch.Tensor, face: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """t, u, v (K,) of rays (unit directions (K, 3)) against the faces ``face`` (K,) they hit (a
+        :meth:`search`'s winners), differentiable w.r.t. the vertices (0 with a connected graph if K = 0)."""
+        p = self._p
+        if len(face) == 0:
+            zero = p.vertices.new_zeros(0) + 0.0 * p.vertices.sum()
+            return zero, zero, zero
+        d = _as_tensor(directions, self.dtype, p.vertices.device).reshape(-1, 3)
+        return _recompute(p.vertices, p.faces, d, p.origin, None, p.axis, torch.arange(len(face)), face)
+
+
+def _pair_search(p: _Prepared, table: torch.Tensor | None, chunks: Iterable[tuple[torch.Tensor, torch.Tensor]],
+                 t_min: float, name: str, check: bool = True) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The no-grad search of the pair casts: (nearest face per ray (R,) or -1, its t (R,) or +inf, pairs
+    tested)."""
     dev = p.d.device
     n_rays, n_faces = len(p.d), len(p.faces)
     rays, faces_hit, ts = [], [], []
     tests = 0
     with torch.no_grad():
-        table = d_cols = None
+        d_cols = None
         for ray_index, face_index in chunks:
             ray = _as_tensor(ray_index, torch.int64, dev).reshape(-1)
             fc = _as_tensor(face_index, torch.int64, dev).reshape(-1)
             if len(ray) != len(fc):
                 raise ValueError(f"{name}: field 'face_index': {len(fc)} faces for {len(ray)} rays")
-            if len(ray) and (int(ray.min()) < 0 or int(ray.max()) >= n_rays or int(fc.min()) < 0
+            if check and len(ray) and (int(ray.min()) < 0 or int(ray.max()) >= n_rays or int(fc.min()) < 0
                              or int(fc.max()) >= n_faces):
                 raise ValueError(f"{name}: field 'ray_index': pairs must index {n_rays} rays and {n_faces} faces")
             tests += len(ray)
             if len(ray) == 0:
                 continue
-            if table is None:
-                table, d_cols = _face_geometry(p, cos_min)[3], p.d.T.contiguous()
+            if d_cols is None:
+                d_cols = p.d.T.contiguous()
             ok, t = _test_pairs(table, d_cols, p.h, ray, fc, t_min, p.tol)
             rays.append(ray.index_select(0, ok))
             faces_hit.append(fc.index_select(0, ok))
             ts.append(t)
         face = torch.full((n_rays,), -1, dtype=torch.int64, device=dev)
+        best = torch.full((n_rays,), float("inf"), dtype=p.d.dtype, device=dev)
         if ts and sum(len(t) for t in ts):
-            face = _nearest(torch.cat(rays), torch.cat(faces_hit), torch.cat(ts), n_rays, n_faces)
-    return _hits(p, face, tests)
+            face, best = _nearest_t(torch.cat(rays), torch.cat(faces_hit), torch.cat(ts), n_rays, n_faces)
+    return face, best, tests
