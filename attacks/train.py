@@ -1,0 +1,474 @@
+"""Universal optimisation of one roof object against a white-box victim (reference §3.7).
+
+One object for every target car of a training split: vertex displacements through the tanh box
+parametrisation (:func:`~robustbench3d.attacks.object.tanh_vertices`) and per-vertex colours as
+``sigmoid(logits)``, both float64, optimised with Adam (one parameter group each). Settings and modes:
+:mod:`~robustbench3d.attacks.train_config`; the loop, checkpoints and output:
+:mod:`~robustbench3d.attacks.train_run`. Modes:
+
+* ``adv-shape``: LiDAR loss + Laplacian; shape optimised, colour fixed at the neutral grey;
+* ``adv-texture``: image loss; colours optimised on the undeformed sphere;
+* ``adv-object``: LiDAR loss + ``lambda_img`` x image loss + Laplacian; both optimised.
+
+A step takes ``batch_cars`` cars: the split's cars (every target car of every frame, frame order, then
+label order) are visited in a random permutation per epoch, ``numpy.random.default_rng([seed, epoch,
+0xBA7C])``. Each car's frame is attacked as a benchmark cell does (:mod:`~robustbench3d.attacks.roof`):
+the object on every target car of the frame (EOT jitter, one draw per car in label order, then the
+LiDAR dropout and range noise, all from ``default_rng([seed, step, 0xE07])``), rendered into the scan
+(:func:`~robustbench3d.sensors.lidar_render.render_lidar`, whose added points carry gradients) and the
+image (:func:`~robustbench3d.sensors.camera_render.render_camera_torch`, occlusion as
+:meth:`RoofObjectAttack.scene_depth`); the losses (:mod:`~robustbench3d.attacks.losses`) are taken on
+the batch's cars only:
+
+* LiDAR: the car's frustum from its **ground-truth 2D box** (``lidar_boxes="gt"``, the default; the
+  proposal index the victim's ``detect`` gives it, so the frustum resampling is the scored one), or from
+  the victim's own 2D detection on the attacked image that overlaps the car's box most (image IoU >= 0.5;
+  ``lidar_boxes="detector"``, reference §1.12; a car the 2D detector misses gets no LiDAR term).
+  ``IoU_k`` is the BEV IoU of the victim's best detection of the car on the attacked frame from the
+  same proposals (``detect``, detached);
+* image: the objectness candidates around the car's ground-truth 2D box.
+
+The loss of a step is the mean over its cars of each term (plus the Laplacian). Randomness comes only
+from (seed, epoch) and (seed, step), and the state saved every ``checkpoint_every`` steps (parameters,
+Adam state, history; written atomically) is all a resumed run needs, so a resumed run ends with the
+same object bytes as an uninterrupted one. A non-finite loss or gradient stops the run at once; an
+attack loss that gives the object no gradient for ``zero_grad_patience`` consecutive steps stops it too.
+
+The progress line shows the step's losses and a running estimate of the drop: 1 - (share of the last
+:data:`DROP_WINDOW` steps' cars detected on the attacked frames) / (share of a reference sample detected
+clean); the sample is the first :data:`CLEAN_SAMPLE` cars of the epoch-0 permutation, i.e. the first
+steps' cars, so the clean detections cost one extra victim call per frame of those steps only. A car
+counts as detected by the LiDAR branch if the victim's box from its GT 2D box has BEV IoU >= 0.7, by the
+image branch if a candidate with IoU >= 0.5 scores objectness x class >= 0.5 (adv-object: both).
+"""
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from robustbench3d.attacks.base import target_cars
+from robustbench3d.attacks.losses import (
+    best_candidate_scores,
+    image_target_losses,
+    laplacian_loss,
+    lidar_car_loss,
+)
+from robustbench3d.attacks.object import (
+    NEUTRAL_GREY,
+    RoofObject,
+    benign_sphere,
+    tanh_vertices,
+    template_faces,
+    template_vertices,
+)
+from robustbench3d.attacks.placement import (
+    POSITION_JITTER_M,
+    YAW_JITTER_RAD,
+    cars_of,
+    place_on_roof,
+    rect_to_velo,
+    sample_jitter,
+)
+from robustbench3d.attacks.train_config import (
+    BATCH_STREAM,
+    BEV_IOU_DETECTED,
+    CANDIDATE_IOU,
+    CHECKPOINT_FORMAT,
+    CLEAN_SAMPLE,
+    DROP_WINDOW,
+    EOT_DROPOUT,
+    EOT_RANGE_NOISE_M,
+    EOT_STREAM,
+    SCORE_DETECTED,
+    TrainConfig,
+    TrainingError,
+    training_cars,
+)
+from robustbench3d.kitti.dataset import Frame, KittiDataset
+from robustbench3d.kitti.labels import Labels
+
+
+def _velo_to_rect_torch(points: torch.Tensor, m: np.ndarray) -> torch.Tensor:
+    t = torch.from_numpy(np.array(m, dtype=np.float64))
+    return points @ t[:3, :3].T + t[:3, 3]
+
+
+def _proposal_index(boxes: np.ndarray, targets: Labels) -> list[int | None]:
+    """Index into ``boxes`` of each target's 2D box (equal rows, in order of occurrence), None if absent."""
+    used: set[int] = set()
+    out: list[int | None] = []
+    for box in targets.bbox:
+        hits = [j for j in np.flatnonzero(np.all(boxes == box, axis=1)).tolist() if j not in used]
+        out.append(hits[0] if hits else None)
+        if hits:
+            used.add(hits[0])
+    return out
+
+
+def _matched_index(boxes: np.ndarray, targets: Labels, min_iou: float = 0.5) -> list[int | None]:
+    """Per target the index of the box of ``boxes`` with the largest image IoU with its 2D box, None if
+    that IoU is below ``min_iou`` (the 2D detector missed the car)."""
+    from robustbench3d.eval.iou import image_iou
+
+    if len(boxes) == 0:
+        return [None] * len(targets)
+    iou = image_iou(targets.bbox, boxes)
+    best = iou.argmax(axis=1)
+    return [int(j) if iou[t, j] >= min_iou else None for t, j in enumerate(best)]
+
+
+def _bev_iou_per_target(det: Labels, targets: Labels) -> np.ndarray:
+    """(T,) best BEV IoU of each target with any detection (0 without detections)."""
+    from robustbench3d.eval.iou import bev_iou
+
+    if len(det) == 0 or len(targets) == 0:
+        return np.zeros(len(targets))
+
+    def boxes(lab: Labels) -> np.ndarray:
+        return np.column_stack([lab.dimensions, lab.location, lab.rotation_y])
+
+    return bev_iou(boxes(targets), boxes(det)).max(axis=1)
+
+
+@dataclass
+class StepResult:
+    """Losses (weighted terms and total), detections of a step's cars and the gradient it produced."""
+
+    losses: dict[str, float]
+    cars: int
+    detected: int
+    clean_cars: int
+    detected_clean: int
+    grads: list[torch.Tensor] = field(repr=False)
+    attack_grad_zero: bool = False
+
+
+class UniversalTrainer:
+    """The optimisation state and one step of it (module doc)."""
+
+    def __init__(self, victim: Any, kitti: KittiDataset, frame_ids: list[str], labels: list[Labels],
+                 config: TrainConfig) -> None:
+        from robustbench3d.attacks.roof import RoofObjectAttack
+
+        self.victim, self.kitti, self.frame_ids, self.labels, self.config = victim, kitti, frame_ids, labels, config
+        self.cars = training_cars(labels)
+        if not self.cars:
+            raise TrainingError(f"the training data ({len(frame_ids)} frame(s) of split {kitti.split!r} under "
+                                f"{kitti.root}) has no target cars (label type Car): nothing to attack")
+        m = config.kind
+        self.delta = torch.zeros(162, 3, dtype=torch.float64, requires_grad=m.shape)
+        grey = math.log(NEUTRAL_GREY / (1.0 - NEUTRAL_GREY))
+        self.colour_logit = torch.full((162, 3), grey, dtype=torch.float64, requires_grad=m.colour)
+        groups = ([{"params": [self.delta], "lr": config.lr_shape}] if m.shape else []) + \
+                 ([{"params": [self.colour_logit], "lr": config.lr_color}] if m.colour else [])
+        self.params = [g["params"][0] for g in groups]
+        self.optimizer = torch.optim.Adam(groups)
+        self.step = 0
+        self.history: list[dict[str, float]] = []
+        self.zero_run = 0
+        self.elapsed_s = 0.0
+        self._faces = template_faces().copy()
+        self._depth = RoofObjectAttack(benign_sphere(), occlusion=config.occlusion, supersample=config.supersample)
+        self._depth.bind_dataset(kitti)
+        self._clean: dict[str, np.ndarray] = {}
+        first = np.random.default_rng([config.seed, 0, BATCH_STREAM]).permutation(len(self.cars))[:CLEAN_SAMPLE]
+        self._reference = {self.cars[int(i)] for i in first}
+        self.ckpt: Path | None = None  # where checkpoints go (set by train_universal)
+        self._saved_step = 0
+
+    # ---- the object ---------------------------------------------------------------------------
+    def vertices(self) -> torch.Tensor:
+        """(162, 3) float64 object-frame vertices: the template when the shape is fixed, else the tanh
+        parametrisation (differentiable in ``delta``; at ``delta = 0`` the template scaled by 0.999, the
+        parametrisation's eps, as template vertices lie on the box faces)."""
+        if not self.config.kind.shape:
+            return torch.from_numpy(template_vertices().copy())
+        return tanh_vertices(self.delta)
+
+    def colours(self) -> torch.Tensor:
+        """(162, 3) float64 colours in (0, 1)."""
+        return torch.sigmoid(self.colour_logit)
+
+    def current_object(self) -> RoofObject:
+        """The object at the current parameters, at file precision."""
+        with torch.no_grad():
+            return RoofObject.from_vertices(self.vertices().numpy(), self.colours().numpy())
+
+    # ---- randomness ---------------------------------------------------------------------------
+    def batch(self, step: int) -> list[tuple[int, int]]:
+        """The cars of ``step``: positions ``step * B ...`` of the concatenated epoch permutations."""
+        n, b = len(self.cars), self.config.batch_cars
+        out, perms = [], {}
+        for q in range(step * b, (step + 1) * b):
+            epoch = q // n
+            if epoch not in perms:
+                perms[epoch] = np.random.default_rng([self.config.seed, epoch, BATCH_STREAM]).permutation(n)
+            out.append(self.cars[int(perms[epoch][q % n])])
+        return out
+
+    def eot_rng(self, step: int) -> np.random.Generator:
+        return np.random.default_rng([self.config.seed, step, EOT_STREAM])
+
+    # ---- one step -----------------------------------------------------------------------------
+    def compute_step(self, step: int) -> StepResult:
+        """Losses and gradients of ``step`` at the current parameters (nothing is updated). Each frame's
+        terms are differentiated as soon as they are computed (the loss is a sum over frames), so memory
+        holds one frame's graph at a time."""
+        cfg, m = self.config, self.config.kind
+        rng = self.eot_rng(step)
+        by_frame: dict[int, list[int]] = {}
+        for fi, k in self.batch(step):
+            by_frame.setdefault(fi, []).append(k)
+        n = sum(len(c) for c in by_frame.values())
+        weights = cfg.weights()
+        sums = {"lidar": 0.0, "image": 0.0}
+        g_attack = [torch.zeros_like(p) for p in self.params]
+        detected = clean_cars = detected_clean = 0
+        for fi, chosen in by_frame.items():
+            frame = self._frame(self.frame_ids[fi], with_image=m.image or cfg.lidar_boxes == "detector")
+            targets = target_cars(frame.labels)
+            verts, colours = self.vertices(), self.colours()  # a fresh graph per frame
+            placed = []
+            for car in cars_of(targets):
+                jitter = sample_jitter(rng, POSITION_JITTER_M, YAW_JITTER_RAD) if "jitter" in cfg.eot else None
+                placed.append(place_on_roof(verts, car, jitter)[0])
+            ok = np.ones(len(chosen), dtype=bool)
+            ref = [t for t in chosen if (fi, t) in self._reference]  # cars of the clean reference sample
+            clean_ok = np.ones(len(ref), dtype=bool)
+            frame_loss = torch.zeros((), dtype=torch.float64)
+            attacked_image: np.ndarray | None = None
+            if m.image:
+                terms_t, score, attacked_image = self._image(frame, targets, chosen, placed, colours)
+                image = terms_t.sum()
+                sums["image"] += image.item()
+                frame_loss = frame_loss + weights["image"] / n * image
+                ok &= score >= SCORE_DETECTED
+                if ref:
+                    clean_ok &= self._clean_value(frame, targets, "image")[ref] >= SCORE_DETECTED
+            if m.lidar:
+                if cfg.lidar_boxes == "detector" and attacked_image is None:
+                    attacked_image = self._render_image(frame, targets, placed, colours)
+                terms, iou = self._lidar(frame, targets, chosen, placed, colours, rng, attacked_image)
+                if terms:
+                    lidar = torch.stack(terms).sum()
+                    sums["lidar"] += lidar.item()
+                    frame_loss = frame_loss + weights["lidar"] / n * lidar
+                ok &= iou >= BEV_IOU_DETECTED
+                if ref:
+                    clean_ok &= self._clean_value(frame, targets, "lidar")[ref] >= BEV_IOU_DETECTED
+            if not math.isfinite(frame_loss.item()):
+                raise TrainingError(f"step {step}: the loss of frame {frame.frame_id} is not finite (NaN or inf); "
+                                    f"stopping ({self._resume_hint()})")
+            for acc, g in zip(g_attack, _grads(frame_loss, self.params), strict=True):
+                acc += g
+            detected += int(ok.sum())
+            clean_cars += len(ref)
+            detected_clean += int(clean_ok.sum())
+        losses = {k: sums[k] / n for k, used in (("lidar", m.lidar), ("image", m.image)) if used}
+        total = sum(weights[k] * v for k, v in losses.items())
+        g_lap = [torch.zeros_like(p) for p in self.params]
+        if m.shape:
+            verts = self.vertices()
+            lap = laplacian_loss(verts, 1.0)
+            losses["laplacian"] = lap.item()
+            total += weights["laplacian"] * lap.item()
+            g_lap = _grads(weights["laplacian"] * lap, self.params)
+        losses["total"] = total
+        for p, ga, gl in zip(self.params, g_attack, g_lap, strict=True):
+            if not (torch.isfinite(ga).all() and torch.isfinite(gl).all()):
+                name = "shape" if p is self.delta else "colour"
+                raise TrainingError(f"step {step}: the {name} gradient has NaN or inf values "
+                                    f"({format_losses(losses)}); stopping ({self._resume_hint()})")
+        zero_grad = all(not bool(g.any()) for g in g_attack)
+        grads = [ga + gl for ga, gl in zip(g_attack, g_lap, strict=True)]
+        return StepResult(losses, n, detected, clean_cars, detected_clean, grads, zero_grad)
+
+    def _frame(self, frame_id: str, with_image: bool) -> Frame:
+        """The frame; without ``with_image`` its image is a black placeholder of the right size (the LiDAR
+        branch uses only its size), which saves decoding the PNG."""
+        if with_image:
+            return self.kitti.frame(frame_id)
+        from PIL import Image
+
+        with Image.open(self.kitti.path("image", frame_id)) as im:  # reads the header only
+            width, height = im.size
+        return Frame(frame_id, np.zeros((height, width, 3), dtype=np.uint8), self.kitti.scan(frame_id),
+                     self.kitti.calib(frame_id), self.kitti.labels(frame_id))
+
+    def _lidar(self, frame: Frame, targets: Labels, chosen: list[int], placed: list[torch.Tensor],
+               colours: torch.Tensor, rng: np.random.Generator,
+               attacked_image: np.ndarray | None) -> tuple[list[torch.Tensor], np.ndarray]:
+        """LiDAR loss terms of the chosen targets and their attacked BEV IoUs (``attacked_image``: the
+        attacked camera image, needed for ``lidar_boxes="detector"``)."""
+        from robustbench3d.sensors.lidar_render import render_lidar
+        from robustbench3d.victims.base import gt_proposals
+
+        cfg, calib = self.config, frame.calib
+        albedo = colours.detach().numpy()
+        res = render_lidar(frame.scan, [(rect_to_velo(p, calib), self._faces, albedo) for p in placed], rng=rng,
+                           range_noise_m=EOT_RANGE_NOISE_M if "range-noise" in cfg.eot else 0.0,
+                           dropout=EOT_DROPOUT if "dropout" in cfg.eot else 0.0)
+        k = len(res.added)
+        kept = res.scan[:len(res.scan) - k, :3].astype(np.float64)
+        xyz = torch.cat([torch.from_numpy(calib.velo_to_rect_points(kept)),
+                         _velo_to_rect_torch(res.added_torch, calib.velo_to_rect)])
+        points = torch.cat([xyz, torch.from_numpy(res.scan[:, 3:4].astype(np.float64))], dim=1)
+        attacked = replace(frame, scan=np.ascontiguousarray(res.scan, dtype=np.float32), labels=None,
+                           image=frame.image if attacked_image is None else attacked_image)
+        with torch.no_grad():
+            if cfg.lidar_boxes == "detector":
+                props = self.victim.proposals([attacked], "detector")[0]
+                index = _matched_index(props.boxes, targets)
+                det = self.victim.detect([attacked], [props])[0]
+            else:
+                props = self._proposals(frame)
+                index = _proposal_index(props.boxes, targets)
+                det = self.victim.detect([attacked], [gt_proposals(frame.labels)])[0]
+        iou = _bev_iou_per_target(det, targets)[chosen]
+        terms = []
+        for t, car_iou in zip(chosen, iou, strict=True):
+            j = index[t]
+            if j is None:
+                continue
+            fl = self.victim.frustum_logits(points, calib, frame.image_size, props.boxes[j],
+                                            frame_id=frame.frame_id, proposal=j)
+            if fl is not None:
+                terms.append(lidar_car_loss(fl.logits.to(torch.float64), float(car_iou), cfg.iou_floor))
+        return terms, iou
+
+    def _image(self, frame: Frame, targets: Labels, chosen: list[int], placed: list[torch.Tensor],
+               colours: torch.Tensor) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
+        """(len(chosen),) image loss terms of the chosen targets, their best candidate scores and the
+        attacked image as uint8 (rounded as :func:`~robustbench3d.sensors.camera_render.render_camera` does)."""
+        from robustbench3d.sensors.camera_render import render_camera_torch
+
+        image = torch.from_numpy(frame.image.astype(np.float64) / 255.0)
+        rendered = render_camera_torch(image, frame.calib, [(p, self._faces, colours) for p in placed],
+                                       scene_depth=self._depth.scene_depth(frame, targets),
+                                       supersample=self.config.supersample)
+        boxes = targets.bbox[chosen]
+        cands = self.victim.objectness(rendered.permute(2, 0, 1)[None].float(), [boxes])
+        terms = image_target_losses(cands, len(chosen), 0, self.config.use_class).to(torch.float64)
+        as_uint8 = np.clip(np.round(rendered.detach().numpy() * 255.0), 0, 255).astype(np.uint8)
+        return terms, best_candidate_scores(cands, len(chosen), 0, CANDIDATE_IOU), as_uint8
+
+    def _render_image(self, frame: Frame, targets: Labels, placed: list[torch.Tensor],
+                      colours: torch.Tensor) -> np.ndarray:
+        """The attacked camera image (uint8, no gradient)."""
+        from robustbench3d.sensors.camera_render import render_camera
+
+        meshes = [(p.detach().numpy(), self._faces, colours.detach().numpy()) for p in placed]
+        return render_camera(frame.image, frame.calib, meshes, scene_depth=self._depth.scene_depth(frame, targets),
+                             supersample=self.config.supersample).image
+
+    def _proposals(self, frame: Frame) -> Any:
+        """The frame's ground-truth proposals as the victim's ``detect`` enumerates them."""
+        from robustbench3d.victims.base import gt_proposals
+
+        props = gt_proposals(frame.labels)
+        enumerate_ = getattr(self.victim, "proposals", None)
+        bare = replace(frame, labels=None)
+        return enumerate_([bare], [props])[0] if callable(enumerate_) else props.of_types(("Car",))
+
+    def _clean_value(self, frame: Frame, targets: Labels, branch: str) -> np.ndarray:
+        """Per target of ``frame``: clean BEV IoU (``lidar``) or best candidate score (``image``), cached."""
+        key = f"{branch}:{frame.frame_id}"
+        if key not in self._clean:
+            with torch.no_grad():
+                if branch == "lidar":
+                    from robustbench3d.victims.base import gt_proposals
+
+                    source = "detector" if self.config.lidar_boxes == "detector" else [gt_proposals(frame.labels)]
+                    det = self.victim.detect([replace(frame, labels=None)], source)[0]
+                    self._clean[key] = _bev_iou_per_target(det, targets)
+                else:
+                    image = torch.from_numpy(np.array(frame.image)).permute(2, 0, 1)[None].float() / 255.0
+                    cands = self.victim.objectness(image, [targets.bbox])
+                    self._clean[key] = best_candidate_scores(cands, len(targets), 0, CANDIDATE_IOU)
+        return self._clean[key]
+
+    def apply_step(self, result: StepResult) -> None:
+        """Adam update with ``result``'s gradients; records the step."""
+        for p, g in zip(self.params, result.grads, strict=True):
+            p.grad = g
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.zero_run = self.zero_run + 1 if result.attack_grad_zero else 0
+        self.history.append({**result.losses, "cars": result.cars, "detected": result.detected,
+                             "clean_cars": result.clean_cars, "detected_clean": result.detected_clean})
+        self.step += 1
+        if self.zero_run >= self.config.zero_grad_patience:
+            raise TrainingError(
+                f"step {self.step - 1}: the attack loss gave the object no gradient for {self.zero_run} consecutive "
+                "steps (no object point inside the cars' frustums, or no detector candidate around them, or a victim "
+                f"whose oracle ignores its input); stopping ({self._resume_hint()})")
+
+    def drop_estimate(self) -> float | None:
+        """The running drop estimate of the module doc (None before a reference car was detected clean)."""
+        clean = sum(h["detected_clean"] for h in self.history)
+        if clean == 0:
+            return None
+        window = self.history[-DROP_WINDOW:]
+        attacked_rate = sum(h["detected"] for h in window) / sum(h["cars"] for h in window)
+        return 1.0 - attacked_rate / (clean / sum(h["clean_cars"] for h in self.history))
+
+    # ---- checkpoints --------------------------------------------------------------------------
+    def _resume_hint(self) -> str:
+        if self.ckpt is not None and self.ckpt.is_file():
+            return f"the last checkpoint is {self.ckpt} (step {self._saved_step}); --resume continues from it"
+        return "no checkpoint written yet"
+
+    def state(self, identity: dict[str, Any]) -> dict[str, Any]:
+        return {"format": CHECKPOINT_FORMAT, "identity": identity, "step": self.step,
+                "delta": self.delta.detach().clone(), "colour_logit": self.colour_logit.detach().clone(),
+                "optimizer": self.optimizer.state_dict(), "history": self.history, "zero_run": self.zero_run,
+                "elapsed_s": self.elapsed_s}
+
+    def save_checkpoint(self, path: Path, identity: dict[str, Any]) -> None:
+        from robustbench3d.fileio import atomic_write_bytes
+
+        buf = io.BytesIO()
+        torch.save(self.state(identity), buf)
+        atomic_write_bytes(path, buf.getvalue())
+        self._saved_step = self.step
+
+    def load_checkpoint(self, path: Path, identity: dict[str, Any]) -> None:
+        from robustbench3d.errors import DataFormatError
+
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # torch raises many types on a damaged file
+            raise DataFormatError(path, f"not a readable training checkpoint ({type(exc).__name__})") from None
+        if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+            raise DataFormatError(path, f"expected {CHECKPOINT_FORMAT!r}", field="format")
+        if state.get("identity") != identity:
+            have = state.get("identity") or {}
+            diff = sorted(k for k in set(have) | set(identity) if k != "config" and have.get(k) != identity.get(k))
+            hc, wc = have.get("config") or {}, identity["config"]
+            diff += sorted(f"config.{k}" for k in set(hc) | set(wc) if hc.get(k) != wc.get(k))
+            raise TrainingError(f"{path}: field 'identity': the checkpoint belongs to another training "
+                                f"({', '.join(diff)} differ); use another --out or drop --resume")
+        with torch.no_grad():
+            self.delta.copy_(state["delta"])
+            self.colour_logit.copy_(state["colour_logit"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.step, self.history = int(state["step"]), list(state["history"])
+        self.zero_run, self.elapsed_s = int(state["zero_run"]), float(state["elapsed_s"])
+        self._saved_step = self.step
+
+
+def _grads(loss: torch.Tensor, params: list[torch.Tensor]) -> list[torch.Tensor]:
+    if not loss.requires_grad:
+        return [torch.zeros_like(p) for p in params]
+    grads = torch.autograd.grad(loss, params, allow_unused=True)
+    return [torch.zeros_like(p) if g is None else g for p, g in zip(params, grads, strict=True)]
+
+
+def format_losses(losses: dict[str, float]) -> str:
+    return " ".join(f"{k} {v:.4g}" for k, v in losses.items())

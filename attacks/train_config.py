@@ -1,0 +1,154 @@
+"""Settings of the universal optimisation (:mod:`robustbench3d.attacks.train`): modes, EOT choices,
+:class:`TrainConfig`, and the up-front refusals (a victim without the needed oracle, data without cars)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from robustbench3d.attacks.base import target_cars
+from robustbench3d.attacks.losses import IOU_FLOOR
+from robustbench3d.errors import RobustBenchError
+from robustbench3d.kitti.labels import Labels
+
+CHECKPOINT_FORMAT = "robustbench3d.attack_train_checkpoint/1"
+#: Generator streams: the epoch permutations of the cars, the per-step EOT draws.
+BATCH_STREAM, EOT_STREAM = 0xBA7C, 0xE07
+#: EOT choices and their magnitudes (the issue's EOT evaluation: +-5 cm / +-5 deg, 2 cm, 5 %).
+EOT_CHOICES = ("jitter", "range-noise", "dropout")
+EOT_RANGE_NOISE_M = 0.02
+EOT_DROPOUT = 0.05
+#: Detection thresholds of the running drop estimate (module doc) and its window in steps.
+BEV_IOU_DETECTED, SCORE_DETECTED, CANDIDATE_IOU = 0.7, 0.5, 0.5
+#: Where the LiDAR loss's frustums come from: the cars' ground-truth 2D boxes, or the victim's own 2D
+#: detections on the attacked image (each car gets the detection of largest image IoU >= 0.5 with its box).
+LIDAR_BOXES = ("gt", "detector")
+#: The per-step counts kept in the history beside the losses.
+COUNTS = ("cars", "detected", "clean_cars", "detected_clean")
+DROP_WINDOW = 50
+CLEAN_SAMPLE = 64
+
+
+class TrainingError(RobustBenchError):
+    """The optimisation cannot start or had to stop (the message says why)."""
+
+
+#: Config fields set by an ``attack train`` option of another name than ``--field-name``.
+_NO_FLAG = ("zero_grad_patience", "supersample", "iou_floor", "use_class")
+
+
+def _field(name: str) -> str:
+    """``field 'name'`` plus the command-line option that sets it."""
+    flag = "" if name in _NO_FLAG or name == "mode" else f" (--{name.replace('_', '-')})"
+    return f"field '{name}'{flag}"
+
+
+@dataclass(frozen=True)
+class Mode:
+    """What a mode optimises and which losses it uses."""
+
+    lidar: bool
+    image: bool
+    shape: bool
+    colour: bool
+
+
+MODES: dict[str, Mode] = {
+    "adv-shape": Mode(lidar=True, image=False, shape=True, colour=False),
+    "adv-texture": Mode(lidar=False, image=True, shape=False, colour=True),
+    "adv-object": Mode(lidar=True, image=True, shape=True, colour=True),
+}
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Settings of one optimisation (defaults: reference §3.7)."""
+
+    mode: str
+    steps: int = 300
+    batch_cars: int = 8
+    seed: int = 0
+    lr_shape: float = 5e-3
+    lr_color: float = 1e-2
+    lambda_lap: float = 0.01
+    lambda_img: float = 1.0
+    iou_floor: float = IOU_FLOOR
+    use_class: bool = True
+    eot: tuple[str, ...] = ()
+    occlusion: str = "scan"
+    lidar_boxes: str = "gt"
+    supersample: int = 3
+    checkpoint_every: int = 25
+    zero_grad_patience: int = 10
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise TrainingError(f"{_field('mode')}: expected one of {', '.join(MODES)}, got {self.mode!r}")
+        for name in ("steps", "batch_cars", "checkpoint_every", "zero_grad_patience", "supersample"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise TrainingError(f"{_field(name)}: must be an integer >= 1, got {value!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise TrainingError(f"{_field('seed')}: must be an integer >= 0, got {self.seed!r}")
+        for name, low in (("lr_shape", 0.0), ("lr_color", 0.0), ("lambda_lap", None), ("lambda_img", None),
+                          ("iou_floor", None)):
+            value = float(getattr(self, name))
+            if not math.isfinite(value) or (value <= 0 if low is not None else value < 0):
+                raise TrainingError(f"{_field(name)}: must be a finite number {'>' if low is not None else '>='} 0, "
+                                    f"got {getattr(self, name)!r}")
+        bad = sorted(set(self.eot) - set(EOT_CHOICES))
+        if bad:
+            raise TrainingError(f"{_field('eot')}: unknown {', '.join(bad)} (choose from {', '.join(EOT_CHOICES)})")
+        object.__setattr__(self, "eot", tuple(c for c in EOT_CHOICES if c in self.eot))
+        if self.occlusion not in ("scan", "none"):
+            raise TrainingError(f"{_field('occlusion')}: expected scan or none, got {self.occlusion!r}")
+        if self.lidar_boxes not in LIDAR_BOXES:
+            raise TrainingError(f"{_field('lidar_boxes')}: expected one of {', '.join(LIDAR_BOXES)}, "
+                                f"got {self.lidar_boxes!r}")
+
+    @property
+    def kind(self) -> Mode:
+        return MODES[self.mode]
+
+    def weights(self) -> dict[str, float]:
+        """Weight of each loss term in this mode (absent terms are not used)."""
+        m, w = self.kind, {}
+        if m.lidar:
+            w["lidar"] = 1.0
+        if m.image:
+            w["image"] = self.lambda_img if m.lidar else 1.0
+        if m.shape:
+            w["laplacian"] = self.lambda_lap
+        return w
+
+    def identity(self) -> dict[str, Any]:
+        """What a resumed run must share with the checkpoint (everything but the step budget and the
+        checkpoint interval)."""
+        d = asdict(self)
+        d.pop("steps")
+        d.pop("checkpoint_every")
+        d["eot"] = list(self.eot)
+        return d
+
+
+def check_oracles(victim: Any, mode: str, victim_name: str, lidar_boxes: str = "gt") -> None:
+    """Refuse a victim that lacks an oracle ``mode`` needs, or (``lidar_boxes="detector"``) a way to
+    enumerate its own 2D proposals (:class:`TrainingError` naming what is missing)."""
+    from robustbench3d.victims.base import FrustumSegmentationOracle, ImageObjectnessOracle
+
+    need = []
+    if MODES[mode].lidar and not isinstance(victim, FrustumSegmentationOracle):
+        need.append("FrustumSegmentationOracle (frustum_logits, for the LiDAR loss)")
+    if MODES[mode].image and not isinstance(victim, ImageObjectnessOracle):
+        need.append("ImageObjectnessOracle (objectness, for the image loss)")
+    if MODES[mode].lidar and lidar_boxes == "detector" and not callable(getattr(victim, "proposals", None)):
+        need.append("proposals(frames, source) (its own 2D proposals, for --lidar-boxes detector)")
+    if need:
+        raise TrainingError(f"victim {victim_name!r} cannot be attacked with {mode}: it does not implement "
+                            + " nor ".join(need))
+
+
+def training_cars(labels: list[Labels]) -> list[tuple[int, int]]:
+    """(frame index, target index) of every target car, frame order then label order."""
+    return [(i, k) for i, lab in enumerate(labels) for k in range(len(target_cars(lab)))]

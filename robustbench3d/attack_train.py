@@ -1,0 +1,109 @@
+"""``robustbench3d attack train``: optimise a universal roof object against a white-box victim.
+
+    robustbench3d attack train adv-shape|adv-texture|adv-object --victim V --out OBJ.ply
+        [--data DIR] [--split train] [--steps N] [--batch-cars B] [--seed S] [--eot jitter,range-noise,dropout]
+        [--resume]
+
+Writes the object file ``OBJ.ply`` and its sidecar (losses and weights, victim, training data, config,
+seed, steps, wall time); ``OBJ.train.pt`` beside it is the checkpoint ``--resume`` continues from. See
+:mod:`robustbench3d.attacks.train` for the optimisation.
+
+Standard library only at module level.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+MODE_NAMES = ("adv-shape", "adv-texture", "adv-object")
+EOT_NAMES = ("jitter", "range-noise", "dropout")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("mode", choices=MODE_NAMES,
+                        help="adv-shape: LiDAR loss, shape only (grey); adv-texture: image loss, colours only "
+                             "(undeformed sphere); adv-object: both")
+    parser.add_argument("--victim", required=True, metavar="NAME", help="registered white-box victim")
+    parser.add_argument("--victim-arg", action="append", metavar="KEY=VALUE",
+                        help="keyword argument of the victim's factory (repeatable; VALUE is JSON or a string)")
+    parser.add_argument("--data", metavar="DIR",
+                        help="KITTI-layout dataset root (default: the embedded dataset, generated if missing)")
+    parser.add_argument("--split", default="train", help="training split, ImageSets/<split>.txt (default: train)")
+    parser.add_argument("--max-frames", type=int, metavar="N", help="only the first N frames of the split")
+    parser.add_argument("--out", required=True, metavar="OBJ.ply", help="the object file to write")
+    parser.add_argument("--steps", type=int, default=300, metavar="N", help="optimisation steps (default 300)")
+    parser.add_argument("--batch-cars", type=int, default=8, metavar="B", help="cars per step (default 8)")
+    parser.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the batches and EOT (default 0)")
+    parser.add_argument("--lr-shape", type=float, default=5e-3, help="Adam step of the shape (default 5e-3)")
+    parser.add_argument("--lr-color", type=float, default=1e-2, help="Adam step of the colour logits (default 1e-2)")
+    parser.add_argument("--lambda-lap", type=float, default=0.01, help="Laplacian weight (default 0.01)")
+    parser.add_argument("--lambda-img", type=float, default=1.0, help="image-loss weight in adv-object (default 1)")
+    parser.add_argument("--no-class-prob", action="store_true",
+                        help="image loss on the objectness alone (default: objectness x class probability)")
+    parser.add_argument("--eot", default="", metavar="NAME[,NAME]",
+                        help=f"expectation over transformation: {', '.join(EOT_NAMES)} or all (default: none)")
+    parser.add_argument("--occlusion", choices=("scan", "none"), default="scan",
+                        help="camera occlusion of the object by the scene, as in the benchmark (default scan)")
+    parser.add_argument("--lidar-boxes", choices=("gt", "detector"), default="gt",
+                        help="2D boxes of the LiDAR loss's frustums: the cars' ground-truth boxes, or the victim's "
+                             "own detections on the attacked image (default gt)")
+    parser.add_argument("--checkpoint-every", type=int, default=25, metavar="K", help="steps per checkpoint (25)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from the checkpoint OBJ.train.pt if it exists (its configuration must match; "
+                             "--steps may grow); without it a run starts afresh and replaces the checkpoint")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+
+
+def _victim_kwargs(items: list[str] | None) -> dict[str, Any]:
+    from robustbench3d.run_cli import parse_factory_args
+
+    return parse_factory_args([f"victim:{i}" for i in items or []], "--victim-arg").get("victim", {})
+
+
+def _eot(text: str) -> tuple[str, ...]:
+    from robustbench3d.errors import RobustBenchError
+
+    names = [t.strip() for t in text.split(",") if t.strip()]
+    if names == ["all"]:
+        return EOT_NAMES
+    bad = [n for n in names if n not in EOT_NAMES]
+    if bad:
+        raise RobustBenchError(f"--eot {text}: unknown {', '.join(bad)} (choose from {', '.join(EOT_NAMES)} or all)")
+    return tuple(names)
+
+
+def run(args: argparse.Namespace) -> int:
+    from robustbench3d.attacks.train_config import TrainConfig
+    from robustbench3d.attacks.train_run import data_identity, train_universal
+    from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
+    from robustbench3d.errors import RobustBenchError
+    from robustbench3d.fileio import check_output_file
+    from robustbench3d.victims import VICTIMS, create_victim
+
+    out = check_output_file(args.out, "--out")
+    config = TrainConfig(mode=args.mode, steps=args.steps, batch_cars=args.batch_cars, seed=args.seed,
+                         lr_shape=args.lr_shape, lr_color=args.lr_color, lambda_lap=args.lambda_lap,
+                         lambda_img=args.lambda_img, use_class=not args.no_class_prob, eot=_eot(args.eot),
+                         occlusion=args.occlusion, lidar_boxes=args.lidar_boxes,
+                         checkpoint_every=args.checkpoint_every)
+    kwargs = _victim_kwargs(args.victim_arg)
+    spec = VICTIMS.get(args.victim)
+    try:
+        victim = create_victim(args.victim, **kwargs)
+    except TypeError as exc:
+        raise RobustBenchError(f"--victim {args.victim}: {exc}") from None
+    info = {"name": args.victim, "weights_sha256": spec.info.weights_sha256,
+            "kwargs": {k: str(v) for k, v in sorted(kwargs.items())}}
+    dataset = resolve_dataset(args.data, args.split, progress=not args.no_progress)
+    gt = load_ground_truth(dataset, args.max_frames)
+    made_by = train_universal(victim, info, dataset.kitti(), gt.frame_ids, gt.labels, config, out,
+                              data_identity=data_identity(dataset_identity(dataset, gt), dataset.root),
+                              resume=args.resume, progress=not args.no_progress)
+    last = made_by["losses"]["last_step"] or {}
+    drop = made_by["drop_estimate"]
+    print(f"{out}: {args.mode} after {made_by['steps']} steps on {made_by['cars']} cars "
+          f"({made_by['wall_time_s']:.1f} s); last step: "
+          + ", ".join(f"{k} {v:.4g}" for k, v in last.items() if k in ("lidar", "image", "laplacian", "total"))
+          + (f"; running drop estimate {drop:.0%}" if drop is not None else ""))
+    return 0

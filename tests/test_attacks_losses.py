@@ -1,0 +1,113 @@
+"""The universal object's losses: hand-computed values, extreme logits, float64 finite differences."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from robustbench3d.attacks.losses import (
+    best_candidate_scores,
+    image_target_losses,
+    laplacian_loss,
+    lidar_car_loss,
+    max_object_margin,
+    neg_log_one_minus_product,
+)
+from robustbench3d.attacks.object import laplacian_smoothness, template_vertices
+from robustbench3d.victims.base import ObjectnessCandidates
+
+
+def sigmoid(x: float) -> float:
+    return 1.0 / (1.0 + math.exp(-x))
+
+
+def test_lidar_loss_hand_values():
+    logits = torch.tensor([[0.0, 1.0], [2.0, 0.0], [0.0, 3.0], [1.0, 1.5]], dtype=torch.float64)
+    assert max_object_margin(logits).item() == 3.0
+    # p = max softmax object probability = e^3 / (e^0 + e^3); loss = -IoU log(1 - p)
+    p = math.exp(3.0) / (1.0 + math.exp(3.0))
+    assert lidar_car_loss(logits, 0.5).item() == pytest.approx(-0.5 * math.log(1 - p), rel=1e-12)
+    # the IoU is floored (0.1 by default, or the given floor)
+    assert lidar_car_loss(logits, 0.02).item() == pytest.approx(-0.1 * math.log(1 - p), rel=1e-12)
+    assert lidar_car_loss(logits, 0.0, floor=0.3).item() == pytest.approx(-0.3 * math.log(1 - p), rel=1e-12)
+    with pytest.raises(ValueError, match="logits"):
+        max_object_margin(torch.zeros(0, 2))
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_lidar_loss_extreme_logits_finite(sign):
+    logits = torch.tensor([[-1e4 * sign, 1e4 * sign], [0.0, 0.0]], dtype=torch.float64, requires_grad=True)
+    loss = lidar_car_loss(logits, 0.7)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(logits.grad).all()
+    if sign > 0:  # object certain: -log(1 - p) = margin 2e4 (log of p would give inf)
+        assert loss.item() == pytest.approx(0.7 * 2e4)
+        np.testing.assert_allclose(logits.grad.numpy(), [[-0.7, 0.7], [0.0, 0.0]])
+    else:  # the max is the (0, 0) row: p = 1/2
+        assert loss.item() == pytest.approx(0.7 * math.log(2.0))
+        np.testing.assert_allclose(logits.grad.numpy(), [[0.0, 0.0], [-0.35, 0.35]])
+
+
+def test_image_term_hand_values_and_extremes():
+    for a, b in [(0.0, 0.0), (2.0, -1.0), (-3.0, 4.0), (10.0, 10.0)]:
+        ref = -math.log(1.0 - sigmoid(a) * sigmoid(b))
+        got = neg_log_one_minus_product(torch.tensor(a, dtype=torch.float64), torch.tensor(b, dtype=torch.float64))
+        assert got.item() == pytest.approx(ref, rel=1e-12)
+        assert neg_log_one_minus_product(torch.tensor(a, dtype=torch.float64)).item() == pytest.approx(
+            -math.log(1.0 - sigmoid(a)), rel=1e-12)
+    # o = c = 1 - e^-1e4: 1 - o c ~ 2 e^-1e4, so the loss is 1e4 - log 2 (the probability form gives inf)
+    a = torch.tensor([1e4, -1e4, 1e4], dtype=torch.float64, requires_grad=True)
+    b = torch.tensor([1e4, 1e4, -1e4], dtype=torch.float64, requires_grad=True)
+    out = neg_log_one_minus_product(a, b)
+    out.sum().backward()
+    np.testing.assert_allclose(out.detach().numpy(), [1e4 - math.log(2.0), 0.0, 0.0], atol=1e-9)
+    assert torch.isfinite(a.grad).all() and torch.isfinite(b.grad).all()
+    np.testing.assert_allclose(a.grad.numpy(), [0.5, 0.0, 0.0], atol=1e-12)
+
+
+def candidates(obj, cls, iou, target) -> ObjectnessCandidates:
+    n = len(obj)
+    return ObjectnessCandidates(
+        objectness_logit=torch.tensor(obj, dtype=torch.float64), class_logit=torch.tensor(cls, dtype=torch.float64),
+        boxes=torch.zeros(n, 4), iou=torch.tensor(iou, dtype=torch.float32),
+        image_index=torch.tensor([0] * (n - 1) + [1], dtype=torch.int64),
+        target_index=torch.tensor(target, dtype=torch.int64))
+
+
+def test_image_target_losses_mean_per_target():
+    c = candidates([0.0, 2.0, -1.0, 5.0], [1.0, 0.0, 3.0, 5.0], [0.6, 0.2, 0.9, 0.9], [0, 0, 1, 0])
+    got = image_target_losses(c, 3).numpy()  # image 0: target 0 has rows 0, 1; target 1 row 2; target 2 none
+    t0 = (-math.log(1 - sigmoid(0) * sigmoid(1)) - math.log(1 - sigmoid(2) * sigmoid(0))) / 2
+    t1 = -math.log(1 - sigmoid(-1) * sigmoid(3))
+    np.testing.assert_allclose(got, [t0, t1, 0.0], rtol=1e-12)
+    no_class = image_target_losses(c, 3, use_class=False).numpy()
+    np.testing.assert_allclose(no_class, [(math.log1p(math.exp(0)) + math.log1p(math.exp(2))) / 2,
+                                          math.log1p(math.exp(-1)), 0.0], rtol=1e-12)
+    # best score among candidates with IoU >= 0.5 (row 1 has IoU 0.2; row 3 is image 1)
+    np.testing.assert_allclose(best_candidate_scores(c, 3), [sigmoid(0) * sigmoid(1), sigmoid(-1) * sigmoid(3), 0.0])
+
+
+def test_gradients_match_float64_finite_differences():
+    rng = np.random.default_rng(0)
+    logits = torch.tensor(rng.normal(0, 3, (7, 2)), dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x: lidar_car_loss(x, 0.4), (logits,))
+    a = torch.tensor(rng.normal(0, 4, 6), dtype=torch.float64, requires_grad=True)
+    b = torch.tensor(rng.normal(0, 4, 6), dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(neg_log_one_minus_product, (a, b))
+
+    def per_target(a_: torch.Tensor, b_: torch.Tensor) -> torch.Tensor:
+        c = ObjectnessCandidates(a_, b_, torch.zeros(6, 4), torch.ones(6), torch.zeros(6, dtype=torch.int64),
+                                 torch.tensor([0, 1, 0, 2, 1, 0]))
+        return image_target_losses(c, 3)
+
+    assert torch.autograd.gradcheck(per_target, (a, b))
+    v = torch.tensor(template_vertices() + rng.normal(0, 0.02, (162, 3)), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x: laplacian_loss(x, 0.5), (v,))
+
+
+def test_laplacian_loss_is_weighted_smoothness():
+    v = template_vertices()
+    assert laplacian_loss(torch.tensor(v), 0.25).item() == pytest.approx(0.25 * laplacian_smoothness(v), rel=1e-12)

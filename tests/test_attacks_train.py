@@ -1,0 +1,236 @@
+"""Universal optimisation (``attack train``) on two generated training frames against the shipped victim:
+what each mode changes, determinism, resume, the loss going down, and the refusals and stops."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from robustbench3d.attacks.object import NEUTRAL_GREY, TANH_EPS, template_vertices
+from robustbench3d.attacks.objectfile import read_object_file
+from robustbench3d.attacks.train import UniversalTrainer
+from robustbench3d.attacks.train_config import TrainConfig, TrainingError
+from robustbench3d.attacks.train_run import checkpoint_path, data_identity, train_universal
+from robustbench3d.cli import main
+from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
+from robustbench3d.testing import synth_dataset
+from robustbench3d.victims import create_victim
+from robustbench3d.victims.cascade import FPointNetCascade
+
+FAST = {"batch_cars": 4, "occlusion": "none", "supersample": 1}
+
+
+@pytest.fixture(autouse=True)
+def cache(tmp_path, monkeypatch) -> Path:
+    monkeypatch.setenv("ROBUSTBENCH3D_CACHE", str(tmp_path / "cache"))
+    return tmp_path / "cache"
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    """Generated frames 0-3; train: 1 and 2 (25 cars)."""
+    return synth_dataset(tmp_path_factory.mktemp("synth"), 4, seed=0, val_fraction=0.5)
+
+
+@pytest.fixture(scope="module")
+def data(dataset):
+    resolved = resolve_dataset(dataset, "train", progress=False)
+    gt = load_ground_truth(resolved)
+    return resolved, gt
+
+
+@pytest.fixture(scope="module")
+def victim() -> FPointNetCascade:
+    return create_victim("fpointnet-v1-lite")
+
+
+def train(victim, data, out: Path, **kw):
+    resolved, gt = data
+    config = TrainConfig(**{**FAST, **{k: v for k, v in kw.items() if k not in ("resume", "on_step")}})
+    return train_universal(victim, {"name": "fpointnet-v1-lite"}, resolved.kitti(), gt.frame_ids, gt.labels, config,
+                           out, data_identity=data_identity(dataset_identity(resolved, gt), resolved.root),
+                           resume=kw.get("resume", False), progress=False, on_step=kw.get("on_step"))
+
+
+def test_adv_shape_moves_vertices_keeps_grey_and_records_provenance(victim, data, tmp_path):
+    made_by = train(victim, data, tmp_path / "s.ply", mode="adv-shape", steps=3)
+    loaded = read_object_file(tmp_path / "s.ply")
+    obj = loaded.obj
+    assert np.all(obj.colors == np.round(NEUTRAL_GREY * 255) / 255)
+    # the start (delta = 0) is the template scaled by 1 - TANH_EPS; three steps of 5e-3 move it by millimetres
+    assert np.abs(obj.vertices() - (1 - TANH_EPS) * template_vertices()).max() > 2e-3
+    assert np.all(np.abs(obj.vertices()) <= obj.bounds)
+    side = loaded.made_by
+    assert side == json.loads(json.dumps(made_by))
+    assert side["attack"] == "adv-shape" and side["steps"] == 3 and side["seed"] == 0 and side["cars"] == 25
+    assert side["victim"]["name"] == "fpointnet-v1-lite"
+    assert side["losses"]["weights"] == {"lidar": 1.0, "laplacian": 0.01}
+    assert set(side["losses"]["last_step"]) >= {"lidar", "laplacian", "total"}
+    assert side["training_data"]["split"] == "train" and len(side["training_data"]["sha256"]) == 64
+    assert len(side["training_data"]["manifest_sha256"]) == 64  # a generated dataset has a manifest
+    assert side["config"]["lr_shape"] == 5e-3 and side["wall_time_s"] > 0
+
+
+def test_adv_texture_changes_only_colours_and_lowers_its_loss(victim, data):
+    """Full batches of all 25 cars without EOT: every step sees the same cars, and the image loss is smooth
+    in the colours, so a few small Adam steps lower it."""
+    resolved, gt = data
+    config = TrainConfig(mode="adv-texture", steps=4, **{**FAST, "batch_cars": 25})
+    trainer = UniversalTrainer(victim, resolved.kitti(), gt.frame_ids, gt.labels, config)
+    first = trainer.compute_step(0)
+    trainer.apply_step(first)
+    for s in range(1, 4):
+        trainer.apply_step(trainer.compute_step(s))
+    after = trainer.compute_step(4)
+    assert after.losses["image"] < first.losses["image"] - 1e-4
+    obj = trainer.current_object()
+    np.testing.assert_array_equal(obj.vertices(), template_vertices())
+    assert np.abs(obj.colors - NEUTRAL_GREY).max() > 1 / 255
+
+
+def test_same_command_same_bytes(victim, data, tmp_path):
+    kw = {"mode": "adv-object", "steps": 2, "eot": ("jitter", "range-noise", "dropout")}
+    train(victim, data, tmp_path / "a.ply", **kw)
+    train(victim, data, tmp_path / "b.ply", **kw)
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+    sa, sb = (read_object_file(tmp_path / f"{n}.ply").made_by for n in "ab")
+    sa.pop("wall_time_s")
+    sb.pop("wall_time_s")
+    assert sa == sb
+    # another seed draws other cars and other EOT draws: another object
+    train(victim, data, tmp_path / "c.ply", **kw, seed=1)
+    assert (tmp_path / "c.ply").read_bytes() != (tmp_path / "a.ply").read_bytes()
+
+
+class Stop(Exception):
+    pass
+
+
+def test_resume_equals_uninterrupted(victim, data, tmp_path):
+    kw = {"mode": "adv-object", "steps": 4, "checkpoint_every": 2, "eot": ("jitter",)}
+    train(victim, data, tmp_path / "full.ply", **kw)
+
+    def interrupt(trainer):
+        if trainer.step == 3:  # after the checkpoint of step 2, before that of step 4
+            raise Stop
+
+    with pytest.raises(Stop):
+        train(victim, data, tmp_path / "part.ply", **kw, on_step=interrupt)
+    assert not (tmp_path / "part.ply").exists()
+    assert torch.load(checkpoint_path(tmp_path / "part.ply"), weights_only=True)["step"] == 2
+    train(victim, data, tmp_path / "part.ply", **kw, resume=True)
+    assert (tmp_path / "part.ply").read_bytes() == (tmp_path / "full.ply").read_bytes()
+    hist = [read_object_file(tmp_path / f"{n}.ply").made_by["losses"] for n in ("part", "full")]
+    assert hist[0] == hist[1]
+    # a checkpoint of another configuration is refused
+    with pytest.raises(TrainingError, match=r"another training.*config.lr_shape"):
+        train(victim, data, tmp_path / "part.ply", **{**kw, "steps": 5}, lr_shape=1e-3, resume=True)
+
+
+class NoProposals(FPointNetCascade):
+    """The shipped victim without a way to enumerate its own 2D proposals."""
+
+    proposals = None
+
+
+def test_lidar_loss_on_the_detectors_boxes(victim, data, tmp_path):
+    kw = {"mode": "adv-object", "steps": 2}
+    made_by = train(victim, data, tmp_path / "d.ply", **kw, lidar_boxes="detector")
+    assert made_by["lidar_proposals"] == "the victim's 2D detections on the attacked image"
+    assert made_by["config"]["lidar_boxes"] == "detector" and made_by["losses"]["last_step"]["lidar"] > 0
+    train(victim, data, tmp_path / "g.ply", **kw)
+    assert (tmp_path / "d.ply").read_bytes() != (tmp_path / "g.ply").read_bytes()  # other frustums, other object
+    with pytest.raises(TrainingError, match=r"does not implement proposals\(frames, source\)"):
+        train(as_class(victim, NoProposals), data, tmp_path / "x.ply", **kw, lidar_boxes="detector")
+
+
+class NoOracles:
+    supported_proposals = ("detector", "gt")
+
+    def detect(self, frames, proposals="detector"):
+        return []
+
+
+@pytest.mark.parametrize(("mode", "missing"), [("adv-shape", "FrustumSegmentationOracle"),
+                                               ("adv-texture", "ImageObjectnessOracle"),
+                                               ("adv-object", "FrustumSegmentationOracle.*ImageObjectnessOracle")])
+def test_victim_without_oracle_is_refused(data, tmp_path, mode, missing):
+    with pytest.raises(TrainingError, match=rf"cannot be attacked with {mode}.*{missing}"):
+        train(NoOracles(), data, tmp_path / "x.ply", mode=mode, steps=1)
+    assert not (tmp_path / "x.ply").exists()
+
+
+def test_data_without_cars_is_refused_by_the_cli(dataset, tmp_path, capsys):
+    root = tmp_path / "nocars"
+    for sub in ("calib", "image_2", "velodyne", "label_2"):
+        (root / "training" / sub).mkdir(parents=True)
+        for f in (dataset / "training" / sub).iterdir():
+            target = root / "training" / sub / f.name
+            if sub == "label_2":
+                target.write_text("".join(r + "\n" for r in f.read_text().splitlines() if not r.startswith("Car ")))
+            else:
+                target.symlink_to(f)
+    (root / "ImageSets").mkdir()
+    (root / "ImageSets" / "train.txt").write_text((dataset / "ImageSets" / "train.txt").read_text())
+    code = main(["attack", "train", "adv-shape", "--victim", "fpointnet-v1-lite", "--data", str(root),
+                 "--out", str(tmp_path / "o.ply"), "--steps", "1", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "has no target cars (label type Car)" in err and "Traceback" not in err
+    code = main(["attack", "train", "adv-shape", "--victim", "fpointnet-v1-lite", "--data", str(root),
+                 "--out", str(tmp_path / "o.ply"), "--eot", "jitter,fog"])
+    assert code == 2 and "--eot jitter,fog: unknown fog" in capsys.readouterr().err
+    code = main(["attack", "train", "adv-object", "--victim", "fpointnet-v1-lite", "--data", str(root),
+                 "--out", str(tmp_path / "o.ply"), "--steps", "0"])
+    assert code == 2 and "field 'steps' (--steps): must be an integer >= 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "o.ply").exists() and not checkpoint_path(tmp_path / "o.ply").exists()
+
+
+def test_cli_trains_and_reports(dataset, tmp_path, capsys):
+    out = tmp_path / "cli.ply"
+    code = main(["attack", "train", "adv-shape", "--victim", "fpointnet-v1-lite", "--victim-arg", "seed=0",
+                 "--data", str(dataset), "--out", str(out), "--steps", "1", "--batch-cars", "2", "--no-progress",
+                 "--eot", "all", "--seed", "3"])
+    printed = capsys.readouterr().out
+    assert code == 0 and f"{out}: adv-shape after 1 steps on 25 cars" in printed and "lidar" in printed
+    side = read_object_file(out).made_by
+    assert side["config"]["eot"] == ["jitter", "range-noise", "dropout"] and side["seed"] == 3
+    assert side["victim"]["kwargs"] == {"seed": "0"} and checkpoint_path(out).is_file()
+
+
+class NaNVictim(FPointNetCascade):
+    """The shipped victim with NaN segmentation logits."""
+
+    def frustum_logits(self, *args, **kwargs):
+        out = super().frustum_logits(*args, **kwargs)
+        return None if out is None else type(out)(out.logits * float("nan"), out.sample_index, out.rot_angle,
+                                                  out.points)
+
+
+class BlindVictim(FPointNetCascade):
+    """The shipped victim whose segmentation ignores its input points (no gradient reaches the object)."""
+
+    def frustum_logits(self, *args, **kwargs):
+        out = super().frustum_logits(*args, **kwargs)
+        return None if out is None else type(out)(out.logits.detach(), out.sample_index, out.rot_angle, out.points)
+
+
+def as_class(victim, cls):
+    other = object.__new__(cls)
+    other.__dict__.update(victim.__dict__)
+    return other
+
+
+def test_nan_loss_stops_with_a_clear_message(victim, data, tmp_path):
+    with pytest.raises(TrainingError, match=r"step 0: the loss of frame \d+ is not finite"):
+        train(as_class(victim, NaNVictim), data, tmp_path / "n.ply", mode="adv-shape", steps=3)
+    assert not (tmp_path / "n.ply").exists()
+
+
+def test_zero_gradient_stops_after_patience(victim, data, tmp_path):
+    with pytest.raises(TrainingError, match=r"no gradient for 2 consecutive steps.*last checkpoint"):
+        train(as_class(victim, BlindVictim), data, tmp_path / "z.ply", mode="adv-shape", steps=5,
+              zero_grad_patience=2, checkpoint_every=1)
