@@ -12,10 +12,16 @@ dataset made by the procedural generator once :meth:`RoofObjectAttack.bind_datas
 (:mod:`robustbench3d.attacks.depth_cache`); on any other dataset, or without a bound dataset, it is the
 clean scan's depth map (:func:`robustbench3d.sensors.camera_depth.lidar_depth_map`); ``occlusion="none"``
 hides nothing. A frame without targets is returned as is.
+
+The attacked frame is a :class:`~robustbench3d.kitti.dataset.LazyImageFrame`: the LiDAR render is done in
+:meth:`RoofObjectAttack.apply`, the camera render (and the scene depth it needs) on the first read of its
+``image`` (the same bytes as rendering it at once), so a consumer that never reads the image (a victim
+given ground-truth 2D boxes) never pays for it.
 """
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -33,7 +39,7 @@ from robustbench3d.attacks.placement import (
     place_on_roof,
     sample_jitter,
 )
-from robustbench3d.kitti.dataset import Frame, KittiDataset
+from robustbench3d.kitti.dataset import Frame, KittiDataset, LazyImageFrame
 from robustbench3d.kitti.labels import Labels
 
 if TYPE_CHECKING:
@@ -130,10 +136,15 @@ class RoofObjectAttack(Attack):
         faces, colors = self.obj.faces.copy(), self.obj.colors.copy()  # writable: the renderers wrap them in torch
         velo = [(frame.calib.rect_to_velo_points(v), faces, colors) for v, _ in placed]
         lidar = render_lidar(frame.scan, velo, rng=rng, range_noise_m=self.range_noise_m, dropout=self.dropout)
-        camera = render_camera(frame.image, frame.calib, [(v, faces, colors) for v, _ in placed],
-                               scene_depth=self.scene_depth(frame, targets), supersample=self.supersample)
         scan = np.ascontiguousarray(lidar.scan, dtype=frame.scan.dtype)
-        return Frame(frame.frame_id, camera.image, scan, frame.calib, frame.labels)
+        rect = [(v, faces, colors) for v, _ in placed]
+        settings = copy.copy(self)  # the image is this call's, whatever changes the attack later
+
+        def camera_image() -> np.ndarray:
+            return render_camera(frame.image, frame.calib, rect, scene_depth=settings.scene_depth(frame, targets),
+                                 supersample=settings.supersample).image
+
+        return LazyImageFrame(frame.frame_id, scan, frame.calib, frame.labels, frame.image_size, camera_image)
 
     def describe(self) -> dict[str, Any]:
         return {

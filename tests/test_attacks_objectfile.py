@@ -23,6 +23,24 @@ from robustbench3d.errors import DataFormatError
 from robustbench3d.sensors.mesh import icosphere
 
 
+def test_ply_bytes_are_trimeshs_export_without_importing_trimesh():
+    import subprocess
+    import sys
+
+    from robustbench3d.attacks.object import N_VERTICES
+    from robustbench3d.attacks.objectfile import ply_bytes
+
+    for obj in (benign_sphere(), random_shape(0), random_shape(7)):
+        rgba = np.empty((N_VERTICES, 4), dtype=np.uint8)
+        rgba[:, :3] = np.round(obj.colors * 255.0).astype(np.uint8)
+        rgba[:, 3] = 255
+        ref = trimesh.Trimesh(vertices=obj.vertices(), faces=obj.faces, vertex_colors=rgba, process=False)
+        assert ply_bytes(obj) == ref.export(file_type="ply", encoding="binary")
+    code = ("import sys; from robustbench3d.attacks import create_attack; a = create_attack('random-shape'); "
+            "a.describe(); print('trimesh' in sys.modules)")
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout == "False\n"
+
+
 def test_round_trip_is_bit_for_bit(tmp_path):
     for obj, made_by in ((random_shape(5), {"attack": "random-shape", "seed": 5}), (benign_sphere(), {})):
         path = save_object(tmp_path / "obj.ply", obj, made_by)

@@ -343,3 +343,54 @@ def test_grouped_cast_equals_casting_each_group_alone():
     assert bool((only1.face[only1.hit] < len(f1)).all())
     with pytest.raises(ValueError, match="groups\\[0\\]"):
         cast_rays(v, f, d, zero, h, groups=[(np.array([len(idx)]), 0, len(f1))])
+
+
+#: sha256 of the rendered scan of :func:`test_multi_car_frame_equals_brute_force_and_embree`'s frame, without and
+#: with noise and dropout, as the renderer wrote it before its per-face culling (every culled ray of a mesh
+#: tested against all of its cluster spheres; commit f491fb0).
+MULTI_CAR_SCAN_SHA256 = ("a23e6273c6276da6ff6c0ba5413e0605cae907b5453e4e8bd84924dedcc8d9bf",
+                         "7ea289d913934f28975697a3ebec0fd83737436ac23374c265eac87458844b38")
+
+
+def test_multi_car_frame_equals_brute_force_and_embree():
+    import hashlib
+
+    from robustbench3d.attacks import create_attack
+    from robustbench3d.attacks.base import target_cars
+    from robustbench3d.sensors.raycast import cast_rays
+    from robustbench3d.synth.frame import generate_frame
+
+    frame = generate_frame(0, 0)
+    attack = create_attack("random-shape", seed=0)
+    placed = attack.place(target_cars(frame.labels), np.random.default_rng(3))
+    meshes = [(frame.calib.rect_to_velo_points(v), attack.obj.faces, attack.obj.colors) for v, _ in placed]
+    assert len(meshes) == 22
+    prep = prepare_scan(frame.scan)
+    tr = trace_meshes(prep, meshes)
+    # Reference: every ray of a wide region (3x each mesh's radius, 2 deg of azimuth) cast at all faces of all
+    # meshes at once (cast_rays without groups: no per-mesh cull, no per-face pairs).
+    pattern = prep.pattern
+    wide = np.unique(np.concatenate([pattern.cull(0.5 * (v.min(0) + v.max(0)), 3 * np.abs(v - v.mean(0)).max(), 2.0)
+                                     for v, _, _ in meshes]))
+    origins, dirs = pattern.ray_geometry(wide)
+    v_all = np.concatenate([v for v, _, _ in meshes])
+    f_all = np.concatenate([f + k * len(meshes[0][0]) for k, (_, f, _) in enumerate(meshes)])
+    brute = cast_rays(torch.from_numpy(v_all), f_all, torch.from_numpy(dirs), torch.zeros(3, dtype=torch.float64),
+                      torch.from_numpy(origins[:, 2]))
+    hit = brute.hit.numpy()
+    assert hit.sum() > 1000 and tr.tests < brute.tests / 2
+    np.testing.assert_array_equal(tr.ray, wide[hit])  # the same rays, faces and distances, bit for bit
+    n_faces = len(meshes[0][1])
+    np.testing.assert_array_equal(tr.mesh * n_faces + tr.face, brute.face.numpy()[hit])
+    assert tr.t.numpy().tobytes() == brute.t.numpy()[hit].tobytes()
+    # Embree (float32, its own kernel) agrees on the rays and the distances.
+    prim, tfar = _embree(v_all, f_all, origins, dirs)
+    assert (prim[hit] >= 0).all() and (prim[~hit] < 0).sum() >= (~hit).sum() - 2
+    assert np.abs(tfar[hit] - tr.t.numpy()).max() < 1e-4
+    # The render adds the in-range hits no original point hides, and keeps the scan's bytes.
+    res = render_lidar(frame.scan, meshes)
+    shown = ~tr.hidden & lm.in_range(tr.t.numpy())
+    np.testing.assert_array_equal(res.ray_index, tr.ray[shown])
+    noisy = render_lidar(frame.scan, meshes, rng=np.random.default_rng(9), range_noise_m=0.02, dropout=0.1)
+    assert (hashlib.sha256(res.scan.tobytes()).hexdigest(),
+            hashlib.sha256(noisy.scan.tobytes()).hexdigest()) == MULTI_CAR_SCAN_SHA256

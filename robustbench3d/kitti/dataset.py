@@ -6,8 +6,10 @@
 
 from __future__ import annotations
 
+import functools
 import os
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
@@ -46,6 +48,55 @@ class Frame:
     def image_size(self) -> tuple[int, int]:
         """(width, height) in pixels."""
         return int(self.image.shape[1]), int(self.image.shape[0])
+
+
+class DeferredImageError(RuntimeError):
+    """Making the image of a :class:`LazyImageFrame` failed (the cause is chained)."""
+
+
+@dataclass(frozen=True, eq=False)
+class LazyImageFrame(Frame):
+    """A :class:`Frame` whose image is made on first access of ``image`` and kept (e.g. an attacked
+    frame: its camera render is skipped when no consumer reads the image, as a victim given
+    ground-truth 2D boxes does).
+
+    Constructed as ``LazyImageFrame(frame_id, scan, calib, labels, size, make_image)``; ``image_size``
+    is ``size`` and never makes the image. ``make_image`` is wrapped so that it runs at most once for
+    this frame and every copy of it (``dataclasses.replace`` keeps the laziness; it cannot set
+    ``image``); its errors are raised as :class:`DeferredImageError`.
+
+    Attributes:
+        size: (width, height) of the image in pixels.
+        make_image: returns the (H, W, 3) uint8 image.
+    """
+
+    image: np.ndarray = field(init=False, repr=False)
+    size: tuple[int, int]
+    make_image: Callable[[], np.ndarray] = field(repr=False)
+
+    def __post_init__(self) -> None:
+        if not hasattr(self.make_image, "cache_info"):  # copies share the wrapper, hence one image
+            object.__setattr__(self, "make_image", functools.cache(self.make_image))
+
+    def __getattr__(self, name: str) -> np.ndarray:  # only called while ``image`` is not yet set
+        if name != "image":
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        try:
+            image = self.make_image()
+        except Exception as exc:
+            raise DeferredImageError(f"frame {self.frame_id}: making its image failed: "
+                                     f"{type(exc).__name__}: {exc}") from exc
+        if (image.ndim != 3 or image.shape[2] != 3
+                or (int(image.shape[1]), int(image.shape[0])) != tuple(self.size)):
+            raise DeferredImageError(f"frame {self.frame_id}: made an image of shape {image.shape}, "
+                                     f"expected (H, W, 3) for (W, H) = {tuple(self.size)}")
+        object.__setattr__(self, "image", image)
+        return image
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(width, height) in pixels, without making the image."""
+        return int(self.size[0]), int(self.size[1])
 
 
 class KittiDataset:

@@ -25,7 +25,7 @@ from robustbench3d.attacks.base import Attack, target_cars
 from robustbench3d.datasets import GroundTruth
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import atomic_write_text
-from robustbench3d.kitti.dataset import Frame, KittiDataset
+from robustbench3d.kitti.dataset import DeferredImageError, Frame, KittiDataset
 from robustbench3d.kitti.labels import RESULT_PRECISION, Labels, parse_labels
 from robustbench3d.victims.base import victim_inputs
 
@@ -73,11 +73,14 @@ def _attacked(attack: Attack, name: str, frame: Frame, gt: Labels, seed: int) ->
     return out
 
 
-def _detect(victim: Any, name: str, frames: Sequence[Frame], labels: Sequence[Labels], proposals: str) -> list[Labels]:
+def _detect(victim: Any, name: str, frames: Sequence[Frame], labels: Sequence[Labels], proposals: str,
+            attack_name: str) -> list[Labels]:
     ids = f"{frames[0].frame_id}..{frames[-1].frame_id}"
     bare, given = victim_inputs(frames, labels, proposals)
     try:
         out = victim.detect(bare, given)
+    except DeferredImageError as exc:  # an attacked image is rendered when the victim first reads it
+        raise CellFailure(f"attack {attack_name!r} failed: {exc}") from exc
     except Exception as exc:
         raise CellFailure(f"victim {name!r} failed on frames {ids}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(out, list | tuple) or len(out) != len(frames):
@@ -137,7 +140,8 @@ def run_cell(victim: Any, victim_name: str, attack: Attack, attack_name: str, pr
                 clean = Frame(fid, kitti.image(fid), kitti.scan(fid), kitti.calib(fid), gt)
                 frames.append(_attacked(attack, attack_name, clean, gt, seed))
             labels = [gt for _, gt in batch]
-            for frame, det in zip(frames, _detect(victim, victim_name, frames, labels, proposals), strict=True):
+            found = _detect(victim, victim_name, frames, labels, proposals, attack_name)
+            for frame, det in zip(frames, found, strict=True):
                 path = partial / f"{frame.frame_id}.txt"
                 text, parsed = _as_result_file(det, path, victim_name)
                 atomic_write_text(path, text)

@@ -137,14 +137,18 @@ class HDL64E:
         """(ring (N,) int16, azimuth_deg (N,)) of :meth:`rays` without the geometry (arguments alike)."""
         nl = self.num_lasers
         phases = np.zeros(nl) if phases_deg is None else np.asarray(phases_deg, dtype=np.float64)
-        rings, azs = [], []
-        for k in range(nl):
-            az = self.ring_azimuths(float(phases[k]), firings)
-            if ego_occlusion:
-                az = az[~_occluded(k, az)]
-            azs.append(az)
-            rings.append(np.full(len(az), k, dtype=np.int16))
-        return np.concatenate(rings), np.concatenate(azs)
+        n = self.firings_per_revolution if firings is None else int(firings)
+        az = phases[:nl, None] + _firing_steps(n, self.azimuth_quantum_deg)[None, :]  # row k: ring_azimuths(k)
+        keep = az < 360.0
+        if ego_occlusion:
+            for first, last, lo, hi in EGO_OCCLUSION_SECTORS:  # drop the sectors' azimuths of their lasers
+                if first < nl:
+                    rows = az[first:last + 1]
+                    out = (rows >= lo) & (rows < hi)
+                    if hi > 360.0:
+                        out |= rows < hi - 360.0
+                    keep[first:last + 1] &= ~out
+        return np.repeat(np.arange(nl, dtype=np.int16), keep.sum(axis=1)), az[keep]
 
     def origins(self, ring: np.ndarray) -> np.ndarray:
         """(N, 3) ray origins (0, 0, h0_k) of lasers ``ring`` (velodyne frame, m)."""
@@ -163,17 +167,6 @@ def _firing_steps(firings: int, quantum_deg: float) -> np.ndarray:
     return steps
 
 
-def _occluded(ring: int, azimuth_deg: np.ndarray) -> np.ndarray:
-    """(N,) bool: azimuths of laser ``ring`` that fall in an ego-occlusion sector."""
-    out = np.zeros(len(azimuth_deg), dtype=bool)
-    for first, last, lo, hi in EGO_OCCLUSION_SECTORS:
-        if first <= ring <= last:
-            out |= (azimuth_deg >= lo) & (azimuth_deg < hi)
-            if hi > 360.0:
-                out |= azimuth_deg < hi - 360.0
-    return out
-
-
 def ring_ids_from_azimuth_wrap(points: np.ndarray) -> np.ndarray:
     """Laser index of each point of a KITTI-ordered scan (velodyne frame, (N, >=2)).
 
@@ -182,10 +175,20 @@ def ring_ids_from_azimuth_wrap(points: np.ndarray) -> np.ndarray:
     jumps by more than 180 deg. (Testing the crossing, not a drop of atan2(y, x) in [0, 360),
     keeps points whose azimuth jitters around 0 deg at a sweep's ends on the right laser.)
     Returns (N,) int64 starting at 0; a full real scan yields 0..63.
+
+    Only consecutive points whose y differ in sign bit can jump (atan2(y, -x) lies in [0, pi] for a y with
+    the sign bit clear, in [-pi, -0] otherwise), so atan2 is evaluated on those pairs only.
     """
-    pts = np.asarray(points, dtype=np.float64)
-    yaw = np.arctan2(pts[:, 1], -pts[:, 0])
+    pts = np.asarray(points)
+    if pts.dtype not in (np.float32, np.float64):
+        pts = pts.astype(np.float64)
     ring = np.zeros(len(pts), dtype=np.int64)
     if len(pts) > 1:
-        ring[1:] = np.cumsum(np.abs(np.diff(yaw)) > np.pi)
+        sign = np.signbit(pts[:, 1])  # float32 -> float64 keeps the sign
+        pair = np.flatnonzero(sign[1:] != sign[:-1])
+        p0, p1 = pts[pair, :2].astype(np.float64), pts[pair + 1, :2].astype(np.float64)
+        yaw0 = np.arctan2(p0[:, 1], -p0[:, 0])
+        yaw1 = np.arctan2(p1[:, 1], -p1[:, 0])
+        first = pair[np.abs(yaw1 - yaw0) > np.pi] + 1  # the first point of each next laser
+        ring = np.repeat(np.arange(len(first) + 1, dtype=np.int64), np.diff(first, prepend=0, append=len(pts)))
     return ring

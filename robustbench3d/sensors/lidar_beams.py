@@ -91,33 +91,99 @@ class BeamPattern:
         sphere's tangent cone iff cos(phi_k) |c_xy| cos(theta - theta_c) + sin(phi_k) c_z >= sqrt(|c|^2 - r^2),
         which gives no azimuth (the laser's cone misses the sphere), all of them (apex inside), or an interval.
         """
+        return self.cull_many(np.reshape(np.asarray(center, dtype=np.float64), (1, 3)), [radius], margin_deg)[0]
+
+    def cull_many(self, centers: np.ndarray, radii: np.ndarray, margin_deg: float = AZIMUTH_STEP_DEG
+                  ) -> list[np.ndarray]:
+        """:meth:`cull` of each sphere (``centers`` (M, 3), ``radii`` (M,)), all lasers of all spheres at once."""
         s = self.sensor
-        c = np.asarray(center, dtype=np.float64)
-        r = float(radius) * (1 + 1e-9) + 1e-9
-        cz = c[2] - s.origin_z
-        rho = float(np.hypot(c[0], c[1]))
+        c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+        r = np.asarray(radii, dtype=np.float64).reshape(-1) * (1 + 1e-9) + 1e-9
+        cz = c[:, 2:3] - s.origin_z[None, :]
+        rho = np.hypot(c[:, 0], c[:, 1])[:, None]
         dist2 = rho * rho + cz * cz
+        r2 = (r * r)[:, None]
         phi = np.radians(s.elevation_deg)
-        inside = dist2 <= r * r
+        inside = dist2 <= r2
         with np.errstate(divide="ignore", invalid="ignore"):
-            kappa = (np.sqrt(np.maximum(dist2 - r * r, 0.0)) - np.sin(phi) * cz) / (np.cos(phi) * rho)
+            kappa = (np.sqrt(np.maximum(dist2 - r2, 0.0)) - np.sin(phi) * cz) / (np.cos(phi) * rho)
         kappa = np.where(inside, -np.inf, np.nan_to_num(kappa, nan=np.inf, posinf=np.inf, neginf=-np.inf))
-        active = np.flatnonzero(kappa <= 1.0)
-        if len(active) == 0:
-            return np.zeros(0, dtype=np.int64)
-        half = np.degrees(np.arccos(np.clip(kappa[active], -1.0, 1.0))) + margin_deg
-        theta = np.degrees(np.arctan2(c[1], c[0])) % 360.0
+        sphere, active = np.nonzero(kappa <= 1.0)  # (sphere, laser) pairs whose cone reaches the sphere
+        half = np.degrees(np.arccos(np.clip(kappa[sphere, active], -1.0, 1.0))) + margin_deg
+        theta = (np.degrees(np.arctan2(c[:, 1], c[:, 0])) % 360.0)[sphere]
         full = half >= 180.0
         starts, stops = [], []
-        for turn in (-360.0, 0.0, 360.0):
+        for turn in (-360.0, 0.0, 360.0):  # a full laser gets its whole range three times (dropped by unique)
             lo = np.clip(theta - half + turn, -1.0, 500.0)
             hi = np.clip(theta + half + turn, -1.0, 500.0)
             lo[full], hi[full] = -1.0, 500.0
             starts.append(np.searchsorted(self._keys, active * _BAND + lo, "left"))
             stops.append(np.searchsorted(self._keys, active * _BAND + hi, "right"))
-            if full.all():
-                break
-        return np.unique(_expand_ranges(np.concatenate(starts), np.concatenate(stops)))
+        start, stop = np.concatenate(starts), np.concatenate(stops)
+        owner = np.repeat(np.tile(sphere, 3), np.maximum(stop - start, 0))
+        n_rays = len(self._keys)
+        key = np.unique(owner * n_rays + _expand_ranges(start, stop))  # by sphere, then ray
+        bounds = np.searchsorted(key, np.arange(len(c) + 1) * n_rays)
+        rays = key - np.repeat(np.arange(len(c)) * n_rays, np.diff(bounds))
+        return [rays[bounds[i]:bounds[i + 1]] for i in range(len(c))]
+
+    def sphere_rays(self, centers: np.ndarray, radii: np.ndarray, first_laser: np.ndarray, last_laser: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """(sphere (K,), ray (K,)) int64 pairs: for each sphere (``centers`` (M, 3), ``radii``
+        (M,)) the rays of lasers ``first_laser[m]``..``last_laser[m]`` that can pass through it.
+
+        The lasers are first narrowed to those whose elevation is within the sphere's angular radius of the
+        centre's elevation seen from some laser origin; then per laser the azimuths within its cone's reach of the
+        sphere (:meth:`cull`'s test, without its margin). The tests keep margins (1e-9, 1e-7 deg) far above their
+        rounding: a superset of those rays; cheaper than :meth:`cull` for many small spheres on few lasers."""
+        s = self.sensor
+        c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+        r = np.asarray(radii, dtype=np.float64).reshape(-1)
+        first = np.asarray(first_laser, dtype=np.int64).reshape(-1)
+        last = np.asarray(last_laser, dtype=np.int64).reshape(-1)
+        rho = np.hypot(c[:, 0], c[:, 1])
+        phi = np.radians(s.elevation_deg)
+        if np.all(np.diff(phi) < 0):  # lasers top down: keep those within the sphere's reach from any apex height
+            h_lo, h_hi = float(s.origin_z.min()), float(s.origin_z.max())
+            d_min = np.hypot(rho, c[:, 2] - np.clip(c[:, 2], h_lo, h_hi))  # from the nearest apex
+            with np.errstate(divide="ignore", invalid="ignore"):
+                reach = np.arcsin(np.minimum(r / d_min, 1.0)) + 1e-9
+            top = np.where(r >= d_min, np.inf, np.arctan2(c[:, 2] - h_lo, rho) + reach)
+            bottom = np.where(r >= d_min, -np.inf, np.arctan2(c[:, 2] - h_hi, rho) - reach)
+            first = np.maximum(first, np.searchsorted(-phi, -top, "left"))
+            last = np.minimum(last, np.searchsorted(-phi, -bottom, "right") - 1)
+        width = np.maximum(last - first + 1, 0)
+        sphere = np.repeat(np.arange(len(c)), width)
+        laser = first[sphere] + np.arange(len(sphere)) - np.repeat(np.cumsum(width) - width, width)
+        # The cone of laser k (apex o_k, elevation phi_k) and the sphere: the ray at azimuth theta passes within r
+        # of c iff cos(phi_k) rho cos(theta - theta_c) + sin(phi_k) (c_z - h_k) >= sqrt(|c - o_k|^2 - r^2), i.e.
+        # cos(theta - theta_c) >= kappa (as in cull); kappa is lowered by 1e-9 (far above its rounding, ~1e-15)
+        # before the arccos, whose slope is unbounded at 1.
+        rs, rho_s, dz = r[sphere], rho[sphere], c[sphere, 2] - s.origin_z[laser]
+        dist2 = rho_s * rho_s + dz * dz
+        with np.errstate(divide="ignore", invalid="ignore"):
+            kappa = (np.sqrt(np.maximum(dist2 - rs * rs, 0.0)) - np.sin(phi[laser]) * dz) / (np.cos(phi[laser]) * rho_s)
+        kappa = kappa - 1e-9
+        full = (rs >= rho_s) | (dist2 <= rs * rs) | (kappa <= -1.0)  # every azimuth (or the axis in reach)
+        hit = np.flatnonzero(full | (kappa <= 1.0))
+        sphere, laser, full = sphere[hit], laser[hit], full[hit]
+        theta = (np.degrees(np.arctan2(c[:, 1], c[:, 0])) % 360.0)[sphere]
+        with np.errstate(invalid="ignore"):
+            half = np.degrees(np.arccos(np.clip(kappa[hit], -1.0, 1.0))) + 1e-7
+        lo, hi = theta - half, theta + half
+        lo[full], hi[full] = -1.0, 500.0
+        wrap = np.flatnonzero(~full & ((lo < 1.0) | (hi > 359.0)))  # may also reach rays a turn away
+        lo = np.concatenate([lo, lo[wrap] + 360.0, lo[wrap] - 360.0]).clip(-1.0, 500.0)
+        hi = np.concatenate([hi, hi[wrap] + 360.0, hi[wrap] - 360.0]).clip(-1.0, 500.0)
+        sphere = np.concatenate([sphere, sphere[wrap], sphere[wrap]])
+        laser = np.concatenate([laser, laser[wrap], laser[wrap]])
+        start = np.searchsorted(self._keys, laser * _BAND + lo, "left")
+        stop = np.searchsorted(self._keys, laser * _BAND + hi, "right")
+        return np.repeat(sphere, np.maximum(stop - start, 0)), _expand_ranges(start, stop)
+
+    def ray_rings(self, index: np.ndarray) -> np.ndarray:
+        """(K,) int64 laser of the rays ``index`` (K,), without building the rays."""
+        return self._ring_azimuth[0][np.asarray(index, dtype=np.int64)]
 
     def near_rays(self, index: np.ndarray, ring: np.ndarray, azimuth_deg: np.ndarray,
                   max_deg: float = AZIMUTH_QUANTUM_DEG) -> np.ndarray:
@@ -132,9 +198,16 @@ class BeamPattern:
         b = np.floor(raz / max_deg).astype(np.int64)
         for step in range(-2, 3):
             grid[rr, (b + step) % bins] = True
-        known = (ring >= 0) & (ring < nl)
-        pb = np.floor((np.asarray(azimuth_deg, dtype=np.float64) % 360.0) / max_deg).astype(np.int64) % bins
-        return known & grid[np.where(known, ring, 0), pb]
+        # Only the points of the rays' lasers can be near (one slice each when the points are laser-ordered).
+        lasers = np.unique(rr)
+        if len(ring) and np.all(ring[1:] >= ring[:-1]):
+            pick = _expand_ranges(np.searchsorted(ring, lasers, "left"), np.searchsorted(ring, lasers, "right"))
+        else:
+            pick = np.flatnonzero(np.isin(ring, lasers))
+        az = np.asarray(azimuth_deg, dtype=np.float64)[pick]
+        out = np.zeros(len(ring), dtype=bool)
+        out[pick] = grid[ring[pick], np.floor(_mod360(az) / max_deg).astype(np.int64) % bins]
+        return out
 
     def nearest_ray(self, ring: np.ndarray, azimuth_deg: np.ndarray, max_deg: float = AZIMUTH_QUANTUM_DEG
                     ) -> np.ndarray:
@@ -181,13 +254,13 @@ def scan_ring_ids(scan: np.ndarray, sensor: HDL64E | None = None) -> np.ndarray:
     (:func:`~robustbench3d.sensors.hdl64e.ring_ids_from_azimuth_wrap`). Otherwise (unordered or with empty
     lasers) the laser whose cone z = rho tan(phi_k) + h0_k passes closest to the point.
     """
-    pts = np.asarray(scan, dtype=np.float64)
-    if len(pts) == 0:
+    if len(scan) == 0:
         return np.zeros(0, dtype=np.int64)
     s = sensor or HDL64E()
-    wrap = ring_ids_from_azimuth_wrap(pts)
+    wrap = ring_ids_from_azimuth_wrap(scan)
     if wrap.max() == s.num_lasers - 1:
         return wrap
+    pts = np.asarray(scan, dtype=np.float64)
     rho = np.hypot(pts[:, 0], pts[:, 1])
     cone = rho[:, None] * np.tan(np.radians(s.elevation_deg))[None, :] + s.origin_z[None, :]
     return np.argmin(np.abs(pts[:, 2:3] - cone), axis=1).astype(np.int64)
@@ -205,22 +278,80 @@ def _circular_mean(x: np.ndarray, period: float) -> float:
     return (float(m * period / (2 * np.pi)) + period / 2) % period - period / 2
 
 
-def estimate_pattern(scan: np.ndarray, ring: np.ndarray, sensor: HDL64E | None = None) -> BeamPattern:
+def _mod360(az: np.ndarray) -> np.ndarray:
+    """``az % 360.0``, bit for bit; for azimuths within (-360, 360) (those of atan2) without the division."""
+    az = np.asarray(az, dtype=np.float64)
+    if len(az) and not np.abs(az).max() < 360.0:
+        return az % 360.0
+    return np.where(az < 0.0, az + 360.0, az + 0.0)  # + 0.0: -0.0 % 360 is +0.0
+
+
+def _mod_positive(x: np.ndarray, q: float) -> np.ndarray:
+    """``x % q`` (q > 0), bit for bit; for 0 <= x < 2^20 q without fmod: with q = qh + ql split in 26-bit
+    halves (Veltkamp) and n = floor(x / q), ``(x - n qh) - n ql`` is exact (both products are, the first
+    difference is smaller than 2x, and the result x - n q, fmod's, is representable) once n is the exact
+    quotient's floor; a rounded division that crossed an integer shows as a result outside [0, q)."""
+    x = np.asarray(x, dtype=np.float64)
+    if len(x) == 0 or not (x.min() >= 0.0 and x.max() < q * 2.0 ** 20):
+        return x % q
+    c = 134217729.0 * q  # 2^27 + 1
+    qh = c - (c - q)
+    ql = q - qh
+    n = np.floor(x / q)
+    r = (x - n * qh) - n * ql
+    off = np.flatnonzero((r < 0.0) | (r >= q))
+    if len(off):
+        n[off] += np.where(r[off] < 0.0, -1.0, 1.0)
+        r[off] = (x[off] - n[off] * qh) - n[off] * ql
+    return r
+
+
+def _circular_means(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, period: float) -> np.ndarray:
+    """:func:`_circular_mean` of each slice ``x[lo[k]:hi[k]]`` (non-empty, increasing, disjoint), bit for bit:
+    the same element-wise values and sums (``v.mean()`` is ``np.add.reduce(v) / len(v)``), with sin and cos
+    of ``x`` evaluated once, the test cos(a - m) > 0 decided from them where its sign is certain (the few
+    others take the cos), and the second mean of a slice whose values all pass equal to its first."""
+    total = np.add.reduce
+    a = 2 * np.pi * x / period
+    sin, cos = np.sin(a), np.cos(a)
+    m = np.array([np.arctan2(total(sin[i:j]) / (j - i), total(cos[i:j]) / (j - i))
+                  for i, j in zip(lo, hi, strict=True)])
+    n = hi - lo
+    # cos(a - m) = cos a cos m + sin a sin m, within 1e-14 of np.cos(a - m)
+    c = cos * np.repeat(np.cos(m), n) + sin * np.repeat(np.sin(m), n)
+    near = c > 1e-12
+    edge = np.flatnonzero(np.abs(c) <= 1e-12)
+    near[edge] = np.cos(a[edge] - np.repeat(m, n)[edge]) > 0.0
+    for k in np.unique(np.searchsorted(hi, np.flatnonzero(~near), "right")):  # slices with values that fail
+        i, j = lo[k], hi[k]
+        keep = near[i:j]
+        if keep.any():
+            m[k] = np.arctan2(total(sin[i:j][keep]) / keep.sum(), total(cos[i:j][keep]) / keep.sum())
+    return (m * period / (2 * np.pi) + period / 2) % period - period / 2
+
+
+def estimate_pattern(scan: np.ndarray, ring: np.ndarray, sensor: HDL64E | None = None, *,
+                     azimuth_deg: np.ndarray | None = None) -> BeamPattern:
     """The beam pattern of a scan (N, >=3) with laser ids ``ring`` (N,) (see the module docstring).
 
-    Lasers without points keep the generator's offsets (plus the common turn when one was found)."""
+    Lasers without points keep the generator's offsets (plus the common turn when one was found).
+    ``azimuth_deg``: the points' degrees(arctan2(y, x)) in float64 when already computed."""
     s = sensor or HDL64E()
     q = s.azimuth_quantum_deg
-    pts = np.asarray(scan, dtype=np.float64)
-    az = np.degrees(np.arctan2(pts[:, 1], pts[:, 0])) % 360.0
+    if azimuth_deg is None:
+        pts = np.asarray(scan, dtype=np.float64)
+        azimuth_deg = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
+    az = _mod360(azimuth_deg)
     ring = np.asarray(ring, dtype=np.int64)
     offsets = GENERATOR_FIRING_OFFSETS_DEG[: s.num_lasers]
     phases = np.full(s.num_lasers, np.nan)
     if len(ring) and np.all(ring[1:] >= ring[:-1]):  # laser-ordered (KITTI order): each laser is one slice
         lasers = np.arange(s.num_lasers)
         lo, hi = np.searchsorted(ring, lasers, "left"), np.searchsorted(ring, lasers, "right")
-        for k in np.flatnonzero(hi > lo):
-            phases[k] = _circular_mean(az[lo[k]:hi[k]] % q, q)
+        seen = np.flatnonzero(hi > lo)
+        if len(seen):
+            first, last = lo[seen[0]], hi[seen[-1]]  # the lasers' points, one run
+            phases[seen] = _circular_means(_mod_positive(az[first:last], q), lo[seen] - first, hi[seen] - first, q)
     else:
         for k in np.unique(ring[(ring >= 0) & (ring < s.num_lasers)]):
             phases[k] = _circular_mean(az[ring == k] % q, q)

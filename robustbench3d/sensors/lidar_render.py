@@ -3,7 +3,8 @@
 Frame: velodyne (x forward, y left, z up; m). Rays: the scan's own beam pattern
 (:mod:`robustbench3d.sensors.lidar_beams`: the generator's rays on generated scans, per-laser measured phases
 on real KITTI scans); of each laser only the rays passing within the mesh's bounding sphere (plus one azimuth
-step) are cast (:func:`~robustbench3d.sensors.raycast.cast_rays`). Per ray the nearest surface over all meshes
+step) are cast, each at the faces whose bounding spheres it can pass through
+(:func:`~robustbench3d.sensors.raycast.cast_ray_pairs`). Per ray the nearest surface over all meshes
 wins. A scan point is on a ray when it belongs to the same laser and lies within half a firing step
 (0.09 deg) of its azimuth; its range is measured from that laser's origin. On a ray hitting a mesh at t:
 
@@ -29,7 +30,7 @@ from robustbench3d.sensors import lidar_model as lm
 from robustbench3d.sensors.lidar_beams import BeamPattern, estimate_pattern, scan_ring_ids
 from robustbench3d.sensors.materials import Mat
 from robustbench3d.sensors.mesh import face_normals
-from robustbench3d.sensors.raycast import cast_rays
+from robustbench3d.sensors.raycast import cast_ray_pairs
 
 #: Albedo of meshes given without colours (linear RGB).
 DEFAULT_ALBEDO = 0.5
@@ -83,13 +84,16 @@ def prepare_scan(scan: np.ndarray, ring_ids: np.ndarray | None = None,
     (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.near_rays`; the others get ray -1, range NaN):
     enough, and much cheaper, to render meshes whose culled rays
     (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.cull`) are among them."""
-    pts, ring, pattern = _scan_pattern(scan, ring_ids, pattern)
-    xyz = pts[:, :3].astype(np.float64)
-    az = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
+    return _prepare_rays(*_scan_pattern(scan, ring_ids, pattern), rays)
+
+
+def _prepare_rays(pts: np.ndarray, ring: np.ndarray, pattern: BeamPattern, az: np.ndarray,
+                  rays: np.ndarray | None) -> PreparedScan:
+    """:func:`prepare_scan` of checked points, their laser ids, pattern and azimuths (:func:`_scan_pattern`)."""
     sub: slice | np.ndarray = slice(None)
     if rays is not None:
         sub = np.flatnonzero(pattern.near_rays(np.asarray(rays, dtype=np.int64), ring, az))
-        xyz, az = xyz[sub], az[sub]
+    xyz, az = pts[sub, :3].astype(np.float64), az[sub]
     rk = ring[sub]
     h0 = np.where((rk >= 0) & (rk < pattern.sensor.num_lasers),
                   pattern.sensor.origin_z[np.clip(rk, 0, pattern.sensor.num_lasers - 1)], 0.0)
@@ -97,13 +101,19 @@ def prepare_scan(scan: np.ndarray, ring_ids: np.ndarray | None = None,
     rng_m = np.full(len(pts), np.nan)
     point_ray[sub] = pattern.nearest_ray(rk, az)
     rng_m[sub] = np.sqrt(xyz[:, 0] ** 2 + xyz[:, 1] ** 2 + (xyz[:, 2] - h0) ** 2)
-    by_ray = np.argsort(point_ray, kind="stable")
-    return PreparedScan(pts, pattern, ring, point_ray, rng_m, by_ray, point_ray[by_ray])
+    # = np.argsort(point_ray, kind="stable"): the points without a ray (-1) first, then the few with one
+    # by_ray = np.argsort(point_ray, kind="stable"): the points without a ray (-1) first, then the few with one
+    on = np.flatnonzero(point_ray >= 0)
+    on = on[np.argsort(point_ray[on], kind="stable")]
+    off = np.flatnonzero(point_ray < 0)
+    sorted_ray = np.concatenate([np.full(len(off), -1, dtype=np.int64), point_ray[on]])
+    return PreparedScan(pts, pattern, ring, point_ray, rng_m, np.concatenate([off, on]), sorted_ray)
 
 
-def _scan_pattern(scan: np.ndarray, ring_ids: np.ndarray | None,
-                  pattern: BeamPattern | None) -> tuple[np.ndarray, np.ndarray, BeamPattern]:
-    """(float32 points (N, 4), laser ids (N,), beam pattern) of :func:`prepare_scan`."""
+def _scan_pattern(scan: np.ndarray, ring_ids: np.ndarray | None, pattern: BeamPattern | None
+                  ) -> tuple[np.ndarray, np.ndarray, BeamPattern, np.ndarray]:
+    """(float32 points (N, 4), laser ids (N,), beam pattern, azimuths degrees(atan2(y, x)) (N,) float64) of
+    :func:`prepare_scan`."""
     pts = np.asarray(scan)
     if pts.ndim != 2 or pts.shape[1] != 4:
         raise ValueError(f"render_lidar: field 'scan': expected shape (N, 4), got {pts.shape}")
@@ -114,9 +124,10 @@ def _scan_pattern(scan: np.ndarray, ring_ids: np.ndarray | None,
         ring = np.asarray(ring_ids, dtype=np.int64).reshape(-1)
         if len(ring) != len(pts):
             raise ValueError(f"render_lidar: field 'ring_ids': {len(ring)} ids for {len(pts)} points")
+    az = np.degrees(np.arctan2(pts[:, 1].astype(np.float64), pts[:, 0].astype(np.float64)))
     if pattern is None:
-        pattern = estimate_pattern(pts, ring)
-    return pts, ring, pattern
+        pattern = estimate_pattern(pts, ring, azimuth_deg=az)
+    return pts, ring, pattern, az
 
 
 @dataclass(frozen=True)
@@ -167,14 +178,17 @@ def _culled_rays(pattern: BeamPattern, meshes: list[tuple[torch.Tensor, np.ndarr
     """Per mesh the rays (increasing indices into ``pattern.rays``) passing within its bounding sphere (centre of
     its vertex box), widened by one azimuth step (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.cull`);
     empty for a mesh without faces."""
-    out = []
-    for vt, fa in meshes:
-        if len(fa) == 0:
-            out.append(np.zeros(0, dtype=np.int64))
-            continue
-        vn = vt.detach().numpy()
-        center = 0.5 * (vn.min(axis=0) + vn.max(axis=0))
-        out.append(pattern.cull(center, float(np.linalg.norm(vn - center, axis=1).max())))
+    out = [np.zeros(0, dtype=np.int64) for _ in meshes]
+    centres, radii, culled = [], [], []
+    for i, (vt, fa) in enumerate(meshes):
+        if len(fa):
+            vn = vt.detach().numpy()
+            centres.append(0.5 * (vn.min(axis=0) + vn.max(axis=0)))
+            radii.append(float(np.linalg.norm(vn - centres[-1], axis=1).max()))
+            culled.append(i)
+    if culled:
+        for i, rays in zip(culled, pattern.cull_many(np.array(centres), np.array(radii)), strict=True):
+            out[i] = rays
     return out
 
 
@@ -184,10 +198,10 @@ def _prepared(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], ring
     mts = _mesh_tensors(meshes)
     if isinstance(scan, PreparedScan):
         return scan, mts, _culled_rays(scan.pattern, mts)
-    pts, ring, pattern = _scan_pattern(scan, ring_ids, None)
+    pts, ring, pattern, az = _scan_pattern(scan, ring_ids, None)
     culls = _culled_rays(pattern, mts)
     rays = np.unique(np.concatenate(culls)) if culls else np.zeros(0, dtype=np.int64)
-    return prepare_scan(pts, ring, pattern, rays), mts, culls
+    return _prepare_rays(pts, ring, pattern, az, rays), mts, culls
 
 
 def trace_meshes(prep: PreparedScan, meshes: Sequence[MeshInput]) -> TracedHits:
@@ -197,10 +211,37 @@ def trace_meshes(prep: PreparedScan, meshes: Sequence[MeshInput]) -> TracedHits:
     return _trace(prep, mts, _culled_rays(prep.pattern, mts))
 
 
+def _face_pairs(pattern: BeamPattern, mts: list[tuple[torch.Tensor, np.ndarray]], culls: list[np.ndarray],
+                idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate (ray, face) pairs of :func:`_trace`'s cast: (positions in ``idx``, faces of the concatenated
+    meshes ``mts``): each face with the rays of its mesh's cull (``culls``) that can pass through the face's
+    bounding sphere (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.sphere_rays`), inflated by 1e-3 of
+    its radius (+1e-9 m), far more than the ray test's barycentric tolerance (1e-6 of an edge): every pair
+    that can pass the test is among them, so the cast finds the same hits as testing each ray of a mesh's
+    cull against all of its faces."""
+    a, b, c = (np.concatenate([vt.detach().numpy()[fa[:, j]] for vt, fa in mts]) for j in range(3))
+    mesh = np.repeat(np.arange(len(mts)), [len(fa) for _, fa in mts])
+    centre = 0.5 * (np.minimum(np.minimum(a, b), c) + np.maximum(np.maximum(a, b), c))
+    radius = np.sqrt(np.maximum(np.maximum(((a - centre) ** 2).sum(1), ((b - centre) ** 2).sum(1)),
+                                ((c - centre) ** 2).sum(1))) * (1 + 1e-3) + 1e-9
+    rings = [pattern.ray_rings(cull) for cull in culls]  # only the lasers of the mesh's cull can be kept
+    face, ray = pattern.sphere_rays(centre, radius, np.array([r.min() for r in rings])[mesh],
+                                    np.array([r.max() for r in rings])[mesh])
+    position = np.full(int(pattern.ring_start[-1]), -1, dtype=np.int64)  # of each ray of the revolution in idx
+    position[idx] = np.arange(len(idx))
+    member = np.zeros((len(mts), len(idx)), dtype=bool)  # mesh m culled ray idx[k]
+    member[np.repeat(np.arange(len(mts)), [len(cull) for cull in culls]), position[np.concatenate(culls)]] = True
+    at = position[ray]
+    keep = np.flatnonzero(at >= 0)
+    keep = keep[member[mesh[face[keep]], at[keep]]]
+    return at[keep], face[keep]
+
+
 def _trace(prep: PreparedScan, mts: list[tuple[torch.Tensor, np.ndarray]], culls: list[np.ndarray]) -> TracedHits:
     """:func:`trace_meshes` with the meshes checked and culled: all meshes in one cast (faces concatenated, so
     the nearest face over them is the nearest hit over the meshes; equal t: the lower mesh) of the union of
-    their culled rays, each mesh tested only with the rays of its own cull (``cast_rays``' groups)."""
+    their culled rays, each face tested only with the rays of its mesh's cull that can reach it
+    (:func:`_face_pairs`, ``cast_ray_pairs``): the hits of casting each mesh's culled rays at its faces."""
     with_faces = [i for i, (_, fa) in enumerate(mts) if len(fa) and len(culls[i])]
     idx = np.unique(np.concatenate([culls[i] for i in with_faces])) if with_faces else np.zeros(0, dtype=np.int64)
     if len(idx) == 0:
@@ -212,9 +253,9 @@ def _trace(prep: PreparedScan, mts: list[tuple[torch.Tensor, np.ndarray]], culls
     vt = mts[with_faces[0]][0] if len(with_faces) == 1 else torch.cat([mts[i][0] for i in with_faces])
     fa = np.concatenate([mts[i][1] + v_off[k] for k, i in enumerate(with_faces)])
     origins, dirs = prep.pattern.ray_geometry(idx)
-    groups = [(np.searchsorted(idx, culls[i]), int(f_off[k]), int(f_off[k + 1])) for k, i in enumerate(with_faces)]
-    rh = cast_rays(vt, torch.from_numpy(fa), torch.from_numpy(dirs), torch.zeros(3, dtype=torch.float64),
-                   torch.from_numpy(origins[:, 2]), groups=groups)
+    ray_pos, face_pos = _face_pairs(prep.pattern, [mts[i] for i in with_faces], [culls[i] for i in with_faces], idx)
+    rh = cast_ray_pairs(vt, torch.from_numpy(fa), torch.from_numpy(dirs), torch.zeros(3, dtype=torch.float64),
+                        torch.from_numpy(ray_pos), torch.from_numpy(face_pos), torch.from_numpy(origins[:, 2]))
     sel = torch.nonzero(rh.hit).reshape(-1)
     gface = rh.face[sel].numpy()
     part = np.searchsorted(f_off, gface, "right") - 1
@@ -311,19 +352,31 @@ def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *
     added[:, :3] = pts_t.detach().numpy()
     if len(sel):
         u, v = tr.u[selt].detach().numpy(), tr.v[selt].detach().numpy()
-        normals = np.empty((len(sel), 3))
-        for i in np.unique(mesh):
-            k = mesh == i
-            vi = meshes[i][0]
-            vi = vi.detach().numpy() if isinstance(vi, torch.Tensor) else np.asarray(vi, dtype=np.float64)
-            normals[k] = face_normals(vi, np.asarray(meshes[i][1], dtype=np.int64)[face[k]])
+        verts = [m[0].detach().numpy() if isinstance(m[0], torch.Tensor) else np.asarray(m[0], dtype=np.float64)
+                 for m in meshes]
+        v_off = np.cumsum([0] + [len(vi) for vi in verts])
+        f_off = np.cumsum([0] + [len(fa) for _, fa in mts])
+        corners = np.concatenate([fa + v_off[i] for i, (_, fa) in enumerate(mts)])[f_off[mesh] + face]
+        normals = face_normals(np.concatenate(verts), corners)  # all hit faces at once (element-wise)
         rho = lm.material_reflectivity(np.full(len(sel), int(MESH_MATERIAL)), _albedo(meshes, mesh, face, u, v))
         refl = lm.reflectance_mean(rho, lm.cos_incidence(normals, ray_d), t.detach().numpy())
         added[:, 3] = lm.quantize_reflectance(refl, np.zeros(len(sel), dtype=bool))
-    kept = np.ones(len(prep.scan), dtype=bool)
-    kept[tr.removed_index] = False
-    out = np.concatenate([prep.scan[kept], added])
-    return LidarRenderResult(out, added, pts_t, tr.removed_index, mesh, face, ray, prep.pattern, tr.tests)
+    return LidarRenderResult(_without_rows(prep.scan, tr.removed_index, added), added, pts_t, tr.removed_index, mesh,
+                             face, ray, prep.pattern, tr.tests)
+
+
+def _without_rows(scan: np.ndarray, removed: np.ndarray, added: np.ndarray) -> np.ndarray:
+    """(M, 4): the rows of ``scan`` (N, 4) but ``removed``, in order, then ``added``: ``np.concatenate([scan[kept],
+    added])``, bit for bit, with float32 rows copied as single 16-byte items (a 1-D mask, several times faster)."""
+    kept = np.ones(len(scan), dtype=bool)
+    kept[removed] = False
+    if scan.dtype != np.float32:
+        return np.concatenate([scan[kept], added])
+    row = np.dtype((np.void, scan.itemsize * 4))
+    out = np.empty((int(kept.sum()) + len(added), 4), dtype=np.float32)
+    out[:len(out) - len(added)].view(row).reshape(-1)[:] = np.ascontiguousarray(scan).view(row).reshape(-1)[kept]
+    out[len(out) - len(added):] = added
+    return out
 
 
 def render_lidar_torch(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput],
