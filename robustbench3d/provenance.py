@@ -58,6 +58,30 @@ class SplitDigest:
         return self._h.hexdigest()
 
 
+def reset_peak_rss() -> bool:
+    """Reset this process's peak resident set size (Linux: write 5 to ``/proc/self/clear_refs``); False where
+    that is not possible (then :func:`peak_rss_mb` reports the peak since the process started)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_mb() -> float | None:
+    """Peak resident set size of this process since the last :func:`reset_peak_rss` (``VmHWM``), MB; None
+    without ``/proc``."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
 def git_info(source_dir: str | Path | None = None) -> dict[str, Any]:
     """Commit and dirty flag of the git checkout the package runs from.
 
@@ -147,5 +171,5 @@ def weight_files(kwargs: Mapping[str, Any]) -> dict[str, str]:
 
 __all__ = [
     "LIBRARIES", "SPLIT_DIGEST_HEADER", "SplitDigest", "determinism_flags", "git_info", "host_provenance",
-    "library_versions", "platform_info", "utc_now", "weight_files",
+    "library_versions", "peak_rss_mb", "platform_info", "reset_peak_rss", "utc_now", "weight_files",
 ]

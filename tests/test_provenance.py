@@ -127,3 +127,22 @@ def test_weight_files_hash_existing_file_arguments_only(tmp_path):
                           "yolo_weights": weights})
     expected = hashlib.sha256(b"\x00weights\x01").hexdigest()
     assert files == {"weights": expected, "yolo_weights": expected}
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/clear_refs is Linux")
+def test_peak_rss_resets_and_sees_a_200_mb_allocation():
+    """After a reset the peak is near the current RSS; touching 200 MB raises it by about 200 MB, and the next
+    reset (the array freed) brings it back down."""
+    import numpy as np
+
+    from robustbench3d.provenance import peak_rss_mb, reset_peak_rss
+
+    assert reset_peak_rss()
+    base = peak_rss_mb()
+    block = np.ones(25_000_000)  # 200 MB, every page touched
+    high = peak_rss_mb()
+    del block
+    assert reset_peak_rss()
+    low = peak_rss_mb()
+    assert 180 < high - base < 260
+    assert low < high - 150

@@ -103,6 +103,10 @@ def test_lidar_cluster_end_to_end(dataset, tmp_path, capsys):
     assert prov["seed"] == 0 and prov["run"]["victims"] == ["lidar-cluster"]
     assert prov["config"]["victim"]["origin"].startswith("plugin rb3d-lidar-cluster")
     assert prov["config"]["dataset"]["sha256"] == det["dataset"]["sha256"]
+    # the cell's own cost: CPU time and the process's peak RSS while it ran (Linux resets the peak per cell)
+    assert 0 <= prov["cpu_seconds"] and prov["seconds"] > 0
+    if sys.platform.startswith("linux"):
+        assert prov["peak_rss_mb"] > 20
 
 
 def test_two_runs_give_identical_metrics_and_files_and_torch_is_not_imported(dataset, tmp_path):

@@ -38,7 +38,14 @@ from robustbench3d.attacks import ATTACKS, create_attack
 from robustbench3d.attacks.base import Attack
 from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
 from robustbench3d.errors import DataFormatError, RobustBenchError
-from robustbench3d.provenance import determinism_flags, host_provenance, library_versions, utc_now
+from robustbench3d.provenance import (
+    determinism_flags,
+    host_provenance,
+    library_versions,
+    peak_rss_mb,
+    reset_peak_rss,
+    utc_now,
+)
 from robustbench3d.registry import PluginImportError
 from robustbench3d.results import SCHEMA_VERSION, read_json, validate_summary, write_long_csv, write_validated
 from robustbench3d.runner.cell import (
@@ -313,7 +320,7 @@ def _execute(run: _RunContext, key: CellKey, capabilities: dict[str, Any] | None
 
 
 def _provenance(run: _RunContext, want: str, cfg: dict[str, Any], verdict: _Verdict, started: str,
-                t0: float) -> dict[str, Any]:
+                t0: float, cpu0: float, rss_reset: bool) -> dict[str, Any]:
     caps = cfg["victim"]["capabilities"]
     provenance = {
         "fingerprint": want, "config": cfg, "run": run.config.as_dict(), **run.host, "versions": library_versions(),
@@ -321,6 +328,8 @@ def _provenance(run: _RunContext, want: str, cfg: dict[str, Any], verdict: _Verd
         "determinism": {**determinism_flags(), "victim_deterministic": None if caps is None else caps["deterministic"],
                         "attack_rng": f"numpy.random.default_rng([seed, int(frame_id), {ATTACK_STREAM:#x}])"},
         "started": started, "finished": utc_now(), "seconds": round(time.perf_counter() - t0, 3),
+        "cpu_seconds": round(time.process_time() - cpu0, 3),
+        "peak_rss_mb": round(peak, 1) if rss_reset and (peak := peak_rss_mb()) is not None else None,
     }
     if verdict.traceback is not None:
         provenance["traceback"] = verdict.traceback
@@ -335,11 +344,11 @@ def _run_one(run: _RunContext, key: CellKey, cfg: dict[str, Any], slot: _VictimS
     if old is not None:
         return CellOutcome(key, old, reused=True)
     (cell_dir / CELL_FILE).unlink(missing_ok=True)  # from here on, no stale "finished" marker
-    started, t0 = utc_now(), time.perf_counter()
+    started, t0, cpu0, rss_reset = utc_now(), time.perf_counter(), time.process_time(), reset_peak_rss()
     verdict = _execute(run, key, cfg["victim"]["capabilities"], slot, attack, cell_dir)
     cell = {"schema_version": SCHEMA_VERSION, "victim": key.victim, "attack": key.attack, "proposals": key.proposals,
             "status": verdict.status, "reason": verdict.reason, "dataset": run.identity, "metrics": verdict.metrics,
-            "provenance": _provenance(run, want, cfg, verdict, started, t0)}
+            "provenance": _provenance(run, want, cfg, verdict, started, t0, cpu0, rss_reset)}
     cell_dir.mkdir(parents=True, exist_ok=True)
     return CellOutcome(key, write_validated(cell_dir / CELL_FILE, cell, cell_only=True), reused=False)
 
