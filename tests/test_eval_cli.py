@@ -84,6 +84,24 @@ def test_result_files_outside_the_frame_set_are_ignored_and_reported(tmp_path: P
     assert "not in the frame set and were ignored (e.g. 000777.txt)" in capsys.readouterr().out
 
 
+
+def test_directory_meta_classes_metrics_and_ignored_examples(tmp_path: Path) -> None:
+    """The directories and split are recorded as given; classes and metrics reach the evaluation (Pedestrian
+    asked for although only cars are detected; BEV alone); at most 10 ignored result files are named."""
+    gt, pred = make_dirs(tmp_path)
+    for i in range(11):
+        write(pred / f"{100 + i:06d}.txt", f"{CAR} 0.5\n")
+    result = evaluate_dirs(gt, pred, classes=("Pedestrian",), metrics=("bev",))
+    meta = result["meta"]
+    assert meta["gt_dir"] == str(gt) and meta["pred_dir"] == str(pred) and meta["split"] is None
+    assert meta["classes"] == ["Pedestrian"] and meta["metrics"] == ["bev"] and set(result) == {"Pedestrian", "meta"}
+    assert set(result["Pedestrian"]) == {"bev"}
+    assert meta["ignored_result_files"] == {"count": 11, "examples": [f"{100 + i:06d}" for i in range(10)]}
+    split = write(tmp_path / "val.txt", "000000\n000002\n")
+    meta = evaluate_dirs(gt, pred, split)["meta"]
+    assert meta["split"] == str(split) and meta["classes"] == ["Car"] and meta["metrics"] == ["2d", "aos", "bev", "3d"]
+
+
 def test_devkit_result_layout_with_data_subdirectory(tmp_path: Path) -> None:
     gt, pred = make_dirs(tmp_path)
     pred.rename(tmp_path / "data")
@@ -91,6 +109,10 @@ def test_devkit_result_layout_with_data_subdirectory(tmp_path: Path) -> None:
     (tmp_path / "data").rename(tmp_path / "sha" / "data")
     result = evaluate_dirs(gt, tmp_path / "sha")
     assert result["meta"]["pred_dir"].endswith("data") and result["meta"]["detections"] == {"Car": 2}
+    # result files next to a data/ subdirectory: the files are the results
+    gt2, pred2 = make_dirs(tmp_path / "two")
+    (pred2 / "data").mkdir()
+    assert evaluate_dirs(gt2, pred2)["meta"]["pred_dir"] == str(pred2)
 
 
 @pytest.mark.parametrize(("setup", "message"), [
@@ -141,6 +163,85 @@ def test_bad_class_or_metric_option(tmp_path: Path, capsys) -> None:
     assert "Car BEV AP@0.70 R40" in capsys.readouterr().out
 
 
+
+def test_valid_files_take_the_fast_path_and_equal_the_data_layer(tmp_path: Path, monkeypatch) -> None:
+    """Valid ground truth (15 columns) and results (16), with a blank last line and frames without a file,
+    are read without the slow per-file reader, into the values written; the slow reader gives the same."""
+    import robustbench3d.eval.loading as loading
+
+    gt_file = write(tmp_path / "gt.txt", f"{CAR}\n{VAN}\n{DONTCARE}\n{VAN.replace(' 1 1.50', ' 3 1.50')}\n\n")
+    res_file = write(tmp_path / "res.txt", f"{CAR} 0.9\n")
+    cases = (([gt_file, None], False), ([None, res_file, None], True))
+    slow = [_slow_table(paths, scored) for paths, scored in cases]
+
+    def refuse(paths, scored):
+        raise AssertionError("valid files went to the slow path")
+
+    monkeypatch.setattr(loading, "_slow_table", refuse)
+    gt, res = (read_table(paths, scored) for paths, scored in cases)
+    assert gt.n_frames == 2 and gt.frame.tolist() == [0, 0, 0, 0] and gt.score is None
+    assert gt.bbox[:2].tolist() == [[587.01, 173.33, 614.12, 200.12], [10.0, 150.0, 120.0, 230.0]]
+    assert gt.occluded.tolist() == [0, 1, -1, 3] and gt.box3d[1].tolist() == [2.1, 1.9, 5.0, -12.0, 1.8, 15.0, 1.0]
+    assert res.n_frames == 3 and res.frame.tolist() == [1] and res.score.tolist() == [0.9]
+    for fast, ref in ((gt, slow[0]), (res, slow[1])):
+        assert fast.n_frames == ref.n_frames
+        for field in ("frame", "type", "truncated", "occluded", "alpha", "bbox", "box3d", "score"):
+            a, b = getattr(fast, field), getattr(ref, field)
+            assert (a is None and b is None) or (a.dtype == b.dtype and np.array_equal(a, b)), field
+
+
+def test_non_utf8_files_get_the_precise_error(tmp_path: Path) -> None:
+    bad = tmp_path / "000000.txt"
+    bad.write_bytes(CAR.encode() + b" 0.9\xff\n")
+    for scored in (True, False):
+        with pytest.raises(DataFormatError, match=r"000000\.txt: not UTF-8 text"):
+            read_table([bad], scored)
+
+
+
+def test_frame_set_errors_exactly_and_other_entries_ignored(tmp_path: Path) -> None:
+    from robustbench3d.eval.loading import frame_ids, load_dirs
+
+    gt, pred = make_dirs(tmp_path)
+    (gt / "sub.txt").mkdir()  # a directory named like a label file, and a file of another kind: not frames
+    write(gt / "notes.md", "not a label file\n")
+    write(pred / "notes.md", "not a result file\n")
+    loaded = load_dirs(gt, pred)
+    assert loaded.frame_ids == ["000000", "000001", "000002"] and loaded.ignored_result_files == []
+    cases = [
+        (lambda: frame_ids(gt / "000000.txt"), f"{gt / '000000.txt'}: ground-truth label path is not a directory"),
+        (lambda: load_dirs(gt, pred / "000000.txt"), f"{pred / '000000.txt'}: result path is not a directory"),
+        (lambda: frame_ids(gt, tmp_path / "none.txt"), f"{tmp_path / 'none.txt'}: split file not found"),
+        (lambda: frame_ids(gt, write(tmp_path / "empty.txt", "")),
+         f"{tmp_path / 'empty.txt'}: split file lists no frames"),
+        (lambda: frame_ids(gt / "sub.txt"), f"{gt / 'sub.txt'}: no label files (*.txt) in the ground-truth directory"),
+    ]
+    for call, message in cases:
+        with pytest.raises(DataFormatError) as err:
+            call()
+        assert str(err.value) == message
+
+
+def test_fast_path_rejections_get_the_strict_readers_error(tmp_path: Path) -> None:
+    """Rows the fast path must not accept, each alone in a file: occlusion 4 or -2, an impossible GT value,
+    and a result file whose lines have 15 and 17 columns (32 tokens, two rows' worth): read as results."""
+    occ = CAR.split()
+    for value in ("4", "-2"):
+        p = write(tmp_path / f"occ{value}.txt", " ".join([*occ[:2], value, *occ[3:]]) + "\n")
+        with pytest.raises(DataFormatError, match="field 'occluded'"):
+            read_table([p], scored=False)
+        r = write(tmp_path / f"res{value}.txt", " ".join([*occ[:2], value, *occ[3:]]) + " 0.5\n")
+        with pytest.raises(DataFormatError, match="field 'occluded'"):
+            read_table([r], scored=True)
+    p = write(tmp_path / "trunc.txt", CAR.replace("Car 0.00", "Car 1.50") + "\n")
+    with pytest.raises(DataFormatError, match="field 'truncated'"):
+        read_table([p], scored=False)
+    p = write(tmp_path / "mixed.txt", f"{CAR}\n{CAR} 0.9 0.8\n")
+    with pytest.raises(DataFormatError) as err:
+        read_table([p], scored=True)
+    assert str(err.value) == f"{p}:1: expected 16 columns, got 15"
+
+
 def test_fast_reader_equals_the_data_layer(kitti_samples: Path, tmp_path: Path) -> None:
     res = kitti_samples / "results/pointgnn_car_val/data"  # trailing spaces, blank last line, empty file
     labels = sorted((kitti_samples / "training/label_2").glob("*.txt"))
@@ -160,6 +261,47 @@ def test_bad_files_fall_back_to_precise_errors(tmp_path: Path) -> None:
     p = write(tmp_path / "y.txt", CAR.replace(" 0 -1.58", " 1.5 -1.58") + "\n")
     with pytest.raises(DataFormatError, match=r"y.txt:1: field 'occluded'"):
         read_table([p], scored=False)
+
+
+
+def test_eval_options_by_hand() -> None:
+    import argparse
+
+    from robustbench3d.eval.cli import add_arguments
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    options = {a.option_strings[0]: (a.required, a.metavar, a.default, a.help)
+               for a in parser._actions if a.option_strings[0] != "-h"}
+    assert options == {
+        "--gt": (True, "DIR", None, "ground-truth label directory (label_2)"),
+        "--pred": (True, "DIR", None, "result directory (16-column files; a frame without a file has no detections)"),
+        "--split": (False, "FILE", None, "frame ids to evaluate (default: every GT label file)"),
+        "--classes": (False, "LIST", None, "comma-separated subset of Car,Pedestrian,Cyclist (default: every class "
+                                            "with a detection, as the devkit; Car if none)"),
+        "--metrics": (False, "LIST", "2d,aos,bev,3d", "comma-separated subset of 2d,aos,bev,3d (default: all)"),
+        "--json": (False, "PATH", None, "also write the result as JSON (atomically)"),
+    }
+
+
+
+def test_cli_passes_classes_and_metrics_and_names_the_json_option(tmp_path: Path, capsys) -> None:
+    gt, pred = make_dirs(tmp_path)
+    assert main(["eval", "--gt", str(gt), "--pred", str(pred), "--classes", " pedestrian, ,", "--metrics", "3d"]) == 0
+    out = capsys.readouterr().out
+    assert "Pedestrian 3D AP@0.50 R40" in out and "Car" not in out and "BEV" not in out and "2D" not in out
+    assert main(["eval", "--gt", str(gt), "--pred", str(pred), "--json", str(tmp_path)]) == 2
+    assert f"--json {tmp_path}: is a directory; expected a file name" in capsys.readouterr().err
+
+
+
+def test_package_loads_the_evaluator_lazily_by_name() -> None:
+    import robustbench3d.eval as package
+    from robustbench3d.eval import kitti_eval
+
+    assert package.evaluate is kitti_eval.evaluate and package.evaluate_dirs is kitti_eval.evaluate_dirs
+    with pytest.raises(AttributeError, match=r"^module 'robustbench3d\.eval' has no attribute 'ap'$"):
+        _ = package.ap
 
 
 def test_cli_module_imports_no_numpy() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from fractions import Fraction
 
 import numpy as np
@@ -14,12 +15,14 @@ from shapely.geometry import Polygon
 from robustbench3d.eval.iou import (
     bev_iou,
     bev_overlap,
+    bev_ratio,
     box3d_iou,
     box3d_overlap,
     clip_convex,
     footprint_corners,
     image_iou,
     image_overlap,
+    polygon_area,
 )
 
 EPS = np.finfo(np.float64).eps
@@ -110,6 +113,85 @@ def test_image_overlap_hand_cases() -> None:
     assert image_overlap(a, np.array([[-5.0, -5.0, 50.0, 50.0]]), "det")[0] == 1.0
     assert image_overlap(np.array([[0.0, 0.0, 100.0, 100.0]]), np.array([[0.0, 0.0, 70.0, 100.0]]))[0] == 0.7
     np.testing.assert_allclose(image_iou(a, np.vstack([a, a + 5])), [[1.0, 25 / 175]])
+
+
+
+def test_image_overlap_below_one_pixel_and_float32_boxes() -> None:
+    a = np.array([[0.0, 0.0, 10.0, 10.0]])
+    # overlaps narrower than a pixel still count: w = 0.5 (inter 5, union 195), h = 0.25 (inter 2.5, union 197.5)
+    assert image_overlap(a, np.array([[9.5, 0.0, 19.5, 10.0]]))[0] == pytest.approx(1 / 39, abs=1e-15)
+    assert image_overlap(a, np.array([[0.0, 9.75, 10.0, 19.75]]))[0] == pytest.approx(1 / 79, abs=1e-15)
+    # float32 boxes are measured in float64: 4097^2 = 16785409 is no float32 (it would round to 16785408);
+    # inter 4096^2 = 16777216, union 2 * 16785409 - 16777216 = 16793602, all exact in float64
+    d, g = np.array([[0, 0, 4097, 4097]], np.float32), np.array([[1, 1, 4098, 4098]], np.float32)
+    assert image_overlap(d, g)[0] == 16777216 / 16793602
+    assert image_overlap(g, d)[0] == 16777216 / 16793602
+    assert image_overlap(d, g, "det")[0] == 16777216 / 16785409
+
+
+def test_polygon_area_by_hand() -> None:
+    unit = np.array([[[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]])
+    assert polygon_area(unit).tolist() == [1.0]
+    assert polygon_area(unit[:, ::-1]).tolist() == [-1.0]  # clockwise: negative
+    # only the first ``count`` vertices: the triangle (1, 1), (3, 1), (1, 3) of area 2; the 4th vertex is ignored
+    tri = np.array([[[1.0, 1.0], [3.0, 1.0], [1.0, 3.0], [5.0, 6.0]]])
+    assert polygon_area(tri, np.array([3])).tolist() == [2.0]  # the edge (5, 6) -> (1, 1) would add -1 / 2
+    # float32 corners are summed in float64: 4097^2 = 16785409 exactly (float32 would round to 16785408)
+    sq = np.array([[[0, 0], [4097, 0], [4097, 4097], [0, 4097]]], np.float32)
+    assert polygon_area(sq).tolist() == [16785409.0]
+
+
+def test_3d_overlap_of_float32_boxes_is_computed_in_float64() -> None:
+    """The heights of float32 boxes are subtracted in float64 (100.1 - 1.3 rounds differently in float32):
+    the overlap equals that of the same values given as float64, and 5.6 / 15.2 by hand (footprints 4 x 2
+    shifted 0.5 m: 7 of 8 m^2; y spans [98.8, 100.1] and [99.3, 100.6]: 0.8 of 1.3 m)."""
+    a = np.array([[1.3, 2.0, 4.0, 0.0, 100.1, 0.0, 0.0]], np.float32)
+    b = np.array([[1.3, 2.0, 4.0, 0.5, 100.6, 0.0, 0.0]], np.float32)
+    expect = box3d_overlap(a.astype(np.float64), b.astype(np.float64))[0]
+    assert expect == pytest.approx(5.6 / 15.2, rel=1e-6)
+    assert box3d_overlap(a, b)[0] == expect and box3d_iou(a, b)[0, 0] == expect
+    assert box3d_overlap(b, a)[0] == box3d_overlap(b.astype(np.float64), a.astype(np.float64))[0]
+
+
+
+def test_bev_overlap_and_clipping_of_float32_boxes_are_computed_in_float64() -> None:
+    """Footprint areas of float32 boxes (4.1 x 1.7 is no float32 product) and the clipped polygon are
+    float64: the same overlap and vertices as for the same values given as float64."""
+    a = np.array([[1.5, 1.7, 4.1, 0.3, 1.5, 10.2, 0.3]], np.float32)
+    b = np.array([[1.5, 1.8, 3.9, 0.9, 1.5, 10.5, -0.2]], np.float32)
+    a64, b64 = a.astype(np.float64), b.astype(np.float64)
+    expect = bev_overlap(a64, b64)[0]
+    assert 0.4 < expect < 0.5
+    assert bev_overlap(a, b)[0] == expect and bev_overlap(b, a)[0] == bev_overlap(b64, a64)[0]
+    assert footprint_corners(a).tobytes() == footprint_corners(a64).tobytes()  # cos, sin of a float32 yaw
+    sa, sb = footprint_corners(a64).astype(np.float32), footprint_corners(b64).astype(np.float32)
+    want, n_want, _ = clip_convex(sa.astype(np.float64), sb.astype(np.float64))
+    for subject, clip in ((sa, sb.astype(np.float64)), (sa.astype(np.float64), sb)):
+        got, n_got, overflow = clip_convex(subject, clip)
+        assert overflow is False and n_got.tolist() == n_want.tolist() and got.dtype == np.float64
+        assert got.tobytes() == want.tobytes()
+    # a float32 quadrilateral clipped by a square to a heptagon: its edge vectors (3.1 - -0.7, ...) are float64 too
+    quad = np.array([[[-0.7, 0.3], [3.1, -0.9], [2.3, 3.9], [0.1, 2.1]]], np.float32)
+    square = np.array([[[0.0, 0.0], [2.0, 0.0], [2.0, 2.5], [0.0, 2.5]]], np.float32)
+    want, n_want, _ = clip_convex(quad.astype(np.float64), square.astype(np.float64))
+    got, n_got, _ = clip_convex(quad, square)
+    assert n_got.tolist() == n_want.tolist() and n_want[0] >= 4 and got.tobytes() == want.tobytes()
+
+
+def test_ratio_of_zero_areas_is_zero_and_written() -> None:
+    """Zero (or negative, non-finite) denominators give 0: written, not left in uninitialised memory (the
+    result would reuse the freshly freed block full of 0.7), and without numpy's 'where without out' warning."""
+    num, area = np.full(64, 0.5), np.zeros(64)
+    junk = np.full(64, 0.7)
+    del junk
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not bev_ratio(num, area, area, "det").any()
+    junk = np.full(64, 0.7)
+    del junk
+    assert not bev_ratio(num, area, np.zeros(64)).any()
+    assert bev_ratio(np.array([1.0, 1.0, 1.0]), np.array([2.0, -1.0, np.inf]), np.zeros(3), "det").tolist() == [
+        0.5, 0.0, 0.0]
 
 
 def test_bev_hand_cases() -> None:

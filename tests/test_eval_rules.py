@@ -267,6 +267,106 @@ def test_metrics_without_boxes_are_skipped_like_the_devkit() -> None:
     assert "2d" not in r["Car"] and "aos" not in r["Car"] and ap(r, "bev") == [100.0] * 3
 
 
+
+@pytest.mark.parametrize(("change", "skipped"), [
+    (dict(box=(0, 100, 100, 200)), set()),  # 2D box with left exactly 0: usable (left >= 0)
+    (dict(x=-1000.0), {"bev", "3d"}),  # x alone unlocated: no BEV footprint
+    (dict(z=-1000.0), {"bev", "3d"}),  # z alone
+    (dict(y=-1000.0), {"3d"}),  # y alone: the footprint stays
+    (dict(dims=(1.5, 0.0, 3.9)), {"bev", "3d"}),  # w = 0 (dims are h, w, l)
+    (dict(dims=(1.5, 1.6, 0.0)), {"bev", "3d"}),  # l = 0
+    (dict(dims=(0.0, 1.6, 3.9)), {"3d"}),  # h = 0
+    (dict(dims=(0.5, 1.6, 3.9)), set()),  # a low box is still a box
+])
+def test_each_box_field_decides_which_metrics_are_evaluated(change: dict, skipped: set) -> None:
+    """The devkit's usable-box rules one field at a time: 2D needs left >= 0, BEV x, z != -1000 and w, l > 0,
+    3D also y != -1000 and h > 0; a skipped metric is listed in meta and absent from the class's table."""
+    r = run([(obj(),)], [(det(**change),)])
+    assert {s["metric"] for s in r["meta"]["skipped"]} == skipped
+    assert set(r["Car"]) == {"2d", "aos", "bev", "3d"} - skipped
+
+
+
+def test_skipped_entries_notes_and_meta_text_exactly() -> None:
+    no_boxes = det(x=-1000.0, alpha=-10.0)  # no footprint, and no orientation
+    r = run([(obj(),)], [(no_boxes,)])
+    no_bev = "no detection of the class has a BEV box (x, z != -1000, w, l > 0), so the devkit skips it"
+    no_3d = "no detection of the class has a 3D box (x, y, z != -1000, h, w, l > 0), so the devkit skips it"
+    assert r["meta"]["skipped"] == [
+        {"class": "Car", "metric": "aos", "reason": "a detection has alpha = -10 (no orientation), as in the devkit"},
+        {"class": "Car", "metric": "bev", "reason": no_bev}, {"class": "Car", "metric": "3d", "reason": no_3d}]
+    assert run([(obj(),)], [(no_boxes,)], metrics=("2d",))["meta"]["skipped"] == []  # AOS not asked for
+    meta = r["meta"]
+    assert meta["evaluator"] == "robustbench3d.eval"
+    assert meta["reference"] == "KITTI object devkit cpp/evaluate_object.cpp (2019+)"
+    assert meta["metrics"] == ["2d", "aos", "bev", "3d"] and meta["n_thresholds"] == {"Car": {"2d": [1, 1, 1]}}
+    # one car 30 px high: not counted at easy (40 px), counted once at moderate and hard
+    low = obj(box=(100, 100, 200, 130))
+    notes = run([(low,)], [(det(box=(100, 100, 200, 130)),)])["meta"]["notes"]
+    few = ("only 1 counted GT objects; the devkit samples precision at one score threshold per TP, so AP stays "
+           "below 100 with fewer than 41")
+    assert notes == ["Car easy: no counted GT objects; AP is 0", f"Car moderate: {few}", f"Car hard: {few}"]
+    assert run([(obj(),)] * 40, [(det(),)] * 40)["meta"]["notes"] == [
+        f"Car {d}: only 40 counted GT objects; the devkit samples precision at one score threshold per TP, so AP "
+        "stays below 100 with fewer than 41" for d in ("easy", "moderate", "hard")]
+    assert run([(obj(),)] * 41, [(det(),)] * 41)["meta"]["notes"] == []
+    # every class's notes, in class order; the difficulty table; curves only on request
+    ped = obj("Pedestrian", box=(400, 100, 440, 200), x=5.0)
+    r = run([(low, ped)], [(det(box=(100, 100, 200, 130)),)], classes=("Car", "Pedestrian"))
+    assert [n.split(":")[0] for n in r["meta"]["notes"]] == [
+        "Car easy", "Car moderate", "Car hard", "Pedestrian easy", "Pedestrian moderate", "Pedestrian hard"]
+    assert r["meta"]["difficulty"] == {"names": ["easy", "moderate", "hard"], "min_height_px": [40, 25, 25],
+                                       "max_occlusion": [0, 1, 2], "max_truncation": [0.15, 0.3, 0.5]}
+    assert "curves" not in r["meta"]
+
+
+
+def test_a_detection_scored_at_the_no_detection_sentinel_is_never_matched() -> None:
+    """The devkit matches a detection only if its score exceeds NO_DETECTION = -1e7: perfect boxes scored
+    exactly -1e7 find nothing (AP 0), scored just above it they are all TPs (AP 100)."""
+    at = run([(obj(),)] * N, [(det(score=-1e7),)] * N, metrics=("2d",))
+    above = run([(obj(),)] * N, [(det(score=-9999999.0),)] * N, metrics=("2d",))
+    assert ap(at, "2d") == [0.0] * 3 and ap(above, "2d") == [100.0] * 3
+
+
+def test_empty_candidate_pairs_keep_their_empty_arrays() -> None:
+    from robustbench3d.eval.matching import CandidatePairs
+
+    none = np.zeros(0, dtype=np.int64)
+    pairs = CandidatePairs.build(none, none, np.zeros(0), np.zeros(3, dtype=np.int64))
+    assert pairs.gt.shape == pairs.det.shape == pairs.overlap.shape == (0,)
+    assert pairs.rank_slices == [] and pairs.group_starts == []
+
+
+def test_evaluate_tables_rejects_mismatched_frames_and_unscored_detections() -> None:
+    from robustbench3d.eval.kitti_eval import evaluate_tables
+    from robustbench3d.eval.table import ObjectTable
+
+    gt = ObjectTable.from_labels([frame(obj())], scored=False)
+    two = ObjectTable.from_labels([frame(det(), scored=True)] * 2, scored=True)
+    with pytest.raises(ValueError, match=r"^1 GT frames but 2 detection frames$"):
+        evaluate_tables(gt, two)
+    with pytest.raises(ValueError, match=r"^detections need scores$"):
+        evaluate_tables(gt, gt)
+
+
+def test_overlap_exactly_at_the_threshold_is_not_enough() -> None:
+    """The devkit needs overlap > 0.7 (Car) for a TP, and > 0.7 of a detection inside DontCare to drop it as
+    FP. A 2D box 70 x 100 px inside the 100 x 100 GT box: IoU exactly 0.7, an FP (2D AP 0); 71 px: a TP."""
+    gt_box = (100, 100, 200, 200)
+    exact = run([(obj(box=gt_box),)] * N, [(det(box=(100, 100, 170, 200)),)] * N, metrics=("2d",))
+    above = run([(obj(box=gt_box),)] * N, [(det(box=(100, 100, 171, 200)),)] * N, metrics=("2d",))
+    assert ap(exact, "2d") == [0.0] * 3 and ap(above, "2d") == [100.0] * 3
+    # a higher-scored extra detection with 70 of its 100 px (exactly 0.7) inside a DontCare region stays an FP:
+    # precision 1/2 at every threshold; 71 px inside: dropped
+    dc = obj("DontCare", box=(530, 100, 700, 200), trunc=-1, occ=-1, alpha=-10, x=-1000, y=-1000, z=-1000,
+             dims=(-1, -1, -1), ry=-10)
+    extra = {70: det(box=(500, 100, 600, 200), score=0.95), 71: det(box=(501, 100, 601, 200), score=0.95)}
+    at = run([(obj(box=gt_box), dc)] * N, [(det(box=gt_box), extra[70])] * N, metrics=("2d",))
+    inside = run([(obj(box=gt_box), dc)] * N, [(det(box=gt_box), extra[71])] * N, metrics=("2d",))
+    assert ap(at, "2d") == pytest.approx([50.0] * 3) and ap(inside, "2d") == [100.0] * 3
+
+
 def test_no_detections_give_zero_ap_and_default_classes() -> None:
     r = run([(obj(),)] * N, [()] * N, classes=None)
     assert r["meta"]["classes"] == ["Car"]

@@ -394,3 +394,62 @@ def test_multi_car_frame_equals_brute_force_and_embree():
     noisy = render_lidar(frame.scan, meshes, rng=np.random.default_rng(9), range_noise_m=0.02, dropout=0.1)
     assert (hashlib.sha256(res.scan.tobytes()).hexdigest(),
             hashlib.sha256(noisy.scan.tobytes()).hexdigest()) == MULTI_CAR_SCAN_SHA256
+
+
+def test_render_options_are_checked_exactly_and_colours_clipped_per_mesh():
+    """Bad noise / dropout values and a missing rng get their exact errors; vertex colours outside [0, 1] give
+    the reflectance of the clipped colours, each mesh with its own colours (a grey mesh listed first does not
+    stop the next one's), and torch vertices that require grad render like the same numpy vertices."""
+    pattern = BeamPattern.generator(0.0)
+    v, f = _object(12.0)
+    far = v + np.array([0.0, 3.0, 0.0])
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    bad = [(dict(dropout=1.0), "render_lidar: field 'dropout': must be in [0, 1), got 1.0"),
+           (dict(dropout=1.5), "render_lidar: field 'dropout': must be in [0, 1), got 1.5"),
+           (dict(range_noise_m=-0.1), "render_lidar: field 'range_noise_m': must be >= 0, got -0.1"),
+           (dict(range_noise_m=np.inf), "render_lidar: field 'range_noise_m': must be >= 0, got inf"),
+           (dict(range_noise_m=0.5), "render_lidar: field 'rng': required when dropout or range_noise_m is on")]
+    for kwargs, message in bad:
+        with pytest.raises(ValueError) as err:
+            render_lidar(prep, [(v, f, None)], **kwargs)
+        assert str(err.value) == message
+    for over, clipped in ((2.0, 1.0), (-1.0, 0.0)):
+        a = render_lidar(prep, [(far, f, None), (v, f, np.full_like(v, over))])
+        b = render_lidar(prep, [(far, f, None), (v, f, np.full_like(v, clipped))])
+        assert (a.object_index == 1).sum() > 50 and np.array_equal(a.added, b.added)
+    white = render_lidar(prep, [(far, f, None), (v, f, np.ones_like(v))])
+    grey = render_lidar(prep, [(far, f, None), (v, f, None)])
+    own = white.object_index == 1
+    assert (white.added[own, 3] > grey.added[own, 3]).all()
+    vt = torch.tensor(v, requires_grad=True)
+    assert np.array_equal(render_lidar(prep, [(vt, f, None)]).added, render_lidar(prep, [(v, f, None)]).added)
+
+
+def test_mesh_checks_exactly_float32_vertices_and_returns_within_the_range_gate():
+    """Each mesh field check with its exact error (a face index equal to the vertex count is outside);
+    float32 vertices render as their float64 values; the result carries the differentiable points and the
+    pattern; a mesh around the sensor (every hit nearer than the 1 m gate) adds no point, torch path too."""
+    pattern = BeamPattern.generator(0.0)
+    v, f = _object(12.0)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    nan = v.copy()
+    nan[5, 1] = np.nan
+    bad = [((v, f), "expected (vertices, faces, albedo_rgb or None)"),
+           ((v[:, :2], f, None), "vertices must be (V, 3) and faces (F, 3)"),
+           ((v, np.where(f == 0, len(v), f), None), f"face indices outside [0, {len(v)})"),
+           ((nan, f, None), "vertices contain NaN or inf")]
+    for mesh, problem in bad:
+        with pytest.raises(ValueError) as err:
+            render_lidar(prep, [(v, f, None), mesh])
+        assert str(err.value) == f"render_lidar: field 'meshes[1]': {problem}"
+    v32 = v.astype(np.float32)
+    res = render_lidar(prep, [(torch.from_numpy(v32), f, None)])
+    same = render_lidar(prep, [(v32.astype(np.float64), f, None)])
+    assert len(res.added) > 50 and np.array_equal(res.added, same.added)
+    assert res.pattern is pattern and res.added_torch.dtype == torch.float64
+    np.testing.assert_allclose(res.added_torch.numpy(), res.added[:, :3], atol=1e-5)
+    vs, fs = icosphere(2, 0.5)
+    around = [(vs + np.array([0.2, 0.0, 0.1]), fs, None)]
+    assert len(trace_meshes(prep, around).ray) == len(pattern.rays)  # every ray hits, all nearer than 1 m
+    pts, mesh = render_lidar_torch(prep, around)
+    assert len(render_lidar(prep, around).added) == 0 and pts.shape == (0, 3) and len(mesh) == 0

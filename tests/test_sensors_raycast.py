@@ -331,3 +331,111 @@ def test_back_face_culling_keeps_every_hit_and_refuses_folded_meshes():
     assert back_faces(folded, f, origin) is None
     with pytest.raises(ValueError, match="field 'skip_faces'"):
         cast_rays(vt, torch.as_tensor(f), _t(d), _t(origin), skip_faces=torch.zeros(3, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("grouped", [False, True])
+def test_cluster_sphere_holds_every_vertex_and_counts_its_tests(grouped):
+    """One triangle in the plane x = 2: its cluster's bounding sphere has centre (2, .5, .5) and radius
+    sqrt(1/2), every vertex on it. A ray along x at y = 1, z = 0 touches the sphere only at the vertex
+    (2, 1, 0), so only the sphere's inflation lets it be tested: it hits there (t = 2, u = 1, v = 0). The
+    opposite ray (closest approach behind its origin) is not tested: 1 ray-triangle test in all."""
+    v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]])
+    d = _t([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    groups = [(np.array([0, 1]), 0, 1)] if grouped else None
+    hits = cast_rays(v, torch.tensor([[0, 1, 2]]), d, _t([0.0, 1.0, 0.0]), groups=groups)
+    assert hits.hit.tolist() == [True, False] and hits.face.tolist() == [0, -1] and hits.tests == 1
+    np.testing.assert_allclose(hits.t.numpy(), [2.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(hits.u.numpy(), [1.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(hits.v.numpy(), [0.0, 0.0], atol=1e-15)
+    # the same at the vertex (2, 0, 1), along x at y = 0, z = 1: it hits with v = 1
+    hits = cast_rays(v, torch.tensor([[0, 1, 2]]), d, _t([0.0, 0.0, 1.0]), groups=groups)
+    assert hits.hit.tolist() == [True, False] and hits.tests == 1
+    np.testing.assert_allclose(hits.v.numpy(), [1.0, 0.0], atol=1e-15)
+
+
+def test_entry_points_pass_their_options_and_name_their_errors():
+    """The triangle in the plane x = 2 again, by hand: the options reach the test (t_min, cos_min, offset_axis,
+    skip_faces, t_min's default), misses keep integer faces -1, t = 0 (also for vertices summing to 0) and the
+    count of tests made, and every entry point prefixes its errors with its own name."""
+    v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]])
+    f = torch.tensor([[0, 1, 2]])
+    x = _t([[1.0, 0.0, 0.0]])
+    one = (torch.tensor([0]), torch.tensor([0]))
+    o = _t([0.0, 0.25, 0.25])  # along x: hits (2, .25, .25) at t = 2
+    assert cast_ray_pairs(v, f, x, o, *one).t.tolist() == [2.0]
+    assert not cast_ray_pairs(v, f, x, o, *one, t_min=2.5).hit.any()
+    slant = _t([[0.8, 0.6, 0.0]])  # from (0, -1.25, .25) to the same point, t = 2.5, |cos(incidence)| = 0.8
+    assert cast_ray_pairs(v, f, slant, _t([0.0, -1.25, 0.25]), *one).t.tolist() == [2.5]
+    assert not cast_ray_pairs(v, f, slant, _t([0.0, -1.25, 0.25]), *one, cos_min=0.9).hit.any()
+    # the origin moved by 1 along y: (0, -.75, .25) + (0, 1, 0); along the default z axis it would miss
+    shifted = cast_ray_pairs(v, f, x, _t([0.0, -0.75, 0.25]), *one, origin_offset=_t([1.0]), offset_axis=(0, 1, 0))
+    assert shifted.t.tolist() == [2.0]
+    assert cast_ray_pair_chunks(v, f, x, _t([1.5, 0.25, 0.25]), [one]).t.tolist() == [0.5]  # t_min 1e-6
+    assert not cast_rays(v, f, x, o, skip_faces=torch.tensor([True])).hit.any()
+    assert cast_rays(v, f, x, o, groups=[(np.array([0]), 0, 1), (np.array([0]), 1, 1)]).t.tolist() == [2.0]
+    # misses: no faces at all, and a ray through the cluster sphere beside the triangle (tested once)
+    none = cast_rays(v, torch.zeros((0, 3), dtype=torch.int64), _t([[1.0, 0, 0], [0, 1.0, 0]]), o)
+    assert none.face.dtype == torch.int64 and none.face.tolist() == [-1, -1] and none.tests == 0
+    beside = cast_rays(v, f, x, _t([0.0, 0.8, 0.8]))  # (2, .8, .8): u + v = 1.6
+    assert beside.tests == 1 and beside.face.tolist() == [-1] and beside.t.tolist() == [0.0]
+    centred = _t([[2.0, 1.0, 0.0], [2.0, -1.0, 1.0], [-4.0, 0.0, -1.0]]).requires_grad_()  # vertices sum to 0
+    assert cast_rays(centred, f, x, _t([0.0, 5.0, 5.0])).t.tolist() == [0.0]
+    errors = [
+        (lambda: cast_rays(v, f + 1, x, o), "cast_rays: field 'faces': indices must lie in [0, 3)"),
+        (lambda: cast_ray_pairs(v, f, x, o, torch.tensor([0, 0]), torch.tensor([0])),
+         "cast_ray_pairs: field 'face_index': 1 faces for 2 rays"),
+        (lambda: cast_ray_pair_chunks(v, f + 1, x, o, [one]), "cast_ray_pair_chunks: field 'faces': indices must "
+                                                             "lie in [0, 3)"),
+        (lambda: cast_ray_pair_chunks(v, f, x, o, [(torch.tensor([1]), torch.tensor([0]))]),
+         "cast_ray_pair_chunks: field 'ray_index': pairs must index 1 rays and 1 faces"),
+        (lambda: PairCaster(v * np.nan, f, o), "PairCaster: field 'vertices': contains NaN or inf"),
+        (lambda: PairCaster(v, f, o).search(x, [(torch.tensor([0]), torch.tensor([1]))]),
+         "PairCaster: field 'ray_index': pairs must index 1 rays and 1 faces"),
+    ]
+    for call, message in errors:
+        with pytest.raises(ValueError) as err:
+            call()
+        assert str(err.value) == message
+
+
+def test_groups_of_different_sizes_empty_groups_and_a_near_origin():
+    """Grouped casts equal the plain cast: a 1-face group before an 8-face group (two cluster counts: the
+    ray's face is the 8th, in the second cluster), groups without rays or faces, and rays starting 0.5 m
+    before the triangle (closer to its cluster's centre than the radius)."""
+    tri = np.array([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]])
+    # 9 triangles: the one above, then 8 copies 3 m along y and 0.1 ... 0.8 m behind it
+    v = _t(np.concatenate([tri] + [tri + np.array([0.1 * k, 3.0, 0.0]) for k in range(1, 9)]))
+    f = torch.arange(27).reshape(9, 3)
+    d = _t([[1.0, 0.0, 0.0]] * 2)
+    o = _t([0.0, 3.25, 0.25])  # along x both rays meet the copies at x = 2.1 ... 2.8: the first is face 1
+    plain = cast_rays(v, f, d, o)
+    assert plain.face.tolist() == [1, 1] and plain.t.tolist() == pytest.approx([2.1, 2.1])
+    late = _t(np.concatenate([tri] + [tri + np.array([3.0 - 0.1 * k, 3.0, 0.0]) for k in range(1, 9)]))  # 8 nearest
+    for verts, want in ((v, 1), (late, 8)):
+        ref = cast_rays(verts, f, d, o)
+        got = cast_rays(verts, f, d, o, groups=[(np.array([0, 1]), 0, 1), (np.array([0, 1]), 1, 9)])
+        assert ref.face.tolist() == got.face.tolist() == [want, want] and torch.equal(ref.t, got.t)
+    # groups of 1 and 2 clusters batched apart whatever their first faces: 4 and 5 faces, 4 faces from face 4
+    for groups in ([(np.array([0, 1]), 0, 4), (np.array([0, 1]), 4, 9)], [(np.array([0, 1]), 4, 8),
+                                                                        (np.array([0, 1]), 1, 9)]):
+        assert cast_rays(late, f, d, o, groups=groups).face.tolist() == [8, 8]
+    empty = cast_rays(v, f, d, o, groups=[(np.zeros(0, dtype=np.int64), 0, 9), (np.array([0]), 3, 3)])
+    assert empty.face.dtype == torch.int64 and empty.face.tolist() == [-1, -1] and empty.tests == 0
+    near = cast_rays(v[:3], f[:1], d[:1], _t([1.5, 0.25, 0.25]), groups=[(np.array([0]), 0, 1)])
+    assert near.t.tolist() == [0.5]
+
+
+def test_later_ray_chunks_are_searched_and_open_spheres_are_not_culled():
+    """1280 faces make a search chunk of 1048576 // 1280 = 819 rays: the first chunk's rays all point away
+    (no candidate pair), the last 181 rays point at the sphere and must still hit it. A sphere missing one
+    of its 320 faces is open (its solid angles still sum to almost 4 pi): no back-face culling."""
+    v, f = icosphere(3, 0.4)
+    assert len(f) == 1280
+    d = np.tile([[-1.0, 0.0, 0.0]], (1000, 1))
+    d[819:] = [1.0, 0.0, 0.0]
+    hits = cast_rays(_t(v + np.array([8.0, 0.0, 0.0])), torch.from_numpy(f), _t(d), _t([0.0, 0.0, 0.0]))
+    assert not hits.hit[:819].any() and hits.hit[819:].all()
+    np.testing.assert_allclose(hits.t[819:].numpy(), 7.6, atol=1e-3)
+    v2, f2 = icosphere(2, 0.4)
+    assert back_faces(v2, f2, np.array([3.0, 0.0, 0.0])) is not None
+    assert back_faces(v2, f2[1:], np.array([3.0, 0.0, 0.0])) is None

@@ -444,6 +444,28 @@ def test_mask_centroid_of_one_point_and_float32_input():
     assert count.tolist() == [1] and centroid.tolist() == [[1.5, 2.0, 3.0]] and centroid.dtype == np.float64
 
 
+def test_mask_centroid_accumulates_float32_points_in_float64():
+    """2^24 + 1 is not a float32: summed in float32 the two masked x would give 2^24 and a centroid 2^23."""
+    logits = np.array([[[0.0, 1.0], [0.0, 1.0], [1.0, 0.0]]], dtype=np.float32)
+    xyz = np.array([[[2.0**24, 0.0, 1.0], [1.0, 0.0, 2.0], [5.0, 5.0, 5.0]]], dtype=np.float32)
+    _, count, centroid = mask_centroid(logits, xyz)
+    assert count.tolist() == [2] and centroid.tolist() == [[2.0**23 + 0.5, 0.0, 1.5]]
+
+
+def test_decode_mean_object_probability_divides_in_float32():
+    """Three masked points: the mean object probability is a float32 quotient (sum / 3 in float32), so the
+    score (times heading p = 1 and size p = 1/2, both exact) is a float32 value; a float64 division is not."""
+    l3 = math.log(3.0)
+    seg = np.array([[[0, l3], [0, l3], [0, 2.0], [0, -l3]]], dtype=np.float32)  # a sum / 3 that is no float32
+    mask = seg[..., 1] > seg[..., 0]
+    raw = _raw_box_output((0.0, 0.0, 0.0), 0, 0.0, (0.0, 0.0, 0.0))
+    raw[:, 3] = 500.0  # heading p = 1 exactly
+    boxes = decode(_outputs(raw, seg, mask, np.zeros((1, 3))))
+    p = 1 / (1 + np.exp(-np.array([l3, l3, 2.0])))
+    assert boxes.score_3d == pytest.approx([p.mean() * 0.5], rel=1e-6)
+    assert boxes.score_3d.astype(np.float32).astype(np.float64).tolist() == boxes.score_3d.tolist()
+
+
 def _reference_gather(pos: np.ndarray, num: int, g: np.random.Generator) -> np.ndarray:
     """The original ``tf_gather_object_pc`` on masked positions ``pos``: ``num`` of them without
     replacement if there are more, else all of them plus repeats; then shuffled."""
