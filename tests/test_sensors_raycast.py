@@ -298,6 +298,26 @@ def test_pair_caster_searches_then_recomputes_like_cast_ray_pairs():
     assert empty.shape == (0,) and empty.requires_grad
 
 
+def test_pair_caster_runs_in_the_vertices_dtype_whatever_the_directions():
+    """float32 vertices with float64 (numpy) directions: the search and the recompute run in float32, the same
+    as with float32 directions, and differ from a float64 cast."""
+    rng = np.random.default_rng(3)
+    v, f = _blob()
+    d = _rays_at(np.array([8.0, 0.5, 0.2]), 200, 0.06, rng)
+    pairs = [(torch.arange(len(d)).repeat_interleave(len(f)), torch.arange(len(f)).repeat(len(d)))]
+    v32 = torch.tensor(v, dtype=torch.float32)
+    caster = PairCaster(v32, torch.as_tensor(f), torch.zeros(3))
+    ray, face, t, _ = caster.search(d, pairs)
+    ray32, face32, t32, _ = caster.search(torch.tensor(d, dtype=torch.float32), pairs)
+    assert len(ray) > 20 and t.dtype == torch.float32
+    assert torch.equal(ray, ray32) and torch.equal(face, face32) and torch.equal(t, t32)
+    tr, ur, wr = caster.recompute(d[ray.numpy()], face)
+    assert tr.dtype == ur.dtype == wr.dtype == torch.float32
+    assert torch.equal(tr, caster.recompute(torch.tensor(d[ray.numpy()], dtype=torch.float32), face)[0])
+    t64 = PairCaster(torch.tensor(v), torch.as_tensor(f), torch.zeros(3, dtype=torch.float64)).search(d, pairs)[2]
+    assert t64.dtype == torch.float64 and not torch.equal(t64.to(torch.float32).double(), t64)
+
+
 def test_back_faces_hand_computed_tetrahedron():
     """A unit right tetrahedron (outward faces) seen from (2, 2, 2): only the slanted face x + y + z = 1
     faces the origin; the three faces in the coordinate planes are back faces."""
