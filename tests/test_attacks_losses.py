@@ -111,3 +111,19 @@ def test_gradients_match_float64_finite_differences():
 def test_laplacian_loss_is_weighted_smoothness():
     v = template_vertices()
     assert laplacian_loss(torch.tensor(v), 0.25).item() == pytest.approx(0.25 * laplacian_smoothness(v), rel=1e-12)
+
+
+def test_losses_edge_cases_from_mutation_testing():
+    """Logits that are not (N, 2) are refused whatever else is wrong; the image term runs in the objectness
+    logit's dtype even with float64 class logits; a candidate exactly at the IoU threshold counts."""
+    for bad in (torch.zeros(4, 3), torch.zeros(2, 2, 2), torch.zeros(0, 2)):
+        with pytest.raises(ValueError, match="logits"):
+            max_object_margin(bad)
+    a = torch.tensor([0.3, -2.0], dtype=torch.float32)
+    b = torch.tensor([1.0, 4.0], dtype=torch.float64)
+    got = neg_log_one_minus_product(a, b)
+    assert got.dtype == torch.float32
+    expect = [-math.log(1 - sigmoid(0.3) * sigmoid(1.0)), -math.log(1 - sigmoid(-2.0) * sigmoid(4.0))]
+    np.testing.assert_allclose(got.numpy(), expect, rtol=2e-5)
+    c = candidates([0.0, 1.0], [0.0, 0.0], [0.5, 0.4999], [0, 0])
+    np.testing.assert_allclose(best_candidate_scores(c, 2, min_iou=0.5), [0.25, 0.0])
