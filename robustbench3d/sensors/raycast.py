@@ -38,8 +38,6 @@ import torch
 
 #: Rays x faces per chunk of the no-grad search (bounds its memory to about 150 MB even if every pair is tested).
 SEARCH_CHUNK_PAIRS = 1 << 20
-#: Rays per block of the grouped search's batched ray-sphere products (:func:`_group_sphere_pairs`).
-GROUP_RAY_BLOCK = 32
 #: Consecutive faces sharing one bounding sphere in the search (icosphere level L: face k of level L - 1 becomes
 #: faces 4k..4k+3; other meshes work whatever their face order, only faster when it is coherent).
 CLUSTER_SIZE = 4
@@ -263,60 +261,6 @@ def _sphere_pairs(centre: torch.Tensor, radius: torch.Tensor, n_faces: int, dc: 
     return ray, fc
 
 
-def _group_sphere_pairs(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, d: torch.Tensor, hz: torch.Tensor,
-                        origin: torch.Tensor, axis: torch.Tensor, groups: Sequence[tuple[torch.Tensor, int, int]]
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(ray (K,), face (K,)) pairs of :func:`_search_groups` for groups (rays, first face, end face; each with
-    rays) of one cluster count C: per group, its rays through the bounding spheres of its clusters
-    (:func:`_cluster_spheres` of its faces). The groups are batched: their rays in blocks of at most
-    :data:`GROUP_RAY_BLOCK` (one group per block), each block against its group's C spheres with
-    :func:`_sphere_pairs`' arithmetic (a batched product), at most ``SEARCH_CHUNK_PAIRS / CLUSTER_SIZE``
-    (ray, sphere) tests at a time."""
-    dev, cs = d.device, CLUSTER_SIZE
-    f0 = torch.tensor([g[1] for g in groups], dtype=torch.int64, device=dev)
-    f1 = torch.tensor([g[2] for g in groups], dtype=torch.int64, device=dev)
-    n_cl = -(-(groups[0][2] - groups[0][1]) // cs)
-    # The faces of each group's clusters, the last face repeated to fill the last cluster (as _cluster_spheres).
-    slot = torch.minimum(f0[:, None] + torch.arange(n_cl * cs, device=dev)[None, :], f1[:, None] - 1)
-    corners = torch.stack([v0, v0 + e1, v0 + e2], 1).index_select(0, slot.reshape(-1))
-    corners = corners.reshape(len(groups), n_cl, 3 * cs, 3)
-    centre = 0.5 * (corners.amin(2) + corners.amax(2))
-    radius = torch.linalg.norm(corners - centre[:, :, None, :], dim=-1).amax(2) * (1 + 1e-3) + 1e-9
-    # Rays in blocks of one group each.
-    chunk = max(1, SEARCH_CHUNK_PAIRS // cs // n_cl)  # (ray, sphere) tests per product
-    width = max(1, min(GROUP_RAY_BLOCK, chunk))
-    counts = torch.tensor([len(g[0]) for g in groups], dtype=torch.int64, device=dev)
-    blocks = -(-counts // width)
-    group = torch.repeat_interleave(torch.arange(len(groups), device=dev), blocks)
-    first = torch.cumsum(counts, 0) - counts  # each group's first ray in ``rays``
-    rank = torch.arange(len(group), device=dev) - (torch.cumsum(blocks, 0) - blocks).index_select(0, group)
-    pos = (first.index_select(0, group) + rank * width)[:, None] + torch.arange(width, device=dev)[None, :]
-    valid = pos < (first + counts).index_select(0, group)[:, None]
-    rays = torch.cat([g[0] for g in groups])
-    ray_blocks = rays.index_select(0, pos.clamp(max=len(rays) - 1).reshape(-1)).reshape(pos.shape)
-    out_r, out_f = [], []
-    step = max(1, chunk // width)
-    for lo in range(0, len(group), step):
-        bg, rb = group[lo:lo + step], ray_blocks[lo:lo + step]
-        dc = d.index_select(0, rb.reshape(-1)).reshape(len(rb), width, 3)
-        hc = hz.index_select(0, rb.reshape(-1)).reshape(len(rb), width)
-        w0 = centre.index_select(0, bg) - origin  # centre - ray origin = w0 - h a
-        w0a = w0 @ axis
-        w0sq = (w0 * w0).sum(-1)
-        proj = torch.bmm(dc, w0.transpose(1, 2)) - hc[:, :, None] * (dc @ axis)[:, :, None]
-        dist2 = w0sq[:, None, :] - 2 * hc[:, :, None] * w0a[:, None, :] + (hc * hc)[:, :, None] - proj * proj
-        r = radius.index_select(0, bg)[:, None, :]
-        near = (dist2 <= r ** 2) & (proj > -r) & valid[lo:lo + step, :, None]
-        b, k, c = torch.nonzero(near, as_tuple=True)
-        fc = ((f0.index_select(0, bg.index_select(0, b)) + c * cs)[:, None]
-              + torch.arange(cs, device=dev)[None, :]).reshape(-1)
-        ray = rb[b, k].repeat_interleave(cs)
-        inside = fc < f1.index_select(0, bg.index_select(0, b)).repeat_interleave(cs)
-        out_r.append(ray[inside])
-        out_f.append(fc[inside])
-    return torch.cat(out_r), torch.cat(out_f)
-
-
 def _search(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, table: torch.Tensor, d: torch.Tensor,
             origin: torch.Tensor, h: torch.Tensor | None, axis: torch.Tensor, t_min: float,
             tol: float) -> tuple[torch.Tensor, int]:
@@ -350,15 +294,22 @@ def _search_groups(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, table: 
     faces only (clusters formed within the group); the nearest face per ray is kept over all groups."""
     n_rays, n_faces = len(d), len(v0)
     hz = torch.zeros(n_rays, dtype=d.dtype, device=d.device) if h is None else h
-    live = [(gr, f0, f1) for gr, f0, f1 in groups if len(gr) and f1 > f0]
+    rays, faces = [], []
+    for gr, f0, f1 in groups:
+        if len(gr) == 0 or f1 <= f0:
+            continue
+        centre, radius = _cluster_spheres(v0[f0:f1], e1[f0:f1], e2[f0:f1])
+        step = max(1, SEARCH_CHUNK_PAIRS // (f1 - f0))
+        for lo in range(0, len(gr), step):
+            rc = gr[lo:lo + step]
+            ray, fc = _sphere_pairs(centre, radius, f1 - f0, d.index_select(0, rc), hz.index_select(0, rc),
+                                    origin, axis)
+            rays.append(rc.index_select(0, ray))
+            faces.append(fc + f0)
     face = torch.full((n_rays,), -1, dtype=torch.int64, device=d.device)
-    if not live:
+    if not rays:
         return face, 0
-    by_size: dict[int, list[tuple[torch.Tensor, int, int]]] = {}
-    for g in live:  # groups with as many clusters share one batched product
-        by_size.setdefault(-(-(g[2] - g[1]) // CLUSTER_SIZE), []).append(g)
-    pairs = [_group_sphere_pairs(v0, e1, e2, d, hz, origin, axis, same) for same in by_size.values()]
-    ray, fc = torch.cat([r for r, _ in pairs]), torch.cat([f for _, f in pairs])
+    ray, fc = torch.cat(rays), torch.cat(faces)
     if len(fc):
         ok, tc = _test_pairs(table, d.T.contiguous(), h, ray, fc, t_min, tol)
         if len(tc):
