@@ -26,3 +26,11 @@ def kitti_samples() -> Path:
     if not (root / "training" / "label_2").is_dir():
         pytest.skip(f"real KITTI samples not found at {root} (set ROBUSTBENCH3D_KITTI_SAMPLES)")
     return root
+
+
+@pytest.fixture
+def cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A fresh robustbench3d cache directory for the test (``$ROBUSTBENCH3D_CACHE``)."""
+    monkeypatch.setenv("ROBUSTBENCH3D_CACHE", str(tmp_path / "cache"))
+    return tmp_path / "cache"
+

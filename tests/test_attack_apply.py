@@ -26,10 +26,7 @@ from robustbench3d.testing import synth_dataset
 NO_CARS = "000003"
 
 
-@pytest.fixture(autouse=True)
-def cache(tmp_path, monkeypatch) -> Path:
-    monkeypatch.setenv("ROBUSTBENCH3D_CACHE", str(tmp_path / "cache"))
-    return tmp_path / "cache"
+pytestmark = pytest.mark.usefixtures("cache")  # a fresh cache per test (conftest)
 
 
 @pytest.fixture(scope="module")

@@ -25,10 +25,7 @@ torch.set_num_threads(1)
 FRAMES = 3
 
 
-@pytest.fixture(autouse=True)
-def cache(tmp_path, monkeypatch) -> Path:
-    monkeypatch.setenv("ROBUSTBENCH3D_CACHE", str(tmp_path / "cache"))
-    return tmp_path / "cache"
+pytestmark = pytest.mark.usefixtures("cache")  # a fresh cache per test (conftest)
 
 
 @pytest.fixture(scope="module")

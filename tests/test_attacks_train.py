@@ -24,10 +24,7 @@ from robustbench3d.victims.cascade import FPointNetCascade
 FAST = {"batch_cars": 4, "occlusion": "none", "supersample": 1}
 
 
-@pytest.fixture(autouse=True)
-def cache(tmp_path, monkeypatch) -> Path:
-    monkeypatch.setenv("ROBUSTBENCH3D_CACHE", str(tmp_path / "cache"))
-    return tmp_path / "cache"
+pytestmark = pytest.mark.usefixtures("cache")  # a fresh cache per test (conftest)
 
 
 @pytest.fixture(scope="module")

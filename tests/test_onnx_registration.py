@@ -38,12 +38,6 @@ def onnx_dir(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.fixture
-def cache(tmp_path, monkeypatch) -> Path:
-    monkeypatch.setenv("ROBUSTBENCH3D_CACHE", str(tmp_path / "cache"))
-    return tmp_path / "cache"
-
-
 def _env(cache: Path) -> dict[str, str]:
     return {"PATH": "", "ROBUSTBENCH3D_CACHE": str(cache), "ROBUSTBENCH3D_NO_PLUGINS": "1", "OMP_NUM_THREADS": "1"}
 

@@ -54,6 +54,11 @@ def _rays_at(centre: np.ndarray, n: int, spread: float, rng: np.random.Generator
     return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
 
 
+def _every_pair(n_rays: int, n_faces: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ray, face) int64 indices of every ray x face pair, ray-major."""
+    return torch.arange(n_rays).repeat_interleave(n_faces), torch.arange(n_faces).repeat(n_rays)
+
+
 def test_hand_computed_triangle():
     v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]])  # plane x = 2
     f = torch.tensor([[0, 1, 2]])
@@ -222,8 +227,7 @@ def test_pairs_entry_point_equals_cast_rays_and_the_textbook_reference():
     origin = np.zeros(3)
     vt = torch.tensor(v, requires_grad=True)
     ref = cast_rays(vt, torch.as_tensor(f), _t(d), _t(origin))
-    ray_all = torch.arange(len(d)).repeat_interleave(len(f))
-    face_all = torch.arange(len(f)).repeat(len(d))
+    ray_all, face_all = _every_pair(len(d), len(f))
     every = cast_ray_pairs(vt, torch.as_tensor(f), _t(d), _t(origin), ray_all, face_all)
     assert every.tests == len(d) * len(f)
     expect_t = _reference(v, f, origin[None, :].repeat(len(d), 0), d)
@@ -255,8 +259,7 @@ def test_pair_chunks_give_the_hits_of_one_call():
     v, f = _blob()
     d = _rays_at(np.array([8.0, 0.5, 0.2]), 300, 0.06, rng)
     vt = torch.tensor(v, requires_grad=True)
-    ray_all = torch.arange(len(d)).repeat_interleave(len(f))
-    face_all = torch.arange(len(f)).repeat(len(d))
+    ray_all, face_all = _every_pair(len(d), len(f))
     one = cast_ray_pairs(vt, torch.as_tensor(f), _t(d), _t(np.zeros(3)), ray_all, face_all)
     cuts = [0, 7, 7, 5000, len(ray_all) // 2, len(ray_all)]
     chunks = [(ray_all[a:b], face_all[a:b]) for a, b in itertools.pairwise(cuts)]
@@ -275,8 +278,7 @@ def test_pair_caster_searches_then_recomputes_like_cast_ray_pairs():
     v, f = _blob()
     d = _rays_at(np.array([8.0, 0.5, 0.2]), 300, 0.09, rng)
     vt = torch.tensor(v, requires_grad=True)
-    ray_all = torch.arange(len(d)).repeat_interleave(len(f))
-    face_all = torch.arange(len(f)).repeat(len(d))
+    ray_all, face_all = _every_pair(len(d), len(f))
     ref = cast_ray_pairs(vt, torch.as_tensor(f), _t(d), _t(np.zeros(3)), ray_all, face_all)
     assert ref.hit.any() and not ref.hit.all()
     caster = PairCaster(vt, torch.as_tensor(f), _t(np.zeros(3)))
@@ -304,7 +306,7 @@ def test_pair_caster_runs_in_the_vertices_dtype_whatever_the_directions():
     rng = np.random.default_rng(3)
     v, f = _blob()
     d = _rays_at(np.array([8.0, 0.5, 0.2]), 200, 0.06, rng)
-    pairs = [(torch.arange(len(d)).repeat_interleave(len(f)), torch.arange(len(f)).repeat(len(d)))]
+    pairs = [_every_pair(len(d), len(f))]
     v32 = torch.tensor(v, dtype=torch.float32)
     caster = PairCaster(v32, torch.as_tensor(f), torch.zeros(3))
     ray, face, t, _ = caster.search(d, pairs)

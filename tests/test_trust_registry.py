@@ -52,12 +52,6 @@ def cli(*args: str, cache: Path, site: Path | None = None) -> subprocess.Complet
 
 
 @pytest.fixture
-def cache(tmp_path, monkeypatch) -> Path:
-    monkeypatch.setenv("ROBUSTBENCH3D_CACHE", str(tmp_path / "cache"))
-    return tmp_path / "cache"
-
-
-@pytest.fixture
 def two_frames(kitti_samples, tmp_path) -> Path:
     """A KITTI-layout dataset of two real frames (symlinks) with a val split."""
     return link_frames(kitti_samples, tmp_path / "data", ["000002", "000003"])
