@@ -11,7 +11,6 @@ import argparse
 import importlib
 import json
 import os
-import resource
 import subprocess
 import sys
 import time
@@ -60,11 +59,6 @@ def run_timed_subprocess(argv: list[str], env: dict[str, str] | None = None) -> 
     if info["rc"] != 0:
         raise RuntimeError(f"benchmarked command failed ({info['rc']}): {' '.join(argv)}\n{info['err']}")
     return Measured(info["s"], info["rss"], info["out"], info["cpu"])
-
-
-def peak_rss_mb() -> float:
-    """Peak RSS of this process so far, MB."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def dict_table(rows: list[dict]) -> str:
