@@ -318,3 +318,79 @@ def test_interior_pixels_take_one_sample_edges_s_squared():
                 expect += display((1 - lb - lc) * cols[0] + lb * cols[1] + lc * cols[2]) / 16
     np.testing.assert_allclose(four[15, 10].numpy(), expect, atol=1e-12)
     assert not torch.allclose(four[15, 10], one[15, 10])
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_numpy_pair_search_equals_the_pair_casters_bit_for_bit(dtype):
+    """The crop's numpy search of candidate pairs (_search_pairs) against PairCaster.search (the torch kernel it
+    replaces): the same hitting rays, nearest faces, t (bit for bit) and pair count, for the crop's own candidate
+    pairs of deformed objects near and far plus random pairs in several chunks, and with every face doubled
+    (equal t everywhere: the smaller face index must win)."""
+    from robustbench3d.attacks.object import random_shape
+    from robustbench3d.sensors.camera_depth import camera_centre_rect, pixel_rays_rect
+    from robustbench3d.sensors.camera_render import (
+        _candidate_pairs,
+        _check_meshes,
+        _Geometry,
+        _pixel_set,
+        _search_pairs,
+    )
+    from robustbench3d.sensors.raycast import PairCaster
+
+    calib = DAY_0926.calib
+    rng = np.random.default_rng(11)
+    for k, distance in enumerate([3.0, 10.0, 40.0]):
+        obj = random_shape(seed=k, amplitude=0.45)
+        verts = obj.vertices() + np.array([0.3, 0.1, distance])
+        for faces in (obj.faces, np.concatenate([obj.faces, obj.faces])):
+            meshes = _check_meshes([(torch.as_tensor(verts, dtype=dtype), faces, np.full_like(verts, 0.5))])
+            region = _pixel_set(calib, meshes, DAY_0926.image_size, False)[0]
+            g = _Geometry.of(meshes, calib)
+            caster = PairCaster(g.verts, g.faces_t, torch.as_tensor(camera_centre_rect(calib), dtype=dtype))
+            s = 3
+            pv, pu = np.divmod(region.pixels, DAY_0926.image_size[0])
+            off = (np.arange(s) + 0.5) / s - 0.5
+            dirs = pixel_rays_rect(calib, (pu[:, None] + np.tile(off, s)).reshape(-1),
+                                   (pv[:, None] + np.repeat(off, s)).reshape(-1))
+            chunks = list(_candidate_pairs(g.cull.spans(s, region.rect), region, s, 5000))
+            n_extra = 20000
+            chunks.append((rng.integers(0, len(dirs), n_extra), rng.integers(0, len(g.faces), n_extra)))
+            d = dirs.astype(np.float32 if dtype == torch.float32 else np.float64)
+            ray, face, t, tests = _search_pairs(caster, np.ascontiguousarray(d.T), iter(chunks))
+            ray_t, face_t, t_t, tests_t = caster.search(torch.from_numpy(dirs),
+                                                        [(torch.from_numpy(a), torch.from_numpy(b)) for a, b in chunks])
+            assert tests == tests_t == sum(len(a) for a, _ in chunks)
+            assert len(ray) > 1000
+            assert np.array_equal(ray, ray_t.numpy()) and np.array_equal(face, face_t.numpy())
+            assert t.dtype == t_t.numpy().dtype and np.array_equal(t, t_t.numpy())
+            if len(faces) > len(obj.faces):
+                assert face.max() < len(obj.faces)  # every doubled face ties with its copy: the first wins
+
+
+def test_cached_rays_and_edge_pixels_equal_their_references():
+    """The crop's helpers against plain references: rays through image positions with a cached K^-1 equal
+    pixel_rays_rect bit for bit, and the edge pixels (3 x 3 min != max) equal a loop over each pixel's 8
+    neighbours on random masked regions."""
+    from robustbench3d.sensors.camera_depth import pixel_rays_rect
+    from robustbench3d.sensors.camera_render import _constants, _edge_pixels, _pixel_rays, _Region
+
+    rng = np.random.default_rng(4)
+    calib = DAY_0926.calib
+    u, v = rng.uniform(-50, 1300, 20000), rng.uniform(-50, 420, 20000)
+    assert np.array_equal(_pixel_rays(_constants(calib).kinv, u, v).T, pixel_rays_rect(calib, u, v))
+    for _ in range(200):
+        mh, mw = rng.integers(1, 12, 2)
+        mask = rng.random((mh, mw)) < rng.uniform(0.3, 1.0)
+        shows = rng.integers(-1, 3, int(mask.sum()))
+        grid = np.full((mh, mw), -1)
+        grid[mask] = shows
+        want = np.zeros((mh, mw), bool)
+        for r in range(mh):
+            for c in range(mw):
+                for dr in (-1, 0, 1):
+                    for dc in (-1, 0, 1):
+                        rr, cc = r + dr, c + dc
+                        other = grid[rr, cc] if 0 <= rr < mh and 0 <= cc < mw else -1
+                        want[r, c] |= other != grid[r, c]
+        got = _edge_pixels(_Region((0, 0, int(mw), int(mh)), mask, np.flatnonzero(mask)), shows)
+        assert np.array_equal(got, want[mask])

@@ -16,7 +16,9 @@ pixel, so object interiors look like the scene's surfaces, and soft edges are wh
 sample is a ray from the camera-2 centre (-K^-1 P2[:, 3] in rect). Rays meet the meshes in the same
 Möller–Trumbore core as the LiDAR (:class:`robustbench3d.sensors.raycast.PairCaster`: one per-face table,
 a no-grad search of candidate (sample, face) pairs keeping the nearest hit per sample, ties to the
-smallest face id, then one recompute with gradients on the winners of both passes), culled as a scanline
+smallest face id, run in numpy on the caster's table by :func:`_search_pairs` (the caster's kernel, operation
+for operation: a crop's few thousand pairs cost torch's per-op overhead), then one recompute with gradients
+on the winners of both passes), culled as a scanline
 rasteriser does: each face's projected vertices give a screen box (widened by :data:`BOX_MARGIN_PX` plus
 1e-5 of its size, which covers the core's barycentric tolerance and rounding), and in each sample row of the
 box only the columns whose 2D barycentrics are all >= -delta (:meth:`_FaceCull.spans`, a margin covering
@@ -62,17 +64,19 @@ constant; coverage changes only by whole samples.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
 import torch
 
 from robustbench3d.kitti.calib import Calibration
-from robustbench3d.sensors.camera_depth import DepthSource, camera_centre_rect, pixel_rays_rect
+from robustbench3d.sensors.camera_depth import DepthSource, camera_centre_rect
 from robustbench3d.sensors.camera_model import Lighting
-from robustbench3d.sensors.raycast import PairCaster, back_faces, index_slots
+from robustbench3d.sensors.raycast import PairCaster, back_faces
 
 #: Absolute widening (pixels) of each face's projected box in the candidate cull (see the module docstring).
 BOX_MARGIN_PX = 1e-3
@@ -84,6 +88,8 @@ SPAN_MARGIN = 1e-3
 SPAN_DEPTH_RATIO = 20.0
 #: Vertices nearer than this camera-2 depth (m) count as behind the camera for the boxes.
 _NEAR = 1e-6
+#: "No face yet" in the numpy search's per-ray minimum.
+_NO_FACE = np.iinfo(np.int64).max
 
 #: Lighting for frames without a known scene (real KITTI): a clear day, sun 40 degrees high behind-left
 #: (velodyne frame), colours in the middle of the generator's clear-weather ranges.
@@ -130,11 +136,62 @@ def mesh_box(calib: Calibration, vertices: np.ndarray, image_size: tuple[int, in
         return (0, 0, w, h), "rendered"
     u0, v0 = np.ceil(uv.min(axis=0) - 0.5)
     u1, v1 = np.floor(uv.max(axis=0) + 0.5) + 1
-    u0, u1 = int(np.clip(u0, 0, w)), int(np.clip(u1, 0, w))
-    v0, v1 = int(np.clip(v0, 0, h)), int(np.clip(v1, 0, h))
+    u0, u1 = int(min(max(u0, 0), w)), int(min(max(u1, 0), w))
+    v0, v1 = int(min(max(v0, 0), h)), int(min(max(v1, 0), h))
     if u0 >= u1 or v0 >= v1:
         return None, "outside"
     return (u0, v0, u1, v1), "rendered"
+
+
+@dataclass(frozen=True, eq=False)
+class _CameraConstants:
+    """What a render derives from a calibration alone (its matrices are read-only, see :class:`Calibration`):
+    the camera-2 centre (rect, m; :func:`camera_centre_rect`), K^-1 of K = P2[:, :3] (as
+    :func:`~robustbench3d.sensors.camera_depth.pixel_rays_rect` forms it) and the rect lightings of
+    :func:`_rect_lighting` by (lighting, dtype)."""
+
+    centre: np.ndarray
+    kinv: np.ndarray
+    lights: dict
+
+
+#: Per calibration (weakly held) its :class:`_CameraConstants`.
+_CONSTANTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+#: Lightings kept per calibration (the oldest is dropped beyond this).
+_MAX_LIGHTS = 8
+
+
+def _constants(calib: Calibration) -> _CameraConstants:
+    """The :class:`_CameraConstants` of ``calib`` (computed on its first render)."""
+    c = _CONSTANTS.get(calib)
+    if c is None:
+        c = _CONSTANTS[calib] = _CameraConstants(camera_centre_rect(calib), np.linalg.inv(calib.P2[:, :3]), {})
+    return c
+
+
+def _pixel_rays(kinv: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """:func:`~robustbench3d.sensors.camera_depth.pixel_rays_rect` of image positions u, v (N,) with K^-1 given
+    (``kinv`` (3, 3)), by component: (3, N) float64 unit rect directions, the transpose of that function's bit
+    for bit (the same element-wise arithmetic), without inverting K per call."""
+    d = np.empty((3, len(u)))
+    for k in range(3):
+        d[k] = u * kinv[k, 0] + v * kinv[k, 1] + kinv[k, 2]
+    d /= np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    return d
+
+
+def _cached_lighting(lighting: Lighting, calib: Calibration, dtype: torch.dtype) -> dict[str, torch.Tensor | float]:
+    """:func:`_rect_lighting`, kept per calibration for the lighting object (held, so its id stays its own) and
+    dtype: a render of the same lighting and calibration reuses the (constant, never modified) tensors."""
+    lights = _constants(calib).lights
+    key = (id(lighting), dtype)
+    hit = lights.get(key)
+    if hit is None or hit[0] is not lighting:
+        if len(lights) >= _MAX_LIGHTS:
+            del lights[next(iter(lights))]
+        with torch.inference_mode(False):  # normal tensors, usable in and out of inference mode
+            hit = lights[key] = (lighting, _rect_lighting(lighting, calib, dtype))
+    return hit[1]
 
 
 def _rect_lighting(lighting: Lighting, calib: Calibration, dtype: torch.dtype) -> dict[str, torch.Tensor | float]:
@@ -199,13 +256,14 @@ class _ShadeComposite(torch.autograd.Function):
         fade = torch.exp(t * (-1.0 / light["haze"]))
         haze = (light["horizon"] * light["exposure"])[:, None]
         exposed = torch.addcmul(haze * (1.0 - fade), fade, l0 + u * d1 + v * d2)  # (3, K)
-        x = exposed / (1.0 + 0.25 * exposed)
+        den = 1.0 + 0.25 * exposed
+        x = exposed / den
         curve = 1.055 * torch.pow(torch.clamp(x, min=0.0031308), 1 / 2.4) - 0.055
         low = x <= 0.0031308
         y = torch.where(low, 12.92 * x, curve)
         # d tone / d exposed: the curve's slope (1.055 / 2.4) x^(1/2.4 - 1) = (y + 0.055) / (2.4 x), times dx
-        slope = torch.where(low, torch.full_like(x, 12.92), (y + 0.055) / (2.4 * x)) / (1.0 + 0.25 * exposed) ** 2
-        slope = torch.where((y >= 0.0) & (y <= 1.0), slope, torch.zeros_like(slope))
+        slope = torch.where(low, 12.92, (y + 0.055) / (2.4 * x)) / den ** 2
+        slope = torch.where((y >= 0.0) & (y <= 1.0), slope, 0.0)
         base_t = base.T.to(lit.dtype)  # (3, P)
         acc = torch.zeros_like(base_t).index_add_(1, owner,
                                                   (torch.clamp(y, 0.0, 1.0) - base_t.index_select(1, owner)) * weight)
@@ -230,8 +288,24 @@ class _ShadeComposite(torch.autograd.Function):
         return g_u, g_v, g_t, g_face, None, None, None, g_base, None
 
 
+def _sum3(x: np.ndarray) -> np.ndarray:
+    """x.sum(-1) of a last axis of 3, as (x0 + x1) + x2: the order numpy's reduction adds them in (the same bits),
+    without the cost of a reduction along a short axis."""
+    return x[..., 0] + x[..., 1] + x[..., 2]
+
+
 def _sample_offsets(s: int) -> np.ndarray:
     return (np.arange(s) + 0.5) / s - 0.5
+
+
+@lru_cache(maxsize=16)
+def _sub_sample_offsets(s: int) -> tuple[np.ndarray, np.ndarray]:
+    """(s^2,) column and row offsets (pixels) of a pixel's s x s samples, sample k = (row i, col j) = divmod(k, s)
+    (read-only)."""
+    off = _sample_offsets(s)
+    col, row = np.tile(off, s), np.repeat(off, s)
+    col.flags.writeable = row.flags.writeable = False
+    return col, row
 
 
 @dataclass(frozen=True, eq=False)
@@ -244,14 +318,19 @@ class _Region:
     pixels: np.ndarray
 
 
-def _culled_faces(meshes: list[tuple[torch.Tensor, np.ndarray, torch.Tensor]], origin: np.ndarray) -> np.ndarray:
+def _culled_faces(meshes: list[tuple[torch.Tensor, np.ndarray, torch.Tensor]], origin: np.ndarray,
+                  vnp: np.ndarray | None = None) -> np.ndarray:
     """(F,) bool over the meshes' concatenated faces: the back faces of the meshes that qualify for
-    culling (:func:`~robustbench3d.sensors.raycast.back_faces`: closed, star-shaped, camera outside)."""
+    culling (:func:`~robustbench3d.sensors.raycast.back_faces`: closed, star-shaped, camera outside).
+    ``vnp``: the meshes' concatenated vertices in float64, if each mesh's own values (saves converting them)."""
     masks = []
+    start = 0
     for v, f, _ in meshes:
-        m = back_faces(v.detach().cpu().numpy(), f, origin)
+        vm = v.detach().cpu().numpy() if vnp is None else vnp[start:start + len(v)]
+        start += len(v)
+        m = back_faces(vm, f, origin)
         masks.append(np.zeros(len(f), bool) if m is None else m)
-    return np.concatenate(masks)
+    return np.concatenate(masks) if len(masks) > 1 else masks[0]
 
 
 @dataclass(frozen=True, eq=False)
@@ -276,18 +355,23 @@ class _FaceCull:
 
     @classmethod
     def of(cls, calib: Calibration, vertices: np.ndarray, faces: np.ndarray, skip: np.ndarray | None,
-           dtype: torch.dtype) -> _FaceCull:
+           dtype: torch.dtype, centre: np.ndarray | None = None) -> _FaceCull:
         """Faces (F, 3) of float64 rect ``vertices``; ``skip`` (F,) bool faces never hit; ``dtype`` the ray
-        test's (its rounding widens the scanline margin)."""
+        test's (its rounding widens the scanline margin); ``centre`` the camera centre (rect; computed if None)."""
         uv, depth = calib.rect_to_image(vertices)
         p, fd = uv[faces], depth[faces]  # (F, 3, 2), (F, 3)
-        unreachable = (fd <= 0).all(axis=1)
+        # reductions over the 3 vertices written out: numpy's reductions along a short axis cost far more, and
+        # min / max / any / all are exact, sums are (x0 + x1) + x2 as numpy's (see _sum3)
+        d0, d1, d2 = fd[:, 0], fd[:, 1], fd[:, 2]
+        unreachable = (d0 <= 0) & (d1 <= 0) & (d2 <= 0)
         if skip is not None:
             unreachable |= skip
-        crossing = (fd <= _NEAR).any(axis=1) & ~unreachable
+        crossing = ((d0 <= _NEAR) | (d1 <= _NEAR) | (d2 <= _NEAR)) & ~unreachable
         fuv = np.where(crossing[:, None, None] | unreachable[:, None, None], 0.0, p)
-        lo, hi = fuv.min(axis=1), fuv.max(axis=1)
-        margin = BOX_MARGIN_PX + 1e-5 * (hi - lo).max(axis=1, keepdims=True)
+        f0, f1, f2 = fuv[:, 0], fuv[:, 1], fuv[:, 2]  # min / max over the 3 vertices (exact either way)
+        lo, hi = np.minimum(np.minimum(f0, f1), f2), np.maximum(np.maximum(f0, f1), f2)
+        extent = hi - lo
+        margin = BOX_MARGIN_PX + 1e-5 * np.maximum(extent[:, 0], extent[:, 1])[:, None]
         # the scanline cull (see spans), for the faces in front of the camera: delta_f and where it applies
         edge_fn = np.zeros((len(faces), 3, 3))
         tight = np.zeros(len(faces), bool)
@@ -296,21 +380,27 @@ class _FaceCull:
         edge = q[:, [2, 0, 1]] - q[:, [1, 2, 0]]  # edge k runs from vertex (k+1) % 3 to (k+2) % 3
         area2 = edge[:, 1, 0] * edge[:, 2, 1] - edge[:, 1, 1] * edge[:, 2, 0]  # (p1 - p0) x (p2 - p0)
         e3 = v3[:, [2, 0, 1]] - v3[:, [1, 2, 0]]
-        n3 = np.cross(e3[:, 2], -e3[:, 1])
-        ray = v3.sum(axis=1) / 3 - camera_centre_rect(calib)
+        a, b = e3[:, 2], -e3[:, 1]  # n3 = a x b, as np.cross forms it (without its per-call overhead)
+        n3 = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                       a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+        ray = (v3[:, 0] + v3[:, 1] + v3[:, 2]) / 3 - (camera_centre_rect(calib) if centre is None else centre)
         with np.errstate(divide="ignore", invalid="ignore"):
-            cos = np.abs((n3 * ray).sum(1)) / np.sqrt((n3 * n3).sum(1) * (ray * ray).sum(1))
-            cond = np.sqrt((ray * ray).sum(1) / (e3 * e3).sum(-1).min(1)) / cos
+            ray2 = _sum3(ray * ray)
+            cos = np.abs(_sum3(n3 * ray)) / np.sqrt(_sum3(n3 * n3) * ray2)
+            e3sq = _sum3(e3 * e3)
+            cond = np.sqrt(ray2 / np.minimum(np.minimum(e3sq[:, 0], e3sq[:, 1]), e3sq[:, 2])) / cos
             delta = SPAN_MARGIN + 64 * float(torch.finfo(dtype).eps) * cond
-            fa = fd[ahead]
-            ok = ((fa.max(1) <= SPAN_DEPTH_RATIO * fa.min(1)) & (np.abs(area2) > 1e-6 * (edge * edge).sum(-1).max(1))
+            fa0, fa1, fa2 = d0[ahead], d1[ahead], d2[ahead]
+            e2d = edge * edge
+            e2d = e2d[:, :, 0] + e2d[:, :, 1]
+            ok = ((np.maximum(np.maximum(fa0, fa1), fa2) <= SPAN_DEPTH_RATIO * np.minimum(np.minimum(fa0, fa1), fa2))
+                  & (np.abs(area2) > 1e-6 * np.maximum(np.maximum(e2d[:, 0], e2d[:, 1]), e2d[:, 2]))
                   & np.isfinite(delta))
         sign = np.sign(area2)[:, None]
         start = q[:, [1, 2, 0]]
-        edge_fn[ahead, :, 0] = -edge[:, :, 1] * sign  # edge function a x + b y + c, positive inside
-        edge_fn[ahead, :, 1] = edge[:, :, 0] * sign
-        edge_fn[ahead, :, 2] = ((edge[:, :, 1] * start[:, :, 0] - edge[:, :, 0] * start[:, :, 1]) * sign
-                                + (np.where(ok, delta, 0.0) * np.abs(area2))[:, None])
+        edge_fn[ahead] = np.stack([-edge[:, :, 1] * sign, edge[:, :, 0] * sign,  # a x + b y + c, positive inside
+                                   (edge[:, :, 1] * start[:, :, 0] - edge[:, :, 0] * start[:, :, 1]) * sign
+                                   + (np.where(ok, delta, 0.0) * np.abs(area2))[:, None]], axis=2)
         tight[ahead] = ok
         return cls(lo - margin, hi + margin, crossing, unreachable, edge_fn, tight)
 
@@ -322,7 +412,9 @@ class _FaceCull:
         with np.errstate(invalid="ignore"):
             c_lo = np.ceil((self.lo + 0.5) * s - 0.5)
             c_hi = np.floor((self.hi + 0.5) * s - 0.5) + 1
-        box = np.concatenate([np.clip(c_lo, lim[:2], lim[2:]), np.clip(c_hi, lim[:2], lim[2:])], axis=1)
+        lo_lim, hi_lim = lim[:2], lim[2:]  # np.clip(x, lo, hi) is minimum(maximum(x, lo), hi), without its overhead
+        box = np.concatenate([np.minimum(np.maximum(c_lo, lo_lim), hi_lim),
+                              np.minimum(np.maximum(c_hi, lo_lim), hi_lim)], axis=1)
         box[self.crossing] = lim
         box[self.unreachable] = 0
         return box.astype(np.int64)
@@ -336,7 +428,7 @@ class _FaceCull:
             box = np.concatenate([np.ceil(self.lo - 0.5), np.floor(self.hi + 0.5) + 1], axis=1)
         box[self.crossing] = [u0, v0, u0 + mw, v0 + mh]
         box[self.unreachable] = [u0, v0, u0, v0]
-        box = np.clip(box - np.array([u0, v0, u0, v0]), 0, np.array([mw, mh, mw, mh])).astype(np.int64)
+        box = np.minimum(np.maximum(box - np.array([u0, v0, u0, v0]), 0), np.array([mw, mh, mw, mh])).astype(np.int64)
         area = np.zeros((mh + 1, mw + 1), np.int64)  # summed-area table of the mask
         area[1:, 1:] = region.mask.cumsum(0).cumsum(1)
         inside = area[box[:, 3], box[:, 2]] - area[box[:, 1], box[:, 2]] - area[box[:, 3], box[:, 0]] + area[box[:, 1],
@@ -363,11 +455,12 @@ class _FaceCull:
         height = np.maximum(boxes[:, 3] - boxes[:, 1], 0)
         nz = np.flatnonzero(height * np.maximum(boxes[:, 2] - boxes[:, 0], 0))
         h = height[nz]
-        face = np.repeat(nz, h)
-        row = np.repeat(boxes[nz, 1] - (np.cumsum(h) - h), h) + np.arange(h.sum())
+        face = nz.repeat(h)
+        row = (boxes[nz, 1] - (h.cumsum() - h)).repeat(h) + np.arange(h.sum())
         c0, c1 = boxes[face, 0], boxes[face, 2]
         t = self.tight[face]
-        ft, y = face[t], (row[t] + 0.5) / s - 0.5
+        every = bool(t.all())  # usually: then no subsets to gather and scatter (the same values)
+        ft, y = (face, (row + 0.5) / s - 0.5) if every else (face[t], (row[t] + 0.5) / s - 0.5)
         e = self.edge[ft]  # (T, 3 edges, a b c)
         rhs = -(e[:, :, 1] * y[:, None] + e[:, :, 2])  # a x >= rhs
         af = e[:, :, 0]
@@ -381,9 +474,13 @@ class _FaceCull:
             lo[dead[:, 0] | dead[:, 1] | dead[:, 2]] = np.inf
             c_lo = np.ceil((lo + 0.5) * s - 0.5)
             c_hi = np.floor((hi + 0.5) * s - 0.5) + 1
-        b0, b1 = c0[t], c1[t]
-        c0[t] = np.clip(c_lo, b0, b1).astype(np.int64)
-        c1[t] = np.clip(c_hi, b0, b1).astype(np.int64)
+        if every:
+            c0, c1 = (np.minimum(np.maximum(c_lo, c0), c1).astype(np.int64),
+                      np.minimum(np.maximum(c_hi, c0), c1).astype(np.int64))
+        else:
+            b0, b1 = c0[t], c1[t]
+            c0[t] = np.minimum(np.maximum(c_lo, b0), b1).astype(np.int64)
+            c1[t] = np.minimum(np.maximum(c_hi, b0), b1).astype(np.int64)
         keep = c1 > c0
         return face[keep], row[keep], c0[keep], c1[keep]
 
@@ -405,17 +502,20 @@ def _candidate_pairs(spans: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
     if whole:
         row_part, col_part = pv * (mw * s * s) + i * s, pu * (s * s) + j  # sample = row_part + col_part
     else:
-        pos = np.where(mask, np.cumsum(mask) - 1, -1)  # position of a pixel of the mask in region.pixels
+        pos = np.where(mask, mask.cumsum() - 1, -1)  # position of a pixel of the mask in region.pixels
         row_local, row_sub = pv * mw, i * s
-    ends = np.cumsum(count)
+    ends = count.cumsum()
     start = 0
     while start < len(count):
         done = ends[start - 1] if start else 0
-        stop = len(count) if chunk is None else max(start + 1, int(np.searchsorted(ends, done + chunk, "right")))
+        if chunk is None or ends[-1] <= done + chunk:  # the rest fits (what the search below would find)
+            stop = len(count)
+        else:
+            stop = max(start + 1, int(np.searchsorted(ends, done + chunk, "right")))
         k = count[start:stop]
-        lr = np.repeat(row[start:stop] - region.rect[1] * s, k)  # region-local sample row and column per pair
-        col = np.repeat(c0[start:stop] - region.rect[0] * s - (np.cumsum(k) - k), k) + np.arange(int(k.sum()))
-        fc = np.repeat(face[start:stop], k)
+        lr = (row[start:stop] - region.rect[1] * s).repeat(k)  # region-local sample row and column per pair
+        col = (c0[start:stop] - region.rect[0] * s - (k.cumsum() - k)).repeat(k) + np.arange(int(k.sum()))
+        fc = face[start:stop].repeat(k)
         start = stop
         if whole:
             yield row_part[lr] + col_part[col], fc
@@ -467,42 +567,96 @@ class _Geometry:
     origin: torch.Tensor
     cull: _FaceCull
 
+    @property
+    def np_dtype(self) -> np.dtype:
+        """The geometry dtype in numpy."""
+        return np.dtype(np.float32 if self.verts.dtype == torch.float32 else np.float64)
+
     @classmethod
     def of(cls, meshes: list[tuple[torch.Tensor, np.ndarray, torch.Tensor]], calib: Calibration) -> _Geometry:
         dtype = meshes[0][0].dtype
-        offsets = np.cumsum([0] + [len(m[0]) for m in meshes[:-1]])
-        faces = np.concatenate([m[1] + off for m, off in zip(meshes, offsets, strict=True)])
-        verts = torch.cat([m[0].to(dtype) for m in meshes])
-        centre = camera_centre_rect(calib)
+        if len(meshes) == 1:
+            faces = meshes[0][1].copy()
+        else:
+            offsets = np.cumsum([0] + [len(m[0]) for m in meshes[:-1]])
+            faces = np.concatenate([m[1] + off for m, off in zip(meshes, offsets, strict=True)])
+        # one mesh: its tensors as they are (a concatenation of one is a copy, and a node in the backward)
+        verts = meshes[0][0] if len(meshes) == 1 else torch.cat([m[0].to(dtype) for m in meshes])
+        colors = meshes[0][2].to(dtype) if len(meshes) == 1 else torch.cat([m[2].to(dtype) for m in meshes])
+        centre = _constants(calib).centre
         vnp = verts.detach().cpu().numpy().astype(np.float64)
-        culled = _culled_faces(meshes, centre)
-        return cls(verts, torch.cat([m[2].to(dtype) for m in meshes]), faces, torch.from_numpy(faces), vnp, culled,
-                   np.repeat(np.arange(len(meshes)), [len(m[1]) for m in meshes]), centre,
-                   torch.from_numpy(centre).to(dtype), _FaceCull.of(calib, vnp, faces, culled, dtype))
+        own = all(m[0].dtype == dtype for m in meshes)  # vnp holds each mesh's own values (not converted)
+        culled = _culled_faces(meshes, centre, vnp if own else None)
+        mesh_of_face = (np.zeros(len(faces), np.int64) if len(meshes) == 1
+                        else np.repeat(np.arange(len(meshes)), [len(m[1]) for m in meshes]))
+        return cls(verts, colors, faces, torch.from_numpy(faces), vnp, culled, mesh_of_face, centre,
+                   torch.from_numpy(centre).to(dtype), _FaceCull.of(calib, vnp, faces, culled, dtype, centre))
 
 
 @dataclass(frozen=True, eq=False)
 class _Hits:
     """Visible hits of a set of samples (no grad yet): the sample indices (K,) ascending, their faces (K,) and
-    ray directions (K, 3); the samples cast and the (sample, face) pairs tested."""
+    ray directions (K, 3) in the geometry dtype; the samples cast and the (sample, face) pairs tested."""
 
     sample: np.ndarray
-    face: torch.Tensor
-    dirs: torch.Tensor
+    face: np.ndarray
+    dirs: np.ndarray
     cast: int
     tests: int
 
     def select(self, keep: np.ndarray) -> _Hits:
-        kt = torch.from_numpy(keep)
-        return _Hits(self.sample[keep], self.face[kt], self.dirs[kt], self.cast, self.tests)
+        return _Hits(self.sample[keep], self.face[keep], self.dirs.take(keep, axis=0), self.cast, self.tests)
 
 
-def _dense_pairs(rays: np.ndarray, faces: np.ndarray) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+def _dense_pairs(rays: np.ndarray, faces: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Every (ray, face) pair of ``rays`` x ``faces``, in chunks of about :data:`PAIR_CHUNK` pairs."""
     step = max(1, PAIR_CHUNK // max(len(faces), 1))
     for i in range(0, len(rays), step):
         r = rays[i:i + step]
-        yield torch.from_numpy(np.repeat(r, len(faces))), torch.from_numpy(np.tile(faces, len(r)))
+        yield np.repeat(r, len(faces)), np.tile(faces, len(r))
+
+
+def _search_pairs(caster: PairCaster, d_cols: np.ndarray, pairs: Iterator[tuple[np.ndarray, np.ndarray]]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """:meth:`PairCaster.search` in numpy, for the few thousand pairs of a crop (torch's per-op overhead
+    dominates there): (rays (K,) ascending, their nearest faces (K,), t (K,), pairs tested) of the rays
+    (unit directions by component ``d_cols`` (3, R), in the caster's dtype) hitting a face of their candidate
+    ``pairs`` (in range). The same element-wise operations in the same order and dtype as the caster's
+    kernel (``raycast._test_pairs``, shared origin; IEEE arithmetic, so the same verdicts and t bit for bit),
+    and the same choice: the nearest t per ray, equal t to the smallest face index."""
+    table = caster.table
+    tab = None if table is None else table.numpy()
+    tol, t_min = caster.tol, caster.t_min
+    rays, faces, ts = [], [], []
+    tests = 0
+    for ray, face in pairs:
+        tests += len(ray)
+        if len(ray) == 0:
+            continue
+        g = tab.take(face, axis=1)
+        d0, d1, d2 = d_cols.take(ray, axis=1)
+        det = g[0] * d0 + g[1] * d1 + g[2] * d2
+        un = g[3] * d0 + g[4] * d1 + g[5] * d2
+        vn = g[6] * d0 + g[7] * d1 + g[8] * d2
+        tn = g[9]
+        slack = tol * det
+        ok = (det > g[10]) & (un >= -slack) & (vn >= -slack) & (un + vn <= det + slack) & (tn > t_min * det)
+        idx = ok.nonzero()[0]
+        rays.append(ray[idx])
+        faces.append(face[idx])
+        ts.append(tn[idx] / det[idx])
+    if not ts or not sum(len(t) for t in ts):
+        empty = np.zeros(0, np.int64)
+        return empty, empty, np.zeros(0, d_cols.dtype), tests
+    ray, face, t = np.concatenate(rays), np.concatenate(faces), np.concatenate(ts)
+    n_rays = d_cols.shape[1]
+    best = np.full(n_rays, np.inf, t.dtype)
+    np.minimum.at(best, ray, t)  # nearest t per ray
+    win = (t == best[ray]).nonzero()[0]
+    first = np.full(n_rays, _NO_FACE)
+    np.minimum.at(first, ray[win], face[win])  # among equal t the smallest face
+    hit = (first != _NO_FACE).nonzero()[0]
+    return hit, first[hit], best[hit], tests
 
 
 def _visible_hits(calib: Calibration, g: _Geometry, caster: PairCaster, region: _Region, w: int, s: int,
@@ -510,26 +664,29 @@ def _visible_hits(calib: Calibration, g: _Geometry, caster: PairCaster, region: 
     """Search the s x s samples of each pixel of ``region`` (numbered pixel-major, s^2 per pixel, sub-pixel
     row-major) and keep the nearest hits the scene depth does not hide (module docstring)."""
     pix_v, pix_u = np.divmod(region.pixels, w)
-    off = _sample_offsets(s)
-    su = (pix_u[:, None] + np.tile(off, s)[None, :]).reshape(-1)  # sample k = (row i, col j), k = i * s + j
-    sv = (pix_v[:, None] + np.repeat(off, s)[None, :]).reshape(-1)
-    dirs_np = pixel_rays_rect(calib, su, sv)
-    dirs = torch.from_numpy(dirs_np).to(caster.dtype)
+    if s == 1:  # the centres (the offset 0 added below changes nothing)
+        su, sv = pix_u.astype(np.float64), pix_v.astype(np.float64)
+    else:
+        col_off, row_off = _sub_sample_offsets(s)
+        su = (pix_u[:, None] + col_off[None, :]).reshape(-1)  # sample k = (row i, col j), k = i * s + j
+        sv = (pix_v[:, None] + row_off[None, :]).reshape(-1)
+    d64 = _pixel_rays(_constants(calib).kinv, su, sv)  # (3, N)
+    d_cols = d64.astype(g.np_dtype)  # by component, in the geometry dtype
     if full_image:  # the reference: every sample near a mesh's bounding sphere x every face not culled
         mesh_verts = [g.vnp[np.unique(g.faces[g.mesh_of_face == i])] for i in range(g.mesh_of_face.max() + 1)]
-        pairs = _dense_pairs(_sphere_cull(dirs_np, g.centre, mesh_verts), np.flatnonzero(~g.culled))
+        pairs = _dense_pairs(_sphere_cull(np.ascontiguousarray(d64.T), g.centre, mesh_verts),
+                             np.flatnonzero(~g.culled))
     else:
-        pairs = ((torch.from_numpy(a), torch.from_numpy(b))
-                 for a, b in _candidate_pairs(g.cull.spans(s, region.rect, g.cull.touching(region)), region, s,
-                                              PAIR_CHUNK))
-    ray, face, t, tests = caster.search(dirs, pairs, check=False)  # in range by construction
-    hits = _Hits(ray.numpy(), face, dirs.index_select(0, ray), len(su), tests)
+        # a whole box (one mesh's first pass): every face whose sample box meets it touches it, no filter needed
+        touching = None if region.mask.all() else g.cull.touching(region)
+        pairs = _candidate_pairs(g.cull.spans(s, region.rect, touching), region, s, PAIR_CHUNK)
+    sample, face, t, tests = _search_pairs(caster, d_cols, pairs)
+    hits = _Hits(sample, face, d_cols.take(sample, axis=1).T, len(su), tests)
     if scene_depth is None or len(hits.sample) == 0:
         return hits
-    sample = hits.sample
-    kz = dirs_np[sample] @ calib.P2[2, :3]  # camera-2 depth per unit of ray length
+    kz = np.ascontiguousarray(d64.T[sample]) @ calib.P2[2, :3]  # camera-2 depth per unit of ray length
     scene = np.asarray(scene_depth.depth(su[sample], sv[sample]), np.float64)
-    return hits.select(np.flatnonzero(~(scene < t.numpy().astype(np.float64) * kz)))
+    return hits.select(np.flatnonzero(~(scene < t.astype(np.float64) * kz)))
 
 
 def _edge_pixels(region: _Region, shows: np.ndarray) -> np.ndarray:
@@ -538,13 +695,13 @@ def _edge_pixels(region: _Region, shows: np.ndarray) -> np.ndarray:
     mh, mw = region.mask.shape
     grid = np.full((mh + 2, mw + 2), -1, np.int64)
     grid[1:-1, 1:-1][region.mask] = shows
-    inner = grid[1:-1, 1:-1]
-    edge = np.zeros((mh, mw), bool)
-    for dv in (-1, 0, 1):
-        for du in (-1, 0, 1):
-            if dv or du:
-                edge |= grid[1 + dv:1 + dv + mh, 1 + du:1 + du + mw] != inner
-    return edge[region.mask]
+    # a centre differs from one of its 8 neighbours iff its 3 x 3 neighbourhood's minimum and maximum differ
+    # (separable: over the columns, then the rows)
+    lo = np.minimum(np.minimum(grid[:, :-2], grid[:, 1:-1]), grid[:, 2:])
+    hi = np.maximum(np.maximum(grid[:, :-2], grid[:, 1:-1]), grid[:, 2:])
+    lo = np.minimum(np.minimum(lo[:-2], lo[1:-1]), lo[2:])
+    hi = np.maximum(np.maximum(hi[:-2], hi[1:-1]), hi[2:])
+    return (lo != hi)[region.mask]
 
 
 def _render_pixels(base: torch.Tensor, w: int, calib: Calibration,
@@ -561,7 +718,7 @@ def _render_pixels(base: torch.Tensor, w: int, calib: Calibration,
     cast, tests = centre.cast, centre.tests
     if s > 1:
         shows = np.full(len(region.pixels), -1, np.int64)
-        shows[centre.sample] = g.mesh_of_face[centre.face.numpy()]
+        shows[centre.sample] = g.mesh_of_face[centre.face]
         edge = _edge_pixels(region, shows)
         refined = np.flatnonzero(edge)
         if len(refined):
@@ -574,20 +731,25 @@ def _render_pixels(base: torch.Tensor, w: int, calib: Calibration,
             owner = np.concatenate([centre.sample[keep], refined[fine.sample // s2]])
             weight = np.concatenate([np.ones(len(keep)), np.full(len(fine.sample), 1.0 / s2)])
             cast, tests = cast + fine.cast, tests + fine.tests
-    face_t = torch.cat([p.face for p in parts])
-    t, u, v = caster.recompute(torch.cat([p.dirs for p in parts]), face_t)
+    face = np.concatenate([p.face for p in parts])
+    verts, faces_t = g.verts, g.faces_t
+    present = np.zeros(len(faces_t), np.int64)  # index_slots(face, F) in numpy: the distinct faces, each hit's slot
+    present[face] = 1
+    used, slot = torch.from_numpy(present.nonzero()[0]), torch.from_numpy((present.cumsum() - 1)[face])
+    t, u, v = caster.recompute(torch.from_numpy(np.concatenate([p.dirs for p in parts])), torch.from_numpy(face),
+                               (used, slot))
 
     # per face of the hits: camera-facing unit normal, irradiance and vertex colours; per sample: the fused
     # shading and compositing of _ShadeComposite
-    verts, faces_t = g.verts, g.faces_t
-    used, slot = index_slots(face_t, len(faces_t))
     fu = faces_t.index_select(0, used)
     a0 = verts.index_select(0, fu[:, 0])
     n = torch.linalg.cross(verts.index_select(0, fu[:, 1]) - a0, verts.index_select(0, fu[:, 2]) - a0, dim=-1)
     n = n / torch.clamp(torch.linalg.norm(n, dim=-1, keepdim=True), min=1e-30)
     # two-sided: turned towards the camera (the sign of n . d is the same for every ray hitting the face)
-    n = torch.where(((a0 - g.origin) * n).sum(-1, keepdim=True).detach() > 0, -n, n)
-    light = _rect_lighting(lighting, calib, verts.dtype)
+    with torch.no_grad():  # the side only (not recorded for autograd: the same values)
+        flip = ((a0 - g.origin) * n).sum(-1, keepdim=True) > 0
+    n = torch.where(flip, -n, n)
+    light = _cached_lighting(lighting, calib, verts.dtype)
     lit = (g.colors.index_select(0, fu.reshape(-1)).reshape(-1, 3, 3) * irradiance(n, light)[:, None, :]
            * light["exposure"]).reshape(-1, 9)
     out = _ShadeComposite.apply(u, v, t, lit, slot, torch.from_numpy(owner), torch.from_numpy(weight).to(verts.dtype),
@@ -643,6 +805,9 @@ def _pixel_set(calib: Calibration, meshes: list, image_size: tuple[int, int], fu
     mask = np.full((rect[3] - rect[1], rect[2] - rect[0]), full_image)
     for b in shown:
         mask[b[1] - rect[1]:b[3] - rect[1], b[0] - rect[0]:b[2] - rect[0]] = True
+    if len(shown) == 1 and not full_image:  # one box: its pixels row-major, without dividing indices
+        pixels = ((np.arange(rect[1], rect[3]) * w)[:, None] + np.arange(rect[0], rect[2])[None, :]).reshape(-1)
+        return _Region(rect, mask, pixels), boxes, status
     lv, lu = np.divmod(np.flatnonzero(mask), mask.shape[1])
     return _Region(rect, mask, (lv + rect[1]) * w + lu + rect[0]), boxes, status
 

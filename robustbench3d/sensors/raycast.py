@@ -97,7 +97,6 @@ def _face_tables(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, valid: to
     Shared origin (not ``offsets``): t*det is a per-face constant, so the sign that makes t > 0 is known
     per face; rows 0..9 are multiplied by sign(t*det) (exact), a hit then needs det > floor, and a face
     whose plane holds the origin (t*det = 0) gets an infinite floor."""
-    ax = axis[None, :].expand_as(e1)
     t0 = origin[None, :] - v0  # T at offset 0, (F, 3)
     n = _cross(e2, e1)  # det = d . (e2 x e1)
     s0 = (e2 * _cross(t0, e1)).sum(-1)  # t*det = s0 + h s1
@@ -105,6 +104,7 @@ def _face_tables(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, valid: to
     floor = torch.where(valid, cos_min * torch.linalg.norm(n, dim=-1), torch.full_like(s0, float("inf")))
     rows = [n, _cross(e2, t0), _cross(t0, e1), s0[:, None], floor[:, None]]
     if offsets:
+        ax = axis[None, :].expand_as(e1)
         rows += [_cross(e2, ax), _cross(ax, e1), (e2 * _cross(ax, e1)).sum(-1)[:, None]]
     table = torch.cat(rows, 1).T.contiguous()
     if not offsets:
@@ -203,13 +203,15 @@ def index_slots(index: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor
 
 
 def _recompute(vertices: torch.Tensor, faces_t: torch.Tensor, d: torch.Tensor, origin: torch.Tensor,
-               h: torch.Tensor | None, axis: torch.Tensor, ray: torch.Tensor, face: torch.Tensor
+               h: torch.Tensor | None, axis: torch.Tensor, ray: torch.Tensor, face: torch.Tensor,
+               slots: tuple[torch.Tensor, torch.Tensor] | None = None
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Differentiable t, u, v (P,) of the (ray, face) pairs (which hit): the per-face rows of the test
     (:func:`_face_tables`' vectors, no sign fold) formed with autograd once per face (all faces, or those of
-    the pairs when there are fewer pairs than faces), then :class:`_PairTUV` per pair."""
+    the pairs when there are fewer pairs than faces), then :class:`_PairTUV` per pair. ``slots``:
+    ``index_slots(face, len(faces_t))`` if the caller has it."""
     if len(face) < len(faces_t):
-        used, slot = index_slots(face, len(faces_t))
+        used, slot = index_slots(face, len(faces_t)) if slots is None else slots
         f = faces_t.index_select(0, used)
     else:
         slot, f = face, faces_t
@@ -337,23 +339,30 @@ def back_faces(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray) -> n
     f = np.asarray(faces, np.int64).reshape(-1, 3)
     if len(f) == 0 or not _closed_oriented(f.tobytes(), len(v)):
         return None
-    c = v.mean(axis=0)
+    c = v.sum(axis=0) / len(v)  # v.mean(axis=0), without its per-call overhead (the same sum and division)
     a, b, cc = v[f[:, 0]] - c, v[f[:, 1]] - c, v[f[:, 2]] - c
     e1, e2 = b - a, cc - a
     normal = np.stack([e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1], e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
                        e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]], axis=1)
-    triple = (a * normal).sum(1)  # det[a, b, cc]
+    triple = _dot3(a, normal)  # det[a, b, cc]
     if not np.all(triple > 0):
         return None
-    la, lb, lc = (np.sqrt((x * x).sum(1)) for x in (a, b, cc))
-    den = la * lb * lc + (a * b).sum(1) * lc + (a * cc).sum(1) * lb + (b * cc).sum(1) * la
+    la, lb, lc = (np.sqrt(_dot3(x, x)) for x in (a, b, cc))
+    den = la * lb * lc + _dot3(a, b) * lc + _dot3(a, cc) * lb + _dot3(b, cc) * la
     if abs(2.0 * np.arctan2(triple, den).sum() - 4.0 * np.pi) > np.pi:  # the sum is 4 pi x the sheet count
         return None
     o = np.asarray(origin, np.float64).reshape(3)
     centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
-    if np.linalg.norm(o - centre) <= np.sqrt(((v - centre) ** 2).sum(1).max()) * (1 + 1e-6):
+    r = v - centre
+    if np.linalg.norm(o - centre) <= np.sqrt(_dot3(r, r).max()) * (1 + 1e-6):
         return None
-    return ((o - c - a) * normal).sum(1) <= 0
+    return _dot3(o - c - a, normal) <= 0
+
+
+def _dot3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Row-wise dot products of (N, 3) arrays, summed as ((x0 y0 + x1 y1) + x2 y2): the order numpy's
+    ``(x * y).sum(1)`` adds them in (the same bits), without the cost of a reduction along a short axis."""
+    return x[:, 0] * y[:, 0] + x[:, 1] * y[:, 1] + x[:, 2] * y[:, 2]
 
 
 @lru_cache(maxsize=64)
@@ -405,7 +414,7 @@ def _face_geometry(p: _Prepared, cos_min: float, skip: torch.Tensor | None = Non
     ``skip`` (F,) never hit."""
     vd = p.vertices.detach()
     f = p.faces
-    v0, v1, v2 = vd[f[:, 0]], vd[f[:, 1]], vd[f[:, 2]]
+    v0, v1, v2 = vd.index_select(0, f[:, 0]), vd.index_select(0, f[:, 1]), vd.index_select(0, f[:, 2])
     e1, e2 = v1 - v0, v2 - v0
     area2 = torch.linalg.norm(_cross(e1, e2), dim=-1)
     longest = torch.maximum(torch.maximum((e1 * e1).sum(-1), (e2 * e2).sum(-1)), ((v2 - v1) ** 2).sum(-1))
@@ -532,6 +541,17 @@ class PairCaster:
     def dtype(self) -> torch.dtype:
         return self._p.vertices.dtype
 
+    @property
+    def table(self) -> torch.Tensor | None:
+        """The per-face test table of :meth:`search` (:func:`_face_tables`, shared origin: (11, F), no grad;
+        None without faces); not to be modified."""
+        return self._table
+
+    @property
+    def tol(self) -> float:
+        """The barycentric tolerance of the test in this dtype (:data:`_BARY_TOL`)."""
+        return self._p.tol
+
     def search(self, directions: torch.Tensor, chunks: Iterable[tuple[torch.Tensor, torch.Tensor]], *,
                check: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
         """No grad: (rays (K,) ascending, their nearest faces (K,), the test's t (K,), pairs tested) of the rays
@@ -543,16 +563,18 @@ class PairCaster:
         ray = torch.nonzero(face >= 0).reshape(-1)
         return ray, face.index_select(0, ray), best.index_select(0, ray), tests
 
-    def recompute(self, directions: torch.Tensor, face: torch.Tensor
+    def recompute(self, directions: torch.Tensor, face: torch.Tensor,
+                  slots: tuple[torch.Tensor, torch.Tensor] | None = None
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """t, u, v (K,) of rays (unit directions (K, 3)) against the faces ``face`` (K,) they hit (a
-        :meth:`search`'s winners), differentiable w.r.t. the vertices (0 with a connected graph if K = 0)."""
+        :meth:`search`'s winners), differentiable w.r.t. the vertices (0 with a connected graph if K = 0);
+        ``slots`` = :func:`index_slots` (face, F) if the caller has it (saves recomputing it)."""
         p = self._p
         if len(face) == 0:
             zero = p.vertices.new_zeros(0) + 0.0 * p.vertices.sum()
             return zero, zero, zero
         d = _as_tensor(directions, self.dtype, p.vertices.device).reshape(-1, 3)
-        return _recompute(p.vertices, p.faces, d, p.origin, None, p.axis, torch.arange(len(face)), face)
+        return _recompute(p.vertices, p.faces, d, p.origin, None, p.axis, torch.arange(len(face)), face, slots)
 
 
 def _pair_search(p: _Prepared, table: torch.Tensor | None, chunks: Iterable[tuple[torch.Tensor, torch.Tensor]],
