@@ -94,7 +94,16 @@ def test_culled_hits_equal_embree_brute_force_over_every_ray(distance):
     np.testing.assert_array_equal(tr.ray, ref)  # exactly the same rays hit
     ours = rays.origins[tr.ray] + tr.t.detach().numpy()[:, None] * rays.directions[tr.ray]
     theirs = rays.origins[ref] + tfar[ref, None] * rays.directions[ref]
-    assert np.abs(ours - theirs).max() < 1e-5
+    # Embree works in float32 (an ulp of 80 m is 7.6e-6 m), so the 1e-5 m bound is checked against the
+    # float64 plane intersection of each ray with the triangle Embree reports; Embree itself is held to
+    # its own float32 accuracy
+    tri = v[f[prim[ref]]]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    o, d = rays.origins[ref], rays.directions[ref]
+    t_exact = np.einsum("ij,ij->i", normal, tri[:, 0] - o) / np.einsum("ij,ij->i", normal, d)
+    exact = o + t_exact[:, None] * d
+    assert np.abs(ours - exact).max() < 1e-5
+    assert np.abs(theirs - exact).max() < 1e-6 + 4e-7 * distance
     brute = len(rays) * len(f)
     if distance >= 5.0:
         assert tr.tests <= 0.01 * brute
@@ -345,16 +354,7 @@ def test_grouped_cast_equals_casting_each_group_alone():
         cast_rays(v, f, d, zero, h, groups=[(np.array([len(idx)]), 0, len(f1))])
 
 
-#: sha256 of the rendered scan of :func:`test_multi_car_frame_equals_brute_force_and_embree`'s frame, without and
-#: with noise and dropout, as the renderer wrote it before its per-face culling (every culled ray of a mesh
-#: tested against all of its cluster spheres; commit f491fb0).
-MULTI_CAR_SCAN_SHA256 = ("a23e6273c6276da6ff6c0ba5413e0605cae907b5453e4e8bd84924dedcc8d9bf",
-                         "7ea289d913934f28975697a3ebec0fd83737436ac23374c265eac87458844b38")
-
-
 def test_multi_car_frame_equals_brute_force_and_embree():
-    import hashlib
-
     from robustbench3d.attacks import create_attack
     from robustbench3d.attacks.base import target_cars
     from robustbench3d.sensors.raycast import cast_rays
@@ -391,9 +391,15 @@ def test_multi_car_frame_equals_brute_force_and_embree():
     res = render_lidar(frame.scan, meshes)
     shown = ~tr.hidden & lm.in_range(tr.t.numpy())
     np.testing.assert_array_equal(res.ray_index, tr.ray[shown])
+    kept = np.delete(frame.scan, res.removed_index, axis=0)
+    assert res.scan[:len(kept)].tobytes() == kept.tobytes()  # the original points' bytes, in order
+    # noise and dropout: a subset of the same rays, each return moved along its own ray by at most 3 sd
     noisy = render_lidar(frame.scan, meshes, rng=np.random.default_rng(9), range_noise_m=0.02, dropout=0.1)
-    assert (hashlib.sha256(res.scan.tobytes()).hexdigest(),
-            hashlib.sha256(noisy.scan.tobytes()).hexdigest()) == MULTI_CAR_SCAN_SHA256
+    assert 0.8 * len(res.added) < len(noisy.added) < len(res.added)
+    at = np.searchsorted(res.ray_index, noisy.ray_index)
+    np.testing.assert_array_equal(res.ray_index[at], noisy.ray_index)
+    moved = np.linalg.norm(noisy.added[:, :3].astype(np.float64) - res.added[at, :3], axis=1)
+    assert moved.max() <= 3 * 0.02 + 1e-4 and moved.mean() > 0.005
 
 
 def test_render_options_are_checked_exactly_and_colours_clipped_per_mesh():
@@ -453,3 +459,110 @@ def test_mesh_checks_exactly_float32_vertices_and_returns_within_the_range_gate(
     assert len(trace_meshes(prep, around).ray) == len(pattern.rays)  # every ray hits, all nearer than 1 m
     pts, mesh = render_lidar_torch(prep, around)
     assert len(render_lidar(prep, around).added) == 0 and pts.shape == (0, 3) and len(mesh) == 0
+
+
+def test_circular_means_equal_the_per_slice_circular_mean_bit_for_bit():
+    """The batched per-laser phases (:func:`_circular_means`) equal :func:`_circular_mean` of each slice
+    exactly, for tight clusters (all values pass the second test), clusters wrapping the period, uniform
+    spreads and clusters with outliers half a period away (their second pass drops values), and tiny slices."""
+    from robustbench3d.sensors.lidar_beams import _circular_mean, _circular_means
+
+    rng = np.random.default_rng(7)
+    q = 0.09
+    for trial in range(200):
+        sizes = rng.integers(1, 300 if trial % 2 else 9, int(rng.integers(1, 70)))
+        parts = []
+        for s in sizes:
+            c, kind = rng.uniform(0.0, q), trial % 5 if trial < 100 else rng.integers(0, 5)
+            if kind == 0:
+                x = c + rng.normal(0.0, 1e-5, s)
+            elif kind == 1:
+                x = rng.normal(0.0, 1e-5, s)  # around 0 = q: both ends of [0, q)
+            elif kind == 2:
+                x = rng.uniform(0.0, q, s)
+            elif kind == 3:
+                x = c + rng.normal(0.0, 1e-4, s) + (rng.random(s) < 0.2) * q / 2
+            else:
+                x = np.where(rng.random(s) < 0.5, c, c + q / 4) + rng.normal(0.0, 1e-13, s)
+            parts.append(x % q)
+        x = np.concatenate(parts)
+        hi = np.cumsum(sizes)
+        lo = hi - sizes
+        got = _circular_means(x, lo, hi, q)
+        want = np.array([_circular_mean(x[i:j], q) for i, j in zip(lo, hi, strict=True)])
+        assert got.tobytes() == want.tobytes()
+
+
+def test_batched_albedo_and_culls_equal_the_per_mesh_ones():
+    """The stacked-colour interpolation of the hits equals the per-mesh one bit for bit (grey meshes, torch
+    colours, a colour table of the wrong length falls back), and the stacked bounding spheres cull the same
+    rays as culling each mesh alone."""
+    from robustbench3d.sensors.lidar_render import _albedo, _culled_rays, _mesh_tensors
+
+    rng = np.random.default_rng(3)
+    pattern = BeamPattern.generator(0.01)
+    meshes = []
+    for k in range(6):
+        v, f = _object(8.0 + 3 * k, y=rng.uniform(-4, 4))
+        col = None if k == 2 else (torch.tensor(rng.random(v.shape)) if k == 4 else rng.random(v.shape))
+        meshes.append((v, f, col))
+    meshes.append((np.zeros((3, 3)), np.zeros((0, 3), dtype=np.int64), None))  # no faces: no rays
+    mts = _mesh_tensors(meshes)
+    culls = _culled_rays(pattern, mts)
+    for (v, f, _), rays in zip(meshes, culls, strict=True):
+        alone = pattern.cull(0.5 * (v.min(0) + v.max(0)), float(np.linalg.norm(v - 0.5 * (v.min(0) + v.max(0)),
+                                                                                    axis=1).max())) if len(f) else []
+        assert np.array_equal(rays, alone)
+    n = 500
+    mesh = rng.integers(0, 6, n)
+    face = rng.integers(0, len(meshes[0][1]), n)
+    u, v = rng.random(n) * 0.5, rng.random(n) * 0.5
+    counts = [len(m[0]) for m in meshes]
+    off = np.cumsum([0, *counts])
+    corners = np.stack([np.asarray(meshes[i][1])[j] + off[i] for i, j in zip(mesh, face, strict=True)])
+    loop = _albedo(meshes, mesh, face, u, v)
+    assert (loop[mesh == 2] == np.float32(0.5)).all()
+    assert _albedo(meshes, mesh, face, u, v, corners, counts).tobytes() == loop.tobytes()
+    short = [*meshes[:1], (meshes[1][0], meshes[1][1], meshes[1][2][:-1]), *meshes[2:]]
+    keep = mesh != 1  # the short table is never indexed past its end
+    assert (_albedo(short, mesh[keep], face[keep], u[keep], v[keep], corners[keep], counts).tobytes()
+            == loop[keep].tobytes())
+
+
+def test_nearest_and_near_rays_equal_a_brute_force_over_the_lasers_rays():
+    """:meth:`BeamPattern.nearest_ray` equals the argmin of the circular azimuth gap over every ray of the
+    point's laser (-1 beyond ``max_deg`` or for an unknown laser), for azimuths across the 0/360 seam and outside
+    [0, 360); :meth:`BeamPattern.near_rays` flags exactly the points of a ray's laser within two ``max_deg`` bins
+    of its bin (a superset of the points whose nearest ray is one of them), for laser-ordered and unordered
+    points."""
+    rng = np.random.default_rng(11)
+    for shift in (0.0, 0.03):
+        pattern = BeamPattern(estimate_pattern(EMPTY, np.zeros(0, dtype=np.int64)).phases_deg + shift, shift)
+        ring_all, az_all = pattern.rays.ring, pattern.rays.azimuth_deg
+        rays_of = [np.flatnonzero(ring_all == k) for k in range(64)]
+        n = 1500
+        ring = np.sort(rng.integers(-1, 65, n))
+        az = np.concatenate([rng.uniform(-0.3, 0.3, n // 3), rng.uniform(359.7, 360.3, n // 3),
+                             rng.uniform(-720.0, 720.0, n - 2 * (n // 3))])
+        rng.shuffle(az)
+        for max_deg in (AZIMUTH_STEP_DEG / 2, 0.5):
+            want = np.full(n, -1)
+            for k in range(n):
+                if 0 <= ring[k] < 64:
+                    rays = rays_of[ring[k]]
+                    gap = np.abs((az_all[rays] - az[k] + 180.0) % 360.0 - 180.0)
+                    if gap.min() <= max_deg:
+                        want[k] = rays[np.argmin(gap)]
+            got = pattern.nearest_ray(ring, az, max_deg)
+            assert np.array_equal(got, want)
+            index = np.unique(rng.choice(want[want >= 0], 40))
+            bins = int(np.ceil(360.0 / max_deg))
+            ray_bin = np.floor(az_all[index] / max_deg).astype(np.int64)
+            point_bin = np.floor((az % 360.0) / max_deg).astype(np.int64) % bins
+            near = np.zeros(n, dtype=bool)
+            for r, b in zip(ring_all[index], ray_bin, strict=True):
+                near |= (ring == r) & (np.abs((point_bin - b + bins // 2) % bins - bins // 2) <= 2)
+            assert np.array_equal(pattern.near_rays(index, ring, az, max_deg), near)
+            assert near[np.isin(got, index)].all()
+            perm = rng.permutation(n)
+            assert np.array_equal(pattern.near_rays(index, ring[perm], az[perm], max_deg), near[perm])

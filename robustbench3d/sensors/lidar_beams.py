@@ -79,6 +79,12 @@ class BeamPattern:
         return np.searchsorted(self._ring_azimuth[0], np.arange(self.sensor.num_lasers + 1))
 
     @cached_property
+    def _azimuth_range(self) -> tuple[float, float]:
+        """(lowest, highest) azimuth of the rays, degrees (+-inf without rays)."""
+        az = self._ring_azimuth[1]
+        return (float(az.min()), float(az.max())) if len(az) else (np.inf, -np.inf)
+
+    @cached_property
     def _keys(self) -> np.ndarray:
         ring, az = self._ring_azimuth
         return ring * _BAND + az
@@ -194,19 +200,29 @@ class BeamPattern:
         ring = np.asarray(ring, dtype=np.int64)
         bins = int(np.ceil(360.0 / max_deg))
         rr, raz = self._ring_azimuth[0][index], self._ring_azimuth[1][index]
-        grid = np.zeros((nl, bins), dtype=bool)
+        # One extra column repeats column 0: a point's bin floor(az / max_deg), az in [0, 360], is at most bins,
+        # where bin % bins = 0.
+        grid = np.zeros((nl, bins + 1), dtype=bool)
         b = np.floor(raz / max_deg).astype(np.int64)
         for step in range(-2, 3):
             grid[rr, (b + step) % bins] = True
-        # Only the points of the rays' lasers can be near (one slice each when the points are laser-ordered).
+        grid[:, bins] = grid[:, 0]
+        out = np.zeros(len(ring), dtype=bool)
+        if len(rr) == 0:
+            return out
+        # Only the points of the rays' lasers can be near: when the points are laser-ordered, those from the first
+        # to the last of these lasers (a slice; the other lasers in between have no near bin).
         lasers = np.unique(rr)
         if len(ring) and np.all(ring[1:] >= ring[:-1]):
-            pick = _expand_ranges(np.searchsorted(ring, lasers, "left"), np.searchsorted(ring, lasers, "right"))
+            pick: slice | np.ndarray = slice(int(np.searchsorted(ring, lasers[0], "left")),
+                                             int(np.searchsorted(ring, lasers[-1], "right")))
         else:
             pick = np.flatnonzero(np.isin(ring, lasers))
         az = np.asarray(azimuth_deg, dtype=np.float64)[pick]
-        out = np.zeros(len(ring), dtype=bool)
-        out[pick] = grid[ring[pick], np.floor(_mod360(az) / max_deg).astype(np.int64) % bins]
+        b = np.floor(_mod360(az) / max_deg).astype(np.int64)
+        if len(b) and b.min() < 0:  # NaN azimuths (their int64 is negative): wrap as bin % bins does
+            b %= bins
+        out[pick] = grid.reshape(-1)[ring[pick] * (bins + 1) + b]
         return out
 
     def nearest_ray(self, ring: np.ndarray, azimuth_deg: np.ndarray, max_deg: float = AZIMUTH_QUANTUM_DEG
@@ -214,7 +230,7 @@ class BeamPattern:
         """(N,) index of the ray of laser ``ring`` nearest in azimuth to ``azimuth_deg`` (circularly), or -1
         when none lies within ``max_deg`` or the ring is unknown (< 0 or >= 64)."""
         ring = np.asarray(ring, dtype=np.int64)
-        az = np.asarray(azimuth_deg, dtype=np.float64) % 360.0
+        az = _mod360(azimuth_deg)
         out = np.full(len(ring), -1, dtype=np.int64)
         known = (ring >= 0) & (ring < self.sensor.num_lasers)
         if not known.any():
@@ -224,14 +240,31 @@ class BeamPattern:
         raz = self._ring_azimuth[1]
         best = np.full(len(rk), -1, dtype=np.int64)
         gap = np.full(len(rk), np.inf)
+        # A turn of -360 (+360) can only bring a ray within max_deg of the points within max_deg of the lowest
+        # ray azimuth + 360 (the highest - 360), with 1e-6 deg to spare over the rounding (~1e-13); the other
+        # points' candidates of that turn lie farther than max_deg, so they decide nothing: whichever candidate
+        # is kept for such a point, its gap is then above max_deg and it ends at -1 in either case.
+        lowest, highest = self._azimuth_range
+        reach = {-360.0: ak >= lowest + 360.0 - max_deg - 1e-6, 360.0: ak <= highest - 360.0 + max_deg + 1e-6}
         for turn in (-360.0, 0.0, 360.0):
-            pos = np.searchsorted(self._keys, rk * _BAND + ak + turn)
+            sel = None if turn == 0.0 else np.flatnonzero(reach[turn])
+            if sel is None:
+                r_s, a_s, f_s, l_s = rk, ak, first, last
+            elif len(sel):
+                r_s, a_s, f_s, l_s = rk[sel], ak[sel], first[sel], last[sel]
+            else:
+                continue
+            pos = np.searchsorted(self._keys, r_s * _BAND + a_s + turn)
             for cand in (pos - 1, pos):
-                ok = (cand >= first) & (cand <= last)
+                ok = (cand >= f_s) & (cand <= l_s)
                 cand = np.clip(cand, 0, len(raz) - 1)
-                g = np.where(ok, np.abs(raz[cand] - (ak + turn)), np.inf)
-                better = g < gap
-                best[better], gap[better] = cand[better], g[better]
+                g = np.where(ok, np.abs(raz[cand] - (a_s + turn)), np.inf)
+                if sel is None:
+                    better = g < gap
+                    best[better], gap[better] = cand[better], g[better]
+                else:
+                    better = g < gap[sel]
+                    best[sel[better]], gap[sel[better]] = cand[better], g[better]
         out[known] = np.where(gap <= max_deg, best, -1)
         return out
 
@@ -281,9 +314,11 @@ def _circular_mean(x: np.ndarray, period: float) -> float:
 def _mod360(az: np.ndarray) -> np.ndarray:
     """``az % 360.0``, bit for bit; for azimuths within (-360, 360) (those of atan2) without the division."""
     az = np.asarray(az, dtype=np.float64)
-    if len(az) and not np.abs(az).max() < 360.0:
+    if len(az) and not (az.min() > -360.0 and az.max() < 360.0):  # NaN too
         return az % 360.0
-    return np.where(az < 0.0, az + 360.0, az + 0.0)  # + 0.0: -0.0 % 360 is +0.0
+    out = az + 0.0  # + 0.0: -0.0 % 360 is +0.0
+    np.add(az, 360.0, out=out, where=az < 0.0)
+    return out
 
 
 def _mod_positive(x: np.ndarray, q: float) -> np.ndarray:
@@ -297,10 +332,13 @@ def _mod_positive(x: np.ndarray, q: float) -> np.ndarray:
     c = 134217729.0 * q  # 2^27 + 1
     qh = c - (c - q)
     ql = q - qh
-    n = np.floor(x / q)
-    r = (x - n * qh) - n * ql
-    off = np.flatnonzero((r < 0.0) | (r >= q))
-    if len(off):
+    n = x / q
+    np.floor(n, out=n)
+    r = n * qh
+    np.subtract(x, r, out=r)
+    r -= n * ql  # (x - n qh) - n ql, the same operations without temporaries
+    if r.min() < 0.0 or r.max() >= q:
+        off = np.flatnonzero((r < 0.0) | (r >= q))
         n[off] += np.where(r[off] < 0.0, -1.0, 1.0)
         r[off] = (x[off] - n[off] * qh) - n[off] * ql
     return r
@@ -308,25 +346,39 @@ def _mod_positive(x: np.ndarray, q: float) -> np.ndarray:
 
 def _circular_means(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, period: float) -> np.ndarray:
     """:func:`_circular_mean` of each slice ``x[lo[k]:hi[k]]`` (non-empty, increasing, disjoint), bit for bit:
-    the same element-wise values and sums (``v.mean()`` is ``np.add.reduce(v) / len(v)``), with sin and cos
-    of ``x`` evaluated once, the test cos(a - m) > 0 decided from them where its sign is certain (the few
-    others take the cos), and the second mean of a slice whose values all pass equal to its first."""
+    the same element-wise values and sums (``v.mean()`` is ``np.add.reduce(v) / len(v)``; a slice's sin and cos
+    are summed by one ``np.add.reduce(.., axis=1)`` of their (2, n) rows, the same pairwise sums), with sin and
+    cos of ``x`` evaluated once. The second pass of a slice changes nothing when all its values pass the test
+    cos(a - m) > 0, which holds when the slice's box of (cos a, sin a) (per-slice minima and maxima) keeps
+    cos a cos m + sin a sin m above 1e-9 (far above its rounding, ~1e-16); the other slices decide the test
+    value by value as :func:`_circular_mean` does."""
     total = np.add.reduce
-    a = 2 * np.pi * x / period
-    sin, cos = np.sin(a), np.cos(a)
-    m = np.array([np.arctan2(total(sin[i:j]) / (j - i), total(cos[i:j]) / (j - i))
-                  for i, j in zip(lo, hi, strict=True)])
+    lo, hi = np.asarray(lo, dtype=np.int64), np.asarray(hi, dtype=np.int64)
+    a = np.multiply(2 * np.pi, x)
+    a /= period  # 2 pi x / period
+    sc = np.empty((2, len(a)))
+    np.sin(a, out=sc[0])
+    np.cos(a, out=sc[1])
     n = hi - lo
-    # cos(a - m) = cos a cos m + sin a sin m, within 1e-14 of np.cos(a - m)
-    c = cos * np.repeat(np.cos(m), n) + sin * np.repeat(np.sin(m), n)
-    near = c > 1e-12
-    edge = np.flatnonzero(np.abs(c) <= 1e-12)
-    near[edge] = np.cos(a[edge] - np.repeat(m, n)[edge]) > 0.0
-    for k in np.unique(np.searchsorted(hi, np.flatnonzero(~near), "right")):  # slices with values that fail
-        i, j = lo[k], hi[k]
-        keep = near[i:j]
-        if keep.any():
-            m[k] = np.arctan2(total(sin[i:j][keep]) / keep.sum(), total(cos[i:j][keep]) / keep.sum())
+    sums = np.array([total(sc[:, i:j], axis=1) for i, j in zip(lo.tolist(), hi.tolist(), strict=True)])
+    sums = sums.reshape(-1, 2)
+    m = np.arctan2(sums[:, 0] / n, sums[:, 1] / n)
+    # Per slice (cos a, sin a) lies in [c_lo, c_hi] x [s_lo, s_hi]: a lower bound of cos a cos m + sin a sin m.
+    ends = np.stack([lo, hi], axis=1).reshape(-1)
+    ends = ends[ends < len(a)]
+    low = np.minimum.reduceat(sc, ends, axis=1)[:, ::2]
+    high = np.maximum.reduceat(sc, ends, axis=1)[:, ::2]
+    sin_m, cos_m = np.sin(m), np.cos(m)
+    bound = (np.minimum(low[1] * cos_m, high[1] * cos_m) + np.minimum(low[0] * sin_m, high[0] * sin_m))
+    for k in np.flatnonzero(~(bound > 1e-9)).tolist():  # slices whose values may fail cos(a - m) > 0
+        i, j = int(lo[k]), int(hi[k])
+        sin, cos = sc[0, i:j], sc[1, i:j]
+        c = cos * cos_m[k] + sin * sin_m[k]  # cos(a - m), within 1e-14 of np.cos(a - m)
+        near = c > 1e-12
+        edge = np.flatnonzero(np.abs(c) <= 1e-12)
+        near[edge] = np.cos(a[i:j][edge] - m[k]) > 0.0
+        if near.any() and not near.all():
+            m[k] = np.arctan2(total(sin[near]) / near.sum(), total(cos[near]) / near.sum())
     return (m * period / (2 * np.pi) + period / 2) % period - period / 2
 
 

@@ -99,15 +99,23 @@ def _prepare_rays(pts: np.ndarray, ring: np.ndarray, pattern: BeamPattern, az: n
                   pattern.sensor.origin_z[np.clip(rk, 0, pattern.sensor.num_lasers - 1)], 0.0)
     point_ray = np.full(len(pts), -1, dtype=np.int64)
     rng_m = np.full(len(pts), np.nan)
-    point_ray[sub] = pattern.nearest_ray(rk, az)
+    ray_sub = pattern.nearest_ray(rk, az)
+    point_ray[sub] = ray_sub
     rng_m[sub] = np.sqrt(xyz[:, 0] ** 2 + xyz[:, 1] ** 2 + (xyz[:, 2] - h0) ** 2)
-    # = np.argsort(point_ray, kind="stable"): the points without a ray (-1) first, then the few with one
     # by_ray = np.argsort(point_ray, kind="stable"): the points without a ray (-1) first, then the few with one
-    on = np.flatnonzero(point_ray >= 0)
-    on = on[np.argsort(point_ray[on], kind="stable")]
-    off = np.flatnonzero(point_ray < 0)
-    sorted_ray = np.concatenate([np.full(len(off), -1, dtype=np.int64), point_ray[on]])
-    return PreparedScan(pts, pattern, ring, point_ray, rng_m, np.concatenate([off, on]), sorted_ray)
+    # (those of ``sub``, increasing, whose nearest ray is found), stably by ray
+    has = ray_sub >= 0
+    on = np.flatnonzero(has) if isinstance(sub, slice) else sub[has]
+    on = on[np.argsort(ray_sub[has], kind="stable")]
+    free = np.ones(len(pts), dtype=bool)
+    free[on] = False
+    n_off = len(pts) - len(on)
+    by_ray = np.empty(len(pts), dtype=np.int64)
+    by_ray[:n_off] = np.flatnonzero(free)
+    by_ray[n_off:] = on
+    sorted_ray = np.full(len(pts), -1, dtype=np.int64)
+    sorted_ray[n_off:] = point_ray[on]
+    return PreparedScan(pts, pattern, ring, point_ray, rng_m, by_ray, sorted_ray)
 
 
 def _scan_pattern(scan: np.ndarray, ring_ids: np.ndarray | None, pattern: BeamPattern | None
@@ -124,7 +132,8 @@ def _scan_pattern(scan: np.ndarray, ring_ids: np.ndarray | None, pattern: BeamPa
         ring = np.asarray(ring_ids, dtype=np.int64).reshape(-1)
         if len(ring) != len(pts):
             raise ValueError(f"render_lidar: field 'ring_ids': {len(ring)} ids for {len(pts)} points")
-    az = np.degrees(np.arctan2(pts[:, 1].astype(np.float64), pts[:, 0].astype(np.float64)))
+    az = np.arctan2(pts[:, 1].astype(np.float64), pts[:, 0].astype(np.float64))
+    np.degrees(az, out=az)
     if pattern is None:
         pattern = estimate_pattern(pts, ring, azimuth_deg=az)
     return pts, ring, pattern, az
@@ -160,7 +169,8 @@ def _mesh_tensors(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.nd
         if len(m) != 3:
             raise ValueError(f"render_lidar: field 'meshes[{i}]': expected (vertices, faces, albedo_rgb or None)")
         v, f, _ = m
-        vt = v if isinstance(v, torch.Tensor) else torch.as_tensor(np.asarray(v, dtype=np.float64))
+        vn = None if isinstance(v, torch.Tensor) else np.asarray(v, dtype=np.float64)
+        vt = v if vn is None else torch.as_tensor(vn)
         if vt.dtype != torch.float64:
             vt = vt.to(torch.float64)
         fa = np.array(f, dtype=np.int64)  # a copy: read-only inputs are fine for torch.from_numpy
@@ -168,7 +178,7 @@ def _mesh_tensors(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.nd
             raise ValueError(f"render_lidar: field 'meshes[{i}]': vertices must be (V, 3) and faces (F, 3)")
         if len(fa) and (fa.min() < 0 or fa.max() >= len(vt)):
             raise ValueError(f"render_lidar: field 'meshes[{i}]': face indices outside [0, {len(vt)})")
-        if not bool(torch.isfinite(vt.detach()).all()):
+        if not (bool(torch.isfinite(vt.detach()).all()) if vn is None else np.isfinite(vn).all()):  # vt shares vn
             raise ValueError(f"render_lidar: field 'meshes[{i}]': vertices contain NaN or inf")
         out.append((vt, fa))
     return out
@@ -177,17 +187,18 @@ def _mesh_tensors(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.nd
 def _culled_rays(pattern: BeamPattern, meshes: list[tuple[torch.Tensor, np.ndarray]]) -> list[np.ndarray]:
     """Per mesh the rays (increasing indices into ``pattern.rays``) passing within its bounding sphere (centre of
     its vertex box), widened by one azimuth step (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.cull`);
-    empty for a mesh without faces."""
+    empty for a mesh without faces. The boxes and radii of all meshes come from their stacked vertices (per-mesh
+    minima and maxima by ``reduceat``, row norms element-wise): the same values as mesh by mesh."""
     out = [np.zeros(0, dtype=np.int64) for _ in meshes]
-    centres, radii, culled = [], [], []
-    for i, (vt, fa) in enumerate(meshes):
-        if len(fa):
-            vn = vt.detach().numpy()
-            centres.append(0.5 * (vn.min(axis=0) + vn.max(axis=0)))
-            radii.append(float(np.linalg.norm(vn - centres[-1], axis=1).max()))
-            culled.append(i)
+    culled = [i for i, (_, fa) in enumerate(meshes) if len(fa)]
     if culled:
-        for i, rays in zip(culled, pattern.cull_many(np.array(centres), np.array(radii)), strict=True):
+        verts = [meshes[i][0].detach().numpy() for i in culled]
+        counts = np.array([len(vn) for vn in verts])
+        start = np.cumsum(counts) - counts
+        vn = np.concatenate(verts)
+        centres = 0.5 * (np.minimum.reduceat(vn, start, axis=0) + np.maximum.reduceat(vn, start, axis=0))
+        radii = np.maximum.reduceat(np.linalg.norm(vn - np.repeat(centres, counts, axis=0), axis=1), start)
+        for i, rays in zip(culled, pattern.cull_many(centres, radii), strict=True):
             out[i] = rays
     return out
 
@@ -212,14 +223,18 @@ def trace_meshes(prep: PreparedScan, meshes: Sequence[MeshInput]) -> TracedHits:
 
 
 def _face_pairs(pattern: BeamPattern, mts: list[tuple[torch.Tensor, np.ndarray]], culls: list[np.ndarray],
-                idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                idx: np.ndarray, stacked: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Candidate (ray, face) pairs of :func:`_trace`'s cast: (positions in ``idx``, faces of the concatenated
     meshes ``mts``): each face with the rays of its mesh's cull (``culls``) that can pass through the face's
     bounding sphere (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.sphere_rays`), inflated by 1e-3 of
     its radius (+1e-9 m), far more than the ray test's barycentric tolerance (1e-6 of an edge): every pair
     that can pass the test is among them, so the cast finds the same hits as testing each ray of a mesh's
-    cull against all of its faces."""
-    a, b, c = (np.concatenate([vt.detach().numpy()[fa[:, j]] for vt, fa in mts]) for j in range(3))
+    cull against all of its faces. ``stacked``: the meshes' vertices (V, 3) float64 and faces (F, 3) indexing
+    them, concatenated in order, when already built (the same corner coordinates)."""
+    if stacked is None:
+        a, b, c = (np.concatenate([vt.detach().numpy()[fa[:, j]] for vt, fa in mts]) for j in range(3))
+    else:
+        a, b, c = (stacked[0][stacked[1][:, j]] for j in range(3))
     mesh = np.repeat(np.arange(len(mts)), [len(fa) for _, fa in mts])
     centre = 0.5 * (np.minimum(np.minimum(a, b), c) + np.maximum(np.maximum(a, b), c))
     radius = np.sqrt(np.maximum(np.maximum(((a - centre) ** 2).sum(1), ((b - centre) ** 2).sum(1)),
@@ -253,7 +268,8 @@ def _trace(prep: PreparedScan, mts: list[tuple[torch.Tensor, np.ndarray]], culls
     vt = mts[with_faces[0]][0] if len(with_faces) == 1 else torch.cat([mts[i][0] for i in with_faces])
     fa = np.concatenate([mts[i][1] + v_off[k] for k, i in enumerate(with_faces)])
     origins, dirs = prep.pattern.ray_geometry(idx)
-    ray_pos, face_pos = _face_pairs(prep.pattern, [mts[i] for i in with_faces], [culls[i] for i in with_faces], idx)
+    ray_pos, face_pos = _face_pairs(prep.pattern, [mts[i] for i in with_faces], [culls[i] for i in with_faces], idx,
+                                    (vt.detach().numpy(), fa))
     rh = cast_ray_pairs(vt, torch.from_numpy(fa), torch.from_numpy(dirs), torch.zeros(3, dtype=torch.float64),
                         torch.from_numpy(ray_pos), torch.from_numpy(face_pos), torch.from_numpy(origins[:, 2]))
     sel = torch.nonzero(rh.hit).reshape(-1)
@@ -298,14 +314,29 @@ class LidarRenderResult:
 
 
 def _albedo(meshes: Sequence[MeshInput], mesh: np.ndarray, face: np.ndarray, u: np.ndarray,
-            v: np.ndarray) -> np.ndarray:
-    """(K, 3) float32 vertex colours interpolated at the hits ((1 - u - v) c0 + u c1 + v c2)."""
+            v: np.ndarray, corners: np.ndarray | None = None, n_vertices: Sequence[int] | None = None) -> np.ndarray:
+    """(K, 3) float32 vertex colours interpolated at the hits ((1 - u - v) c0 + u c1 + v c2).
+
+    ``corners`` (K, 3) (the hit faces' vertex indices into the meshes' stacked vertices) and ``n_vertices`` (the
+    meshes' vertex counts), when given and every colour table has one row per vertex, interpolate all hits in
+    one product over the stacked colours: per hit the same terms, summed in the same order."""
     out = np.full((len(mesh), 3), DEFAULT_ALBEDO, dtype=np.float64)
+    cols = [None if col is None else np.asarray(col.detach() if isinstance(col, torch.Tensor) else col,
+                                                dtype=np.float64) for _, _, col in meshes]
+    if corners is not None and n_vertices is not None and all(
+            c is None or c.shape == (nv, 3) for c, nv in zip(cols, n_vertices, strict=True)):
+        if any(c is not None for c in cols):
+            table = np.concatenate([np.zeros((nv, 3)) if c is None else c for c, nv in zip(cols, n_vertices,
+                                                                                             strict=True)])
+            k = np.flatnonzero(np.array([c is not None for c in cols], dtype=bool)[mesh])
+            w = np.stack([1 - u[k] - v[k], u[k], v[k]], axis=1)
+            out[k] = np.einsum("kj,kjc->kc", w, table[corners[k]])
+        return np.clip(out, 0.0, 1.0).astype(np.float32)
     for i in np.unique(mesh):
-        _, f, col = meshes[i]
-        if col is None:
+        _, f, _ = meshes[i]
+        c = cols[i]
+        if c is None:
             continue
-        c = np.asarray(col.detach() if isinstance(col, torch.Tensor) else col, dtype=np.float64)
         k = mesh == i
         fk = np.asarray(f, dtype=np.int64)[face[k]]
         w = np.stack([1 - u[k] - v[k], u[k], v[k]], axis=1)
@@ -358,7 +389,8 @@ def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *
         f_off = np.cumsum([0] + [len(fa) for _, fa in mts])
         corners = np.concatenate([fa + v_off[i] for i, (_, fa) in enumerate(mts)])[f_off[mesh] + face]
         normals = face_normals(np.concatenate(verts), corners)  # all hit faces at once (element-wise)
-        rho = lm.material_reflectivity(np.full(len(sel), int(MESH_MATERIAL)), _albedo(meshes, mesh, face, u, v))
+        albedo = _albedo(meshes, mesh, face, u, v, corners, [len(vi) for vi in verts])
+        rho = lm.material_reflectivity(np.full(len(sel), int(MESH_MATERIAL)), albedo)
         refl = lm.reflectance_mean(rho, lm.cos_incidence(normals, ray_d), t.detach().numpy())
         added[:, 3] = lm.quantize_reflectance(refl, np.zeros(len(sel), dtype=bool))
     return LidarRenderResult(_without_rows(prep.scan, tr.removed_index, added), added, pts_t, tr.removed_index, mesh,
