@@ -10,6 +10,13 @@ in the margin ``m = l1 - l0``, so ``L_k = max(IoU_k, floor) * softplus(max_i m_i
 over the logit margins. ``IoU_k`` is the victim's box IoU with the ground truth, detached; the floor
 (default 0.1) keeps gradient on a car the victim already misses.
 
+Box (``lidar_loss="box"`` or ``"seed+box"``; not in the seed paper): per target car, the BEV IoU of the
+3D box the victim regresses from the attacked frustum (:class:`~robustbench3d.victims.base.FrustumBoxOracle`)
+with the car's ground-truth box, :func:`~robustbench3d.attacks.box_iou.bev_iou_torch`; minimising it moves
+the box the benchmark scores (BEV IoU >= 0.7) rather than the segmentation behind it. The seed term alone
+lowers the object probabilities of the frustum without moving the lite victim's boxes (measured, see
+``docs/attacks.md``).
+
 Image (reference §2.4, the "mirrors the LiDAR loss" reading): per target, the mean over its candidate
 predictions of ``-log(1 - o * c)`` with ``o = sigmoid(a)`` the objectness and ``c = sigmoid(b)`` the
 class probability (both logits). Since ``1 - o c = (1 + e^a + e^b) / ((1 + e^a)(1 + e^b))``,
@@ -24,7 +31,7 @@ Smoothness: ``lambda_lap`` times :func:`~robustbench3d.attacks.object.laplacian_
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -51,6 +58,22 @@ def lidar_car_loss(logits: torch.Tensor, iou: float, floor: float = IOU_FLOOR) -
     """``-max(iou, floor) * log(1 - p)`` of one car, ``p`` the largest object probability over its
     frustum's (N, 2) logits (module doc); ``iou`` is a plain number (detached)."""
     return max(float(iou), float(floor)) * F.softplus(max_object_margin(logits))
+
+
+def box_car_loss(center: torch.Tensor, size_lwh: torch.Tensor, heading: torch.Tensor,
+                 gt_box: np.ndarray) -> torch.Tensor:
+    """BEV IoU of a regressed box (rect-frame centre (3,), l/w/h (3,), rotation_y) with the ground-truth
+    ``gt_box`` (5,) ``x, z, l, w, ry`` (rect frame, m, rad); differentiable in the regressed box."""
+    from robustbench3d.attacks.box_iou import bev_iou_torch
+
+    pred = torch.stack([center[0], center[2], size_lwh[0], size_lwh[1], heading.reshape(())])
+    return bev_iou_torch(pred.to(torch.float64), torch.as_tensor(np.asarray(gt_box, dtype=np.float64)))
+
+
+def gt_bev_boxes(labels: Any) -> np.ndarray:
+    """(K, 5) ``x, z, l, w, ry`` of KITTI label rows (rect frame)."""
+    return np.column_stack([labels.location[:, 0], labels.location[:, 2], labels.dimensions[:, 2],
+                            labels.dimensions[:, 1], labels.rotation_y]).astype(np.float64)
 
 
 def neg_log_one_minus_product(a: torch.Tensor, b: torch.Tensor | None = None) -> torch.Tensor:

@@ -26,6 +26,8 @@ the batch's cars only:
   ``lidar_boxes="detector"``, reference §1.12; a car the 2D detector misses gets no LiDAR term).
   ``IoU_k`` is the BEV IoU of the victim's best detection of the car on the attacked frame from the
   same proposals (``detect``, detached);
+  With ``lidar_loss="box"`` the term is ``lambda_box`` x the BEV IoU of the box the victim regresses from
+  the same frustum with the car's ground truth (``"seed+box"``: both terms);
 * image: the objectness candidates around the car's ground-truth 2D box.
 
 The loss of a step is the mean over its cars of each term (plus the Laplacian). Randomness comes only
@@ -55,6 +57,8 @@ import torch
 from robustbench3d.attacks.base import target_cars
 from robustbench3d.attacks.losses import (
     best_candidate_scores,
+    box_car_loss,
+    gt_bev_boxes,
     image_target_losses,
     laplacian_loss,
     lidar_car_loss,
@@ -331,15 +335,25 @@ class UniversalTrainer:
                 index = _proposal_index(props.boxes, targets)
                 det = self.victim.detect([attacked], [gt_proposals(frame.labels)])[0]
         iou = _bev_iou_per_target(det, targets)[chosen]
+        gt_boxes = gt_bev_boxes(targets)
         terms = []
         for t, car_iou in zip(chosen, iou, strict=True):
             j = index[t]
             if j is None:
                 continue
-            fl = self.victim.frustum_logits(points, calib, frame.image_size, props.boxes[j],
-                                            frame_id=frame.frame_id, proposal=j)
-            if fl is not None:
-                terms.append(lidar_car_loss(fl.logits.to(torch.float64), float(car_iou), cfg.iou_floor))
+            where = dict(frame_id=frame.frame_id, proposal=j)
+            if cfg.lidar_loss == "seed":
+                fl = self.victim.frustum_logits(points, calib, frame.image_size, props.boxes[j], **where)
+                if fl is not None:
+                    terms.append(lidar_car_loss(fl.logits.to(torch.float64), float(car_iou), cfg.iou_floor))
+                continue
+            fb = self.victim.frustum_box(points, calib, frame.image_size, props.boxes[j], **where)
+            if fb is None:
+                continue
+            term = cfg.lambda_box * box_car_loss(fb.center, fb.size_lwh, fb.heading, gt_boxes[t])
+            if cfg.lidar_loss == "seed+box":
+                term = term + lidar_car_loss(fb.logits.to(torch.float64), float(car_iou), cfg.iou_floor)
+            terms.append(term)
         return terms, iou
 
     def _image(self, frame: Frame, targets: Labels, chosen: list[int], placed: list[torch.Tensor],

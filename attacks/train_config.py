@@ -24,6 +24,9 @@ BEV_IOU_DETECTED, SCORE_DETECTED, CANDIDATE_IOU = 0.7, 0.5, 0.5
 #: Where the LiDAR loss's frustums come from: the cars' ground-truth 2D boxes, or the victim's own 2D
 #: detections on the attacked image (each car gets the detection of largest image IoU >= 0.5 with its box).
 LIDAR_BOXES = ("gt", "detector")
+#: The LiDAR loss's terms (:mod:`~robustbench3d.attacks.losses`): the seed paper's segmentation term, the
+#: box term (BEV IoU of the box the victim regresses with the car's ground truth), or their sum.
+LIDAR_LOSSES = ("seed", "box", "seed+box")
 #: The per-step counts kept in the history beside the losses.
 COUNTS = ("cars", "detected", "clean_cars", "detected_clean")
 DROP_WINDOW = 50
@@ -78,6 +81,8 @@ class TrainConfig:
     eot: tuple[str, ...] = ()
     occlusion: str = "scan"
     lidar_boxes: str = "gt"
+    lidar_loss: str = "seed"
+    lambda_box: float = 1.0
     supersample: int = 3
     checkpoint_every: int = 25
     zero_grad_patience: int = 10
@@ -106,6 +111,9 @@ class TrainConfig:
         if self.lidar_boxes not in LIDAR_BOXES:
             raise TrainingError(f"{_field('lidar_boxes')}: expected one of {', '.join(LIDAR_BOXES)}, "
                                 f"got {self.lidar_boxes!r}")
+        if self.lidar_loss not in LIDAR_LOSSES:
+            raise TrainingError(f"{_field('lidar_loss')}: expected one of {', '.join(LIDAR_LOSSES)}, "
+                                f"got {self.lidar_loss!r}")
 
     @property
     def kind(self) -> Mode:
@@ -132,14 +140,18 @@ class TrainConfig:
         return d
 
 
-def check_oracles(victim: Any, mode: str, victim_name: str, lidar_boxes: str = "gt") -> None:
-    """Refuse a victim that lacks an oracle ``mode`` needs, or (``lidar_boxes="detector"``) a way to
-    enumerate its own 2D proposals (:class:`TrainingError` naming what is missing)."""
-    from robustbench3d.victims.base import FrustumSegmentationOracle, ImageObjectnessOracle
+def check_oracles(victim: Any, mode: str, victim_name: str, lidar_boxes: str = "gt",
+                  lidar_loss: str = "seed") -> None:
+    """Refuse a victim that lacks an oracle ``mode`` (with ``lidar_loss``) needs, or
+    (``lidar_boxes="detector"``) a way to enumerate its own 2D proposals (:class:`TrainingError` naming
+    what is missing)."""
+    from robustbench3d.victims.base import FrustumBoxOracle, FrustumSegmentationOracle, ImageObjectnessOracle
 
     need = []
-    if MODES[mode].lidar and not isinstance(victim, FrustumSegmentationOracle):
+    if MODES[mode].lidar and lidar_loss == "seed" and not isinstance(victim, FrustumSegmentationOracle):
         need.append("FrustumSegmentationOracle (frustum_logits, for the LiDAR loss)")
+    if MODES[mode].lidar and lidar_loss != "seed" and not isinstance(victim, FrustumBoxOracle):
+        need.append(f"FrustumBoxOracle (frustum_box, for the LiDAR loss {lidar_loss!r})")
     if MODES[mode].image and not isinstance(victim, ImageObjectnessOracle):
         need.append("ImageObjectnessOracle (objectness, for the image loss)")
     if MODES[mode].lidar and lidar_boxes == "detector" and not callable(getattr(victim, "proposals", None)):

@@ -48,7 +48,7 @@ def train_universal(victim: Any, victim_info: dict[str, Any], kitti: KittiDatase
     if out.suffix.lower() != ".ply":
         raise TrainingError(f"--out {out}: an object file must end in .ply")
     name = str(victim_info.get("name", type(victim).__name__))
-    check_oracles(victim, config.mode, name, config.lidar_boxes)
+    check_oracles(victim, config.mode, name, config.lidar_boxes, config.lidar_loss)
     trainer = UniversalTrainer(victim, kitti, frame_ids, labels, config)
     identity = {"config": config.identity(), "victim": victim_info, "data": data_identity or {}}
     ckpt = checkpoint_path(out)

@@ -231,3 +231,26 @@ def test_zero_gradient_stops_after_patience(victim, data, tmp_path):
     with pytest.raises(TrainingError, match=r"no gradient for 2 consecutive steps.*last checkpoint"):
         train(as_class(victim, BlindVictim), data, tmp_path / "z.ply", mode="adv-shape", steps=5,
               zero_grad_patience=2, checkpoint_every=1)
+
+
+class NoBoxOracle(FPointNetCascade):
+    """The shipped victim without the box oracle."""
+
+    frustum_box = None
+
+
+def test_box_term_trains_the_regressed_boxes_iou(victim, data, tmp_path):
+    """``lidar_loss="box"``: the LiDAR term is the mean BEV IoU of the regressed boxes (in [0, 1], the
+    victim's own boxes: a car whose clean box matches its label well gives about its detection IoU); with
+    ``"seed+box"`` the seed term is added (a larger loss); a bad name and a victim without the box oracle
+    are refused up front."""
+    kw = {"mode": "adv-shape", "steps": 2}
+    box = train(victim, data, tmp_path / "b.ply", **kw, lidar_loss="box")
+    both = train(victim, data, tmp_path / "s.ply", **kw, lidar_loss="seed+box", lambda_box=2.0)
+    first_box, first_both = box["losses"]["first_step"]["lidar"], both["losses"]["first_step"]["lidar"]
+    assert 0.0 < first_box <= 1.0 and first_both > 2 * first_box  # the same cars: 2 x IoU + a positive seed term
+    assert box["config"]["lidar_loss"] == "box" and both["config"]["lambda_box"] == 2.0
+    with pytest.raises(TrainingError, match=r"field 'lidar_loss' \(--lidar-loss\): expected one of seed, box"):
+        TrainConfig(mode="adv-shape", lidar_loss="iou")
+    with pytest.raises(TrainingError, match=r"does not implement FrustumBoxOracle \(frustum_box"):
+        train(as_class(victim, NoBoxOracle), data, tmp_path / "x.ply", **kw, lidar_loss="box")

@@ -178,3 +178,31 @@ def test_forward_is_deterministic_given_generators():
 def test_bn_momentum_schedule():
     assert bn_momentum_at(0) == 0.5 and bn_momentum_at(799_999) == 0.5
     assert bn_momentum_at(800_000) == 0.25 and bn_momentum_at(10**9) == 0.01  # decay capped at 0.99
+
+
+def test_straight_through_mask_keeps_the_forward_and_reaches_the_logits():
+    """``straight_through`` changes no forward value (every output bit equal, with masked, unmasked and
+    empty-mask frustums) and adds gradient through the segmentation logits: the box centre then depends on
+    the classifier's bias, which the hard mask hides from it (finite differences of the soft surrogate)."""
+    m = build_model("lite", seed=4).eval()
+    gen = torch.Generator().manual_seed(0)
+    pts = torch.randn(3, 512, 4, generator=gen) * torch.tensor([2.0, 0.5, 2.0, 0.2]) + torch.tensor([0, 0, 20, 0.3])
+    one_hot = torch.eye(3)[[0, 0, 1]]
+    with torch.no_grad():  # shift the object logit so about half of frustum 0 is masked
+        margin = m.seg(pts, one_hot)[0].diff(dim=-1)
+        m.seg.classifier.bias[1] -= margin.median()
+    hard = m(pts, one_hot, gather="topk")
+    st = m(pts, one_hot, gather="topk", straight_through=1.0)
+    assert 0 < int(hard.mask_count[0]) < 512
+    for name in ("seg_logits", "mask", "mask_centroid", "object_indices", "center_delta", "center",
+                 "heading_scores", "heading_residuals", "size_scores", "size_residuals"):
+        assert torch.equal(getattr(hard, name), getattr(st, name)), name
+    bias = m.seg.classifier.bias
+    (g_hard,) = torch.autograd.grad(hard.center[0, 2], bias, allow_unused=True)
+    (g_st,) = torch.autograd.grad(st.center[0, 2], bias)
+    assert (g_hard is None or not bool(g_hard[1] != 0)) and torch.isfinite(g_st).all() and g_st[1] != 0
+    with torch.no_grad():  # empty mask: point 0 gathered unscaled, the same outputs
+        m.seg.classifier.bias.copy_(torch.tensor([1e4, -1e4]))
+    empty_hard = m(pts[:1], one_hot[:1], gather="topk")
+    empty_st = m(pts[:1], one_hot[:1], gather="topk", straight_through=1.0)
+    assert int(empty_st.mask_count[0]) == 0 and torch.equal(empty_hard.center, empty_st.center)

@@ -13,6 +13,9 @@ implements the protocols that make sense for it and declares its :class:`Capabil
 * :class:`FrustumSegmentationOracle` — frustum construction from rect-frame points (selection and
   resampling are non-differentiable and seeded per frame and proposal, as in ``detect``) and the
   segmentation logits, differentiable w.r.t. the point coordinates.
+* :class:`FrustumBoxOracle` — the 3D box a frustum's stages regress (centre, size, heading in the
+  rect frame), differentiable w.r.t. the point coordinates (the mask and the discrete choices of
+  heading bin and size template held fixed), the same box ``detect`` reports.
 
 Victims are registered in :data:`robustbench3d.victims.VICTIMS` as :class:`VictimSpec` objects
 (a factory plus :class:`EntryInfo` metadata; both in :mod:`robustbench3d.victims.spec`).
@@ -255,6 +258,37 @@ class FrustumSegmentationOracle(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class FrustumBox:
+    """The 3D box one frustum regresses, differentiable w.r.t. the input points.
+
+    Attributes:
+        center: (3,) geometric box centre, rect frame, m (KITTI's location is its bottom centre).
+        size_lwh: (3,) length, width, height, m.
+        heading: () rotation about rect y, rad (KITTI ``rotation_y`` before wrapping to (-pi, pi]).
+        logits: (N, 2) segmentation logits of the frustum's resampled points.
+        mask_count: number of points segmented as object (the box net's input).
+    """
+
+    center: torch.Tensor
+    size_lwh: torch.Tensor
+    heading: torch.Tensor
+    logits: torch.Tensor
+    mask_count: int
+
+
+@runtime_checkable
+class FrustumBoxOracle(Protocol):
+    """White-box access to the box a frustum-based detector regresses from its points."""
+
+    def frustum_box(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
+                    box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0) -> FrustumBox | None:
+        """The box ``detect`` gives the frustum of ``box2d`` (arguments as
+        :meth:`FrustumSegmentationOracle.frustum_logits`), differentiable w.r.t. ``points_rect``;
+        None if the frustum holds no point."""
+        ...
+
+
 def check_victim(victim: Any, capabilities: Capabilities) -> None:
     """Raise TypeError unless ``victim`` honours the contract its capabilities declare.
 
@@ -283,7 +317,24 @@ def empty_detections() -> Labels:
 
 
 __all__ = [
-    "PROPOSAL_ORIGINS", "PROPOSAL_SOURCES", "Capabilities", "Detector", "EntryInfo", "FrustumLogits",
-    "FrustumSegmentationOracle", "ImageObjectnessOracle", "ObjectnessCandidates", "ProposalOrigin", "ProposalSource",
-    "Proposals", "ProposalsArg", "VictimSpec", "check_victim", "empty_detections", "gt_proposals", "victim_inputs",
+    "PROPOSAL_ORIGINS",
+    "PROPOSAL_SOURCES",
+    "Capabilities",
+    "Detector",
+    "EntryInfo",
+    "FrustumBox",
+    "FrustumBoxOracle",
+    "FrustumLogits",
+    "FrustumSegmentationOracle",
+    "ImageObjectnessOracle",
+    "ObjectnessCandidates",
+    "ProposalOrigin",
+    "ProposalSource",
+    "Proposals",
+    "ProposalsArg",
+    "VictimSpec",
+    "check_victim",
+    "empty_detections",
+    "gt_proposals",
+    "victim_inputs",
 ]

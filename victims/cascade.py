@@ -1,8 +1,9 @@
 """The F-PN v1 cascade victim: YOLO 2D detector -> frustums -> Frustum-PointNet v1 -> KITTI rows.
 
 Implements :class:`~robustbench3d.victims.base.Detector`,
-:class:`~robustbench3d.victims.base.ImageObjectnessOracle` and
-:class:`~robustbench3d.victims.base.FrustumSegmentationOracle`.
+:class:`~robustbench3d.victims.base.ImageObjectnessOracle`,
+:class:`~robustbench3d.victims.base.FrustumSegmentationOracle` and
+:class:`~robustbench3d.victims.base.FrustumBoxOracle`.
 
 ``detect`` is the numpy pipeline of :mod:`robustbench3d.victims.fpointnet.pipeline` (letterbox,
 2D decoding and NMS, frustum extraction, resampling, masking, gather, box decoding — shared with
@@ -31,8 +32,15 @@ from robustbench3d.fileio import atomic_open, sha256_file
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
-from robustbench3d.victims.base import PROPOSAL_SOURCES, FrustumLogits, ObjectnessCandidates, Proposals, ProposalsArg
-from robustbench3d.victims.fpointnet.box_coding import ONE_HOT_CLASSES
+from robustbench3d.victims.base import (
+    PROPOSAL_SOURCES,
+    FrustumBox,
+    FrustumLogits,
+    ObjectnessCandidates,
+    Proposals,
+    ProposalsArg,
+)
+from robustbench3d.victims.fpointnet.box_coding import HEADING_BIN_WIDTH, MEAN_SIZES, ONE_HOT_CLASSES
 from robustbench3d.victims.fpointnet.frustum import extract_frustum, project_rect_points, resample_indices
 from robustbench3d.victims.fpointnet.model import (
     FPointNetConfig,
@@ -58,6 +66,10 @@ from robustbench3d.victims.torchfile import (
 from robustbench3d.victims.yolo.config import YoloConfig
 from robustbench3d.victims.yolo.detector import YoloDetector, candidates_for_targets
 from robustbench3d.victims.yolo.model import Darknet
+
+#: Temperature of the straight-through mask of :meth:`FPointNetCascade.frustum_box` (see
+#: :meth:`~robustbench3d.victims.fpointnet.model.FrustumPointNetV1.forward`).
+BOX_ORACLE_TEMPERATURE = 1.0
 
 
 class FPointNetCascade:
@@ -164,11 +176,12 @@ class FPointNetCascade:
             image_index=torch.cat(parts["image"]), target_index=torch.cat(parts["target"]),
         )
 
-    # ---- FrustumSegmentationOracle ----------------------------------------------------
-    def frustum_logits(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
-                       box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0) -> FrustumLogits | None:
-        """Seg logits of the frustum of ``box2d`` over (P, 4) rect points (differentiable), resampled
-        with :func:`frustum_rng` of ``settings.seed``, ``frame_id`` and ``proposal`` as ``detect`` does."""
+    # ---- FrustumSegmentationOracle / FrustumBoxOracle ----------------------------------
+    def _frustum(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
+                 box2d: np.ndarray, frame_id: str, proposal: int,
+                 class_id: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, float, np.random.Generator] | None:
+        """Frustum-frame points (1, N, 4) of ``box2d`` resampled as ``detect`` does, their one-hot,
+        sample indices, rotation angle and the generator (positioned for the object-point gather)."""
         projected = project_rect_points(points_rect.detach().cpu().double().numpy(), calib, image_size)
         fr = extract_frustum(projected, np.asarray(box2d, dtype=np.float64), calib)
         if len(fr) == 0:
@@ -178,8 +191,40 @@ class FPointNetCascade:
         pts = rotate_to_frustum_torch(points_rect[torch.from_numpy(idx)], fr.rot_angle)
         one_hot = torch.zeros(1, len(ONE_HOT_CLASSES), dtype=pts.dtype)
         one_hot[0, class_id] = 1.0
-        logits = self.segmentation_logits(pts[None], one_hot)[0]
-        return FrustumLogits(logits=logits, sample_index=idx, rot_angle=fr.rot_angle, points=pts)
+        return pts[None], one_hot, idx, fr.rot_angle, rng
+
+    def frustum_logits(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
+                       box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0) -> FrustumLogits | None:
+        """Seg logits of the frustum of ``box2d`` over (P, 4) rect points (differentiable), resampled
+        with :func:`frustum_rng` of ``settings.seed``, ``frame_id`` and ``proposal`` as ``detect`` does."""
+        got = self._frustum(points_rect, calib, image_size, box2d, frame_id, proposal, class_id)
+        if got is None:
+            return None
+        pts, one_hot, idx, rot, _ = got
+        logits = self.segmentation_logits(pts, one_hot)[0]
+        return FrustumLogits(logits=logits, sample_index=idx, rot_angle=rot, points=pts[0])
+
+    def frustum_box(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
+                    box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0) -> FrustumBox | None:
+        """The box ``detect`` regresses for the frustum of ``box2d`` (same resampling and object-point
+        gather), differentiable w.r.t. ``points_rect``: the whole network in eval mode in its own dtype,
+        the argmax heading bin and size template held fixed, the mask straight-through
+        (:data:`BOX_ORACLE_TEMPERATURE`; its forward values are the hard mask), decoded as
+        :func:`~robustbench3d.victims.fpointnet.to_kitti.decode` and rotated back to the rect frame."""
+        got = self._frustum(points_rect, calib, image_size, box2d, frame_id, proposal, class_id)
+        if got is None:
+            return None
+        pts, one_hot, _, rot, rng = got
+        dtype = next(self.fpn.parameters()).dtype
+        out = self.fpn(pts.to(dtype), one_hot.to(dtype), gather=self.settings.gather, rng=[rng],
+                       straight_through=BOX_ORACLE_TEMPERATURE)
+        h = int(out.heading_scores[0].argmax())
+        s = int(out.size_scores[0].argmax())
+        heading = h * HEADING_BIN_WIDTH + out.heading_residuals[0, h] + rot
+        size = torch.as_tensor(MEAN_SIZES[s], dtype=dtype) + out.size_residuals[0, s]
+        center = rotate_to_frustum_torch(out.center[0], -rot)
+        return FrustumBox(center=center, size_lwh=size, heading=heading, logits=out.seg_logits[0],
+                          mask_count=int(out.mask_count[0]))
 
     def segmentation_logits(self, points: torch.Tensor, one_hot: torch.Tensor) -> torch.Tensor:
         """(B, N, 2) logits of (B, N, 4) frustum-frame points (eval-mode network)."""

@@ -187,24 +187,36 @@ class FrustumPointNetV1(nn.Module):
 
     def forward(self, points: torch.Tensor, one_hot: torch.Tensor, *, gather: GatherMode = "topk",
                 rng: np.random.Generator | Sequence[np.random.Generator] | None = None,
-                generator: torch.Generator | None = None) -> FPointNetOutput:
+                generator: torch.Generator | None = None,
+                straight_through: float | None = None) -> FPointNetOutput:
         """Run the cascade on (B, N, 4) frustum-frame points and (B, 3) one-hot vectors.
 
         Args:
             gather: object-point choice, see :func:`object_point_indices`.
             rng: numpy generator(s) for ``gather="random"``.
             generator: torch generator for dropout (training only).
+            straight_through: temperature ``tau`` of a straight-through mask for attacks: the forward
+                values are unchanged (hard mask), but the mask's gradient is that of
+                ``sigmoid((logit1 - logit0) / tau)``, so the centroid and the gathered object points
+                (scaled by the mask, 1 in the forward pass) pass gradient to the segmentation logits.
+                None (default): the mask is a constant.
         """
         logits = self.seg(points, one_hot, generator)
         xyz = points[..., :3]
         mask = (logits[..., 1] > logits[..., 0]).detach()
         count = mask.sum(dim=1)
         maskf = mask.to(xyz.dtype)
+        if straight_through is not None:
+            soft = torch.sigmoid((logits[..., 1] - logits[..., 0]) / straight_through).to(xyz.dtype)
+            maskf = maskf + (soft - soft.detach())  # exactly the hard mask in the forward pass
         centroid = (maskf[..., None] * xyz).sum(dim=1) / count.clamp_min(1).to(xyz.dtype)[:, None]
         margin = (logits[..., 1] - logits[..., 0]).detach().cpu().numpy()
         idx_np = object_point_indices(mask.cpu().numpy(), margin, self.cfg.num_object_points, gather, rng)
         idx = torch.from_numpy(idx_np).to(points.device)
         centred = xyz - centroid[:, None, :]
+        if straight_through is not None:  # masked points x 1 (exact); an empty mask's point 0 stays unscaled
+            scale = torch.where(mask, maskf, torch.ones_like(maskf))
+            centred = centred * scale[..., None]
         object_points = torch.gather(centred, 1, idx[..., None].expand(-1, -1, 3))
         delta = self.tnet(object_points, one_hot)
         stage1 = centroid + delta
