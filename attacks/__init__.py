@@ -2,7 +2,8 @@
 
 ``ATTACKS`` is the registry (:class:`robustbench3d.registry.Registry` of
 :class:`~robustbench3d.attacks.spec.AttackSpec`). In-tree attacks are declared with
-:func:`register_attack` (the controls in :mod:`robustbench3d.attacks.controls`); installed
+:func:`register_attack` (the controls in :mod:`robustbench3d.attacks.controls`); the universal objects
+that ship with the package register from their manifest (:mod:`robustbench3d.attacks.shipped`); installed
 packages add theirs through the entry-point group ``robustbench3d.attacks`` (an entry point names
 an ``AttackSpec``). The contract an attack implements is :class:`robustbench3d.attacks.base.Attack`.
 
@@ -30,6 +31,7 @@ ENTRY_POINT_GROUP = "robustbench3d.attacks"
 ATTACKS: Registry[AttackSpec] = Registry(
     "attack", group=ENTRY_POINT_GROUP, base=AttackSpec, key=lambda spec: spec.key,
     modules=("robustbench3d.attacks.controls",),
+    loaders=("robustbench3d.attacks.shipped:register_shipped_objects",),
 )
 
 #: A factory ``(**params) -> Attack``: an Attack subclass or a function.

@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Reproduces the shipped universal objects adv-shape, adv-texture and adv-object (attacks/objects/) from
+# scratch on the CPU: the embedded dataset, then one `attack train` run per object against the shipped
+# fpointnet-v1-lite cascade, then a benchmark run of the three reproduced objects on the val split.
+# The options of each `attack train` line must equal the `training.command` (and `training.config`) of
+# that object's entry in attacks/objects/manifest.json (tests/test_attacks_shipped.py checks the configs).
+# The same CPU type and thread counts give the same bytes; the script reports whether each reproduced
+# object equals the shipped one.
+# Usage: bash attacks/objects/reproduce.sh [OUT_DIR]   (default runs/objects)
+set -euo pipefail
+OUT="${1:-runs/objects}"
+DATA="${ROBUSTBENCH3D_CACHE:-$HOME/.cache/robustbench3d}/datasets/synth"
+SHIPPED="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+export OMP_WAIT_POLICY=PASSIVE
+mkdir -p "$OUT/check"
+robustbench3d data synth --out "$DATA" --frames 2000 --seed 0 --val-fraction 0.5 --workers 2
+robustbench3d attack train adv-shape --victim fpointnet-v1-lite --data "$DATA" --out "$OUT/adv-shape.ply" --steps 300 --seed 0 --lidar-loss seed+box --no-progress
+robustbench3d attack train adv-texture --victim fpointnet-v1-lite --data "$DATA" --out "$OUT/adv-texture.ply" --steps 300 --seed 0 --no-progress
+robustbench3d attack train adv-object --victim fpointnet-v1-lite --data "$DATA" --out "$OUT/adv-object.ply" --steps 300 --seed 0 --lidar-loss seed+box --no-progress
+for NAME in adv-shape adv-texture adv-object; do
+  if cmp -s "$OUT/$NAME.ply" "$SHIPPED/$NAME.ply"; then echo "$NAME: identical to the shipped object"
+  else echo "$NAME: differs from the shipped object"; fi
+  # the registered names adv-* belong to the shipped objects: the reproduced ones run as reproduced-adv-*
+  cp "$OUT/$NAME.ply" "$OUT/check/reproduced-$NAME.ply"
+  cp "$OUT/$NAME.json" "$OUT/check/reproduced-$NAME.json"
+done
+robustbench3d run --victims fpointnet-v1-lite --attacks "none,$OUT/check/reproduced-adv-shape.ply,$OUT/check/reproduced-adv-texture.ply,$OUT/check/reproduced-adv-object.ply" --proposals detector,gt --out "$OUT/check/run"
