@@ -44,7 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="2D proposal sources: detector (the victim's own) and/or gt (ground-truth boxes); "
                              "a victim that does not support a source gets a skipped cell (default: detector)")
     parser.add_argument("--out", required=True, metavar="DIR",
-                        help="output directory (cell files, summary.json, results.csv); an interrupted run resumes")
+                        help="output directory (cell files, summary.json, results.csv, seed_table.md); "
+                             "an interrupted run resumes")
     parser.add_argument("--data", metavar="DIR",
                         help="KITTI-layout dataset root (default: the embedded procedural dataset in the cache, "
                              "generated if missing)")
@@ -69,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
     from robustbench3d.attacks.controls import resolve_attack_references
     from robustbench3d.fileio import check_output_dir, remove_created_dir
     from robustbench3d.runner import RunConfig, run_benchmark, summary_table
+    from robustbench3d.seed_table import SEED_TABLE_FILE, seed_table_text
     from robustbench3d.victims import resolve_victim_references
 
     out = check_output_dir(args.out, "--out")
@@ -97,6 +99,9 @@ def run(args: argparse.Namespace) -> int:
     if report.earlier or report.left_out:
         print(f"{len(report.earlier)} of these cells come from earlier runs into {report.out}; "
               f"{len(report.left_out)} cell(s) there are left out (not comparable with this run, listed above)")
+    print()
+    print(seed_table_text(report.summary))
+    print(f"seed table: {report.out / SEED_TABLE_FILE}")
     if report.failed:
         print(f"robustbench3d: {len(report.failed)} of {len(report.outcomes)} cells failed", file=sys.stderr)
         return 1

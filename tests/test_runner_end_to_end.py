@@ -62,6 +62,9 @@ def test_lidar_cluster_end_to_end(dataset, tmp_path, capsys):
     import jsonschema  # the shipped schema, applied by a plain validator
 
     jsonschema.validate(json.loads((out / "summary.json").read_text()), load_schema())
+    from robustbench3d.seed_table import seed_table_markdown
+
+    assert (out / "seed_table.md").read_text(encoding="utf-8") == seed_table_markdown(summary)
 
     det, gt = summary
     assert (det["victim"], det["attack"], det["proposals"]) == ("lidar-cluster", "none", "detector")
@@ -307,6 +310,7 @@ def test_interrupted_run_resumes_without_redoing_finished_cells(dataset, tmp_pat
     interrupted = out / "cells" / "test-interrupt-once+none+detector"
     assert (out / "cells" / CELL / "cell.json").is_file()
     assert not (interrupted / "cell.json").exists() and not (out / "summary.json").exists()
+    assert not (out / "seed_table.md").exists()  # written with summary.json, at the end
     assert (interrupted / "data.partial").is_dir()  # what the interrupted cell had written so far
     report = run_benchmark(config, lambda line: None)
     assert [o.reused for o in report.outcomes] == [True, False]

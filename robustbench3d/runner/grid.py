@@ -66,6 +66,7 @@ from robustbench3d.runner.records import (
     victim_kwargs,
     victim_record,
 )
+from robustbench3d.seed_table import SEED_TABLE_FILE, write_seed_table
 from robustbench3d.victims import VICTIMS, create_victim
 from robustbench3d.victims.spec import Capabilities
 
@@ -198,7 +199,7 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
     out = config.out
     out.mkdir(parents=True, exist_ok=True)
     with _exclusive(out):
-        for stale in (SUMMARY_FILE, CSV_FILE):  # derived files: rewritten at the end, never left stale
+        for stale in (SUMMARY_FILE, CSV_FILE, SEED_TABLE_FILE):  # derived files: rewritten at the end, never stale
             (out / stale).unlink(missing_ok=True)
         dataset = resolve_dataset(config.data, config.split, workers=config.workers, progress=config.progress)
         gt = load_ground_truth(dataset, config.max_frames)
@@ -234,6 +235,7 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
         _record_effects(report, out / "cells", inputs)
         summary = write_validated(out / SUMMARY_FILE, report.summary)
         write_long_csv(out / CSV_FILE, summary)
+        write_seed_table(out / SEED_TABLE_FILE, summary)
     return report
 
 
