@@ -246,8 +246,10 @@ def test_evaluation_from_a_run_summary_keeps_the_cells_of_this_object(trained, t
         car = {"bev": {"R40": {"easy": 50.0, "moderate": 40.0, "hard": 30.0}}, "aos": {}}
         return {"victim": "v", "attack": attack, "proposals": "gt", "status": status, "dataset": {"split": "val"},
                 "metrics": {"Car": car, "meta": {}}, "attack_effect": {"drop": 1.0},
-                "provenance": {"config": {"attack": {"params": {"eot": True},
-                                                     "object": None if ply_sha is None else {"ply_sha256": ply_sha}}}}}
+                # the runner's attack record: its "object" is Attack.describe(), whose "object" names the PLY
+                "provenance": {"config": {"attack": {
+                    "params": {"eot": True},
+                    "object": None if ply_sha is None else {"object": {"ply_sha256": ply_sha}}}}}}
 
     summary = tmp_path / "summary.json"
     summary.write_text(json.dumps([cell("none", None), cell("x", sha), cell("y", "0" * 64), cell("z", sha, "error")]))

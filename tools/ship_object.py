@@ -106,7 +106,8 @@ def evaluation_record(path: Path, sha256: str) -> dict[str, Any]:
     out: dict[str, Any] = {"summary": path.name, "cells": {}}
     for cell in data:
         attack = cell["provenance"]["config"]["attack"]
-        if cell["status"] != "ok" or (attack.get("object") or {}).get("ply_sha256") != sha256:
+        described = attack.get("object") or {}  # the attack's describe(): its "object" names the PLY
+        if cell["status"] != "ok" or (described.get("object") or {}).get("ply_sha256") != sha256:
             continue
         key = f"{cell['victim']}+{cell['attack']}+{cell['proposals']}"
         car = cell["metrics"]["Car"]
