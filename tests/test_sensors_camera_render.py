@@ -371,13 +371,13 @@ def test_cached_rays_and_edge_pixels_equal_their_references():
     """The crop's helpers against plain references: rays through image positions with a cached K^-1 equal
     pixel_rays_rect bit for bit, and the edge pixels (3 x 3 min != max) equal a loop over each pixel's 8
     neighbours on random masked regions."""
-    from robustbench3d.sensors.camera_depth import pixel_rays_rect
-    from robustbench3d.sensors.camera_render import _constants, _edge_pixels, _pixel_rays, _Region
+    from robustbench3d.sensors.camera_depth import pixel_ray_components, pixel_rays_rect
+    from robustbench3d.sensors.camera_render import _constants, _edge_pixels, _Region
 
     rng = np.random.default_rng(4)
     calib = DAY_0926.calib
     u, v = rng.uniform(-50, 1300, 20000), rng.uniform(-50, 420, 20000)
-    assert np.array_equal(_pixel_rays(_constants(calib).kinv, u, v).T, pixel_rays_rect(calib, u, v))
+    assert np.array_equal(pixel_ray_components(_constants(calib).kinv, u, v).T, pixel_rays_rect(calib, u, v))
     for _ in range(200):
         mh, mw = rng.integers(1, 12, 2)
         mask = rng.random((mh, mw)) < rng.uniform(0.3, 1.0)

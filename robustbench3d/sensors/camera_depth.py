@@ -59,12 +59,18 @@ def pixel_rays_rect(calib: Calibration, u: np.ndarray, v: np.ndarray) -> np.ndar
     kinv = np.linalg.inv(calib.P2[:, :3])
     u = np.asarray(u, np.float64).reshape(-1)
     v = np.asarray(v, np.float64).reshape(-1)
+    return np.ascontiguousarray(pixel_ray_components(kinv, u, v).T)
+
+
+def pixel_ray_components(kinv: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(3, N) float64 unit rect directions, component-major, of the rays through image positions u, v (N,)
+    float64, given K^-1 (``kinv`` (3, 3), K = P2[:, :3]); :func:`pixel_rays_rect` is its transpose."""
     # element-wise (no GEMM): a position's ray does not depend on the other positions queried with it
     d = np.empty((3, len(u)))
     for k in range(3):
         d[k] = u * kinv[k, 0] + v * kinv[k, 1] + kinv[k, 2]
     d /= np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-    return np.ascontiguousarray(d.T)
+    return d
 
 
 @dataclass(frozen=True, eq=False)

@@ -74,9 +74,9 @@ import numpy as np
 import torch
 
 from robustbench3d.kitti.calib import Calibration
-from robustbench3d.sensors.camera_depth import DepthSource, camera_centre_rect
+from robustbench3d.sensors.camera_depth import DepthSource, camera_centre_rect, pixel_ray_components
 from robustbench3d.sensors.camera_model import Lighting
-from robustbench3d.sensors.raycast import PairCaster, back_faces
+from robustbench3d.sensors.raycast import PairCaster, back_faces, dot3
 
 #: Absolute widening (pixels) of each face's projected box in the candidate cull (see the module docstring).
 BOX_MARGIN_PX = 1e-3
@@ -167,17 +167,6 @@ def _constants(calib: Calibration) -> _CameraConstants:
     if c is None:
         c = _CONSTANTS[calib] = _CameraConstants(camera_centre_rect(calib), np.linalg.inv(calib.P2[:, :3]), {})
     return c
-
-
-def _pixel_rays(kinv: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """:func:`~robustbench3d.sensors.camera_depth.pixel_rays_rect` of image positions u, v (N,) with K^-1 given
-    (``kinv`` (3, 3)), by component: (3, N) float64 unit rect directions, the transpose of that function's bit
-    for bit (the same element-wise arithmetic), without inverting K per call."""
-    d = np.empty((3, len(u)))
-    for k in range(3):
-        d[k] = u * kinv[k, 0] + v * kinv[k, 1] + kinv[k, 2]
-    d /= np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-    return d
 
 
 def _cached_lighting(lighting: Lighting, calib: Calibration, dtype: torch.dtype) -> dict[str, torch.Tensor | float]:
@@ -288,12 +277,6 @@ class _ShadeComposite(torch.autograd.Function):
         return g_u, g_v, g_t, g_face, None, None, None, g_base, None
 
 
-def _sum3(x: np.ndarray) -> np.ndarray:
-    """x.sum(-1) of a last axis of 3, as (x0 + x1) + x2: the order numpy's reduction adds them in (the same bits),
-    without the cost of a reduction along a short axis."""
-    return x[..., 0] + x[..., 1] + x[..., 2]
-
-
 def _sample_offsets(s: int) -> np.ndarray:
     return (np.arange(s) + 0.5) / s - 0.5
 
@@ -361,7 +344,7 @@ class _FaceCull:
         uv, depth = calib.rect_to_image(vertices)
         p, fd = uv[faces], depth[faces]  # (F, 3, 2), (F, 3)
         # reductions over the 3 vertices written out: numpy's reductions along a short axis cost far more, and
-        # min / max / any / all are exact, sums are (x0 + x1) + x2 as numpy's (see _sum3)
+        # min / max / any / all are exact, sums are (x0 + x1) + x2 as numpy's (see raycast.dot3)
         d0, d1, d2 = fd[:, 0], fd[:, 1], fd[:, 2]
         unreachable = (d0 <= 0) & (d1 <= 0) & (d2 <= 0)
         if skip is not None:
@@ -385,9 +368,9 @@ class _FaceCull:
                        a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
         ray = (v3[:, 0] + v3[:, 1] + v3[:, 2]) / 3 - (camera_centre_rect(calib) if centre is None else centre)
         with np.errstate(divide="ignore", invalid="ignore"):
-            ray2 = _sum3(ray * ray)
-            cos = np.abs(_sum3(n3 * ray)) / np.sqrt(_sum3(n3 * n3) * ray2)
-            e3sq = _sum3(e3 * e3)
+            ray2 = dot3(ray, ray)
+            cos = np.abs(dot3(n3, ray)) / np.sqrt(dot3(n3, n3) * ray2)
+            e3sq = dot3(e3, e3)
             cond = np.sqrt(ray2 / np.minimum(np.minimum(e3sq[:, 0], e3sq[:, 1]), e3sq[:, 2])) / cos
             delta = SPAN_MARGIN + 64 * float(torch.finfo(dtype).eps) * cond
             fa0, fa1, fa2 = d0[ahead], d1[ahead], d2[ahead]
@@ -670,7 +653,7 @@ def _visible_hits(calib: Calibration, g: _Geometry, caster: PairCaster, region: 
         col_off, row_off = _sub_sample_offsets(s)
         su = (pix_u[:, None] + col_off[None, :]).reshape(-1)  # sample k = (row i, col j), k = i * s + j
         sv = (pix_v[:, None] + row_off[None, :]).reshape(-1)
-    d64 = _pixel_rays(_constants(calib).kinv, su, sv)  # (3, N)
+    d64 = pixel_ray_components(_constants(calib).kinv, su, sv)  # (3, N)
     d_cols = d64.astype(g.np_dtype)  # by component, in the geometry dtype
     if full_image:  # the reference: every sample near a mesh's bounding sphere x every face not culled
         mesh_verts = [g.vnp[np.unique(g.faces[g.mesh_of_face == i])] for i in range(g.mesh_of_face.max() + 1)]

@@ -223,18 +223,15 @@ def trace_meshes(prep: PreparedScan, meshes: Sequence[MeshInput]) -> TracedHits:
 
 
 def _face_pairs(pattern: BeamPattern, mts: list[tuple[torch.Tensor, np.ndarray]], culls: list[np.ndarray],
-                idx: np.ndarray, stacked: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                idx: np.ndarray, stacked: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Candidate (ray, face) pairs of :func:`_trace`'s cast: (positions in ``idx``, faces of the concatenated
     meshes ``mts``): each face with the rays of its mesh's cull (``culls``) that can pass through the face's
     bounding sphere (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.sphere_rays`), inflated by 1e-3 of
     its radius (+1e-9 m), far more than the ray test's barycentric tolerance (1e-6 of an edge): every pair
     that can pass the test is among them, so the cast finds the same hits as testing each ray of a mesh's
     cull against all of its faces. ``stacked``: the meshes' vertices (V, 3) float64 and faces (F, 3) indexing
-    them, concatenated in order, when already built (the same corner coordinates)."""
-    if stacked is None:
-        a, b, c = (np.concatenate([vt.detach().numpy()[fa[:, j]] for vt, fa in mts]) for j in range(3))
-    else:
-        a, b, c = (stacked[0][stacked[1][:, j]] for j in range(3))
+    them, concatenated in order (as :func:`_trace` builds them for the cast)."""
+    a, b, c = (stacked[0][stacked[1][:, j]] for j in range(3))
     mesh = np.repeat(np.arange(len(mts)), [len(fa) for _, fa in mts])
     centre = 0.5 * (np.minimum(np.minimum(a, b), c) + np.maximum(np.maximum(a, b), c))
     radius = np.sqrt(np.maximum(np.maximum(((a - centre) ** 2).sum(1), ((b - centre) ** 2).sum(1)),

@@ -344,25 +344,25 @@ def back_faces(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray) -> n
     e1, e2 = b - a, cc - a
     normal = np.stack([e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1], e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
                        e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]], axis=1)
-    triple = _dot3(a, normal)  # det[a, b, cc]
+    triple = dot3(a, normal)  # det[a, b, cc]
     if not np.all(triple > 0):
         return None
-    la, lb, lc = (np.sqrt(_dot3(x, x)) for x in (a, b, cc))
-    den = la * lb * lc + _dot3(a, b) * lc + _dot3(a, cc) * lb + _dot3(b, cc) * la
+    la, lb, lc = (np.sqrt(dot3(x, x)) for x in (a, b, cc))
+    den = la * lb * lc + dot3(a, b) * lc + dot3(a, cc) * lb + dot3(b, cc) * la
     if abs(2.0 * np.arctan2(triple, den).sum() - 4.0 * np.pi) > np.pi:  # the sum is 4 pi x the sheet count
         return None
     o = np.asarray(origin, np.float64).reshape(3)
     centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
     r = v - centre
-    if np.linalg.norm(o - centre) <= np.sqrt(_dot3(r, r).max()) * (1 + 1e-6):
+    if np.linalg.norm(o - centre) <= np.sqrt(dot3(r, r).max()) * (1 + 1e-6):
         return None
-    return _dot3(o - c - a, normal) <= 0
+    return dot3(o - c - a, normal) <= 0
 
 
-def _dot3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Row-wise dot products of (N, 3) arrays, summed as ((x0 y0 + x1 y1) + x2 y2): the order numpy's
-    ``(x * y).sum(1)`` adds them in (the same bits), without the cost of a reduction along a short axis."""
-    return x[:, 0] * y[:, 0] + x[:, 1] * y[:, 1] + x[:, 2] * y[:, 2]
+def dot3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Dot products over a last axis of 3, summed as ((x0 y0 + x1 y1) + x2 y2): the order numpy's
+    ``(x * y).sum(-1)`` adds them in (the same bits), without the cost of a reduction along a short axis."""
+    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
 
 
 @lru_cache(maxsize=64)
