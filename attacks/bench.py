@@ -38,6 +38,9 @@ TARGET_MS = 5.0
 TARGET_TEST_SHARE = 0.01
 TARGET_CELL_RATIO = 1.2
 TARGET_EXTRA_MB = 200
+#: A universal adv-object training (the shipped schedule) on the two cores: wall minutes and peak memory.
+TARGET_TRAIN_MIN = 30.0
+TARGET_TRAIN_GB = 4.0
 ROOF_Z_M = -1.73 + 1.50  # roof of a 1.50 m high car, velodyne frame
 
 
@@ -202,7 +205,8 @@ def bench_attacked_cell(attack: str = "random-shape", proposals: str = "gt", fra
     env = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     with tempfile.TemporaryDirectory(prefix="rb3d-cell-") as tmp:
         argv = [sys.executable, "-m", "robustbench3d", "run", "--victims", "fpointnet-v1-lite", "--proposals",
-                proposals, "--max-frames", str(frames), "--no-progress", *(["--data", data] if data else [])]
+                proposals, "--max-frames", str(frames), "--no-progress", "--jobs", "1", "--bootstrap", "0",
+                *(["--data", data] if data else [])]
         clean = run_timed_subprocess([*argv, "--attacks", "none", "--out", f"{tmp}/clean"], env)
         shutil.copytree(f"{tmp}/clean", f"{tmp}/attacked")
         attacked = run_timed_subprocess([*argv, "--attacks", f"none,{attack}", "--out", f"{tmp}/attacked"], env)
@@ -232,12 +236,62 @@ def _cell_rows(quick: bool) -> list[dict]:
     return rows
 
 
+def bench_attack_training(steps: int, name: str = "adv-object") -> dict[str, float]:
+    """``steps`` steps of the shipped object ``name``'s training command (its manifest entry's
+    ``training.command``, embedded dataset) in a fresh interpreter, as ``attacks/objects/reproduce.sh`` runs it
+    (one thread): the trainer's own seconds for the steps (``made_by.wall_time_s``, start-up excluded), the
+    process's wall seconds and peak RSS (start-up and data loading included), and the shipped schedule's steps."""
+    import json
+    import shlex
+    import sys
+    import tempfile
+
+    from robustbench3d.attacks.shipped import shipped_objects
+    from robustbench3d.bench import run_timed_subprocess
+
+    entry = next(e for e in shipped_objects() if e.name == name)
+    training = entry.record["training"]
+    argv = shlex.split(training["command"])[1:]  # drop the program name
+    with tempfile.TemporaryDirectory(prefix="rb3d-train-") as tmp:
+        args, i = [], 0
+        while i < len(argv):  # the command's own placeholders: the cache's dataset and a scratch output
+            if argv[i] in ("--data", "--steps"):
+                i += 2
+                continue
+            args.append(f"{tmp}/{name}.ply" if argv[i] == '$OUT/' + name + ".ply" else argv[i])
+            i += 1
+        measured = run_timed_subprocess([sys.executable, "-m", "robustbench3d", *args, "--steps", str(steps)],
+                                        {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
+        with open(f"{tmp}/{name}.json", encoding="utf-8") as f:
+            made_by = json.load(f)["made_by"]
+    return {"steps": float(steps), "train_s": float(made_by["wall_time_s"]), "process_s": measured.seconds,
+            "peak_rss_mb": measured.peak_rss_mb, "schedule_steps": float(training["steps"]),
+            "shipped_train_s": float(training["wall_time_s"])}
+
+
+def _train_rows(quick: bool) -> list[dict]:
+    r = bench_attack_training(3 if quick else 10)
+    per_step = r["train_s"] / r["steps"]
+    startup = r["process_s"] - r["train_s"]
+    total_min = (startup + per_step * r["schedule_steps"]) / 60.0
+    gb = r["peak_rss_mb"] / 1024.0
+    case = f"adv-object training, shipped schedule ({r['schedule_steps']:.0f} steps x 8 cars)"
+    return [{"case": f"{case}: {r['steps']:.0f} steps measured, s/step", "median_ms": round(1000 * per_step, 1)},
+            {"case": f"{case}: start-up + steps x s/step, minutes", "clean": round(total_min, 1),
+             "target": f"<= {TARGET_TRAIN_MIN:g} min", "met": total_min <= TARGET_TRAIN_MIN},
+            {"case": f"{case}: process peak RSS, GB", "clean": round(gb, 2), "target": f"<= {TARGET_TRAIN_GB:g} GB",
+             "met": gb <= TARGET_TRAIN_GB},
+            {"case": f"{case}: the shipped object's own training, minutes (its sidecar)",
+             "clean": round(r["shipped_train_s"] / 60.0, 1), "target": f"<= {TARGET_TRAIN_MIN:g} min",
+             "met": r["shipped_train_s"] / 60.0 <= TARGET_TRAIN_MIN}]
+
+
 def run(quick: bool) -> list[dict]:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         repeats = 20 if quick else 100
-        return _lidar_rows(repeats) + _camera_rows(repeats) + _cell_rows(quick)
+        return _lidar_rows(repeats) + _camera_rows(repeats) + _cell_rows(quick) + _train_rows(quick)
     finally:
         torch.set_num_threads(threads)
 

@@ -13,9 +13,6 @@ from __future__ import annotations
 
 import torch
 
-#: Denominators below this (m^2) are treated as parallel edges / empty unions.
-_TINY = 1e-12
-
 
 def footprint_torch(x: torch.Tensor, z: torch.Tensor, length: torch.Tensor, width: torch.Tensor,
                     ry: torch.Tensor) -> list[torch.Tensor]:
@@ -41,8 +38,8 @@ def _clip(poly: list[torch.Tensor], a: torch.Tensor, b: torch.Tensor) -> list[to
         if dp >= 0:
             out.append(p)
         if (dp >= 0) != (dq >= 0):
-            den = dp - dq
-            den = torch.where(den.abs() > _TINY, den, torch.full_like(den, _TINY))
+            den = dp - dq  # nonzero: dp and dq straddle 0 (an absolute floor would break boxes of ~1e-6 m)
+            den = torch.where(den != 0, den, torch.ones_like(den))
             out.append(p + (q - p) * (dp / den))
     return out
 
@@ -71,4 +68,5 @@ def bev_iou_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         poly = _clip(poly, pb[i], pb[(i + 1) % 4])
     inter = _area(poly) if len(poly) >= 3 else a.new_zeros(())
     union = (a[2] * a[3]).abs() + (b[2] * b[3]).abs() - inter
-    return inter / torch.clamp(union, min=_TINY)
+    ok = union > 0
+    return torch.where(ok, inter / torch.where(ok, union, torch.ones_like(union)), torch.zeros_like(union))

@@ -51,6 +51,8 @@ def max_object_margin(logits: torch.Tensor) -> torch.Tensor:
     ``sigmoid`` of it is the largest object probability."""
     if logits.dim() != 2 or logits.shape[1] != 2 or logits.shape[0] == 0:
         raise ValueError(f"field 'logits': expected (N, 2) with N >= 1, got {tuple(logits.shape)}")
+    if not bool(torch.isfinite(logits).all()):
+        raise ValueError("field 'logits': contains NaN or inf (the victim's segmentation head diverged)")
     return (logits[:, 1] - logits[:, 0]).max()
 
 

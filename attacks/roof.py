@@ -2,7 +2,8 @@
 
 Per frame: the object is placed on each target car (:func:`~robustbench3d.attacks.placement.place_on_roof`,
 with EOT jitter drawn from the frame's generator when enabled, one draw per car in label order),
-rendered into the scan (:func:`robustbench3d.sensors.lidar_render.render_lidar`, velodyne frame) and
+rendered into the scan (:func:`robustbench3d.sensors.lidar_render.render_lidar`, velodyne frame; the clean
+scan's beam pattern is estimated once per scan and kept, :mod:`robustbench3d.sensors.pattern_cache`) and
 into image 2 (:func:`robustbench3d.sensors.camera_render.render_camera`, rect frame); all objects of a
 frame are rendered together, so objects overlapping in a beam or a pixel resolve by depth. A car whose
 object is behind the camera or projects outside the image gets no camera render but keeps its LiDAR
@@ -131,11 +132,13 @@ class RoofObjectAttack(Attack):
             return frame
         from robustbench3d.sensors.camera_render import render_camera
         from robustbench3d.sensors.lidar_render import render_lidar
+        from robustbench3d.sensors.pattern_cache import default_pattern_cache
 
         placed = self.place(targets, rng)
         faces, colors = self.obj.faces.copy(), self.obj.colors.copy()  # writable: the renderers wrap them in torch
         velo = [(frame.calib.rect_to_velo_points(v), faces, colors) for v, _ in placed]
-        lidar = render_lidar(frame.scan, velo, rng=rng, range_noise_m=self.range_noise_m, dropout=self.dropout)
+        lidar = render_lidar(frame.scan, velo, rng=rng, range_noise_m=self.range_noise_m, dropout=self.dropout,
+                             patterns=default_pattern_cache())
         scan = np.ascontiguousarray(lidar.scan, dtype=frame.scan.dtype)
         rect = [(v, faces, colors) for v, _ in placed]
         settings = copy.copy(self)  # the image is this call's, whatever changes the attack later

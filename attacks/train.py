@@ -258,7 +258,11 @@ class UniversalTrainer:
             if m.lidar:
                 if cfg.lidar_boxes == "detector" and attacked_image is None:
                     attacked_image = self._render_image(frame, targets, placed, colours)
-                terms, iou = self._lidar(frame, targets, chosen, placed, colours, rng, attacked_image)
+                try:
+                    terms, iou = self._lidar(frame, targets, chosen, placed, colours, rng, attacked_image)
+                except ValueError as exc:  # the loss refuses non-finite logits (a diverged victim)
+                    raise TrainingError(f"step {step}: the loss of frame {frame.frame_id} is not finite ({exc}); "
+                                        f"stopping ({self._resume_hint()})") from exc
                 if terms:
                     lidar = torch.stack(terms).sum()
                     sums["lidar"] += lidar.item()

@@ -111,6 +111,23 @@ def _greedy(pairs: CandidatePairs, n_config: int, key_of) -> Assignments:
     return Assignments(cat(chosen_k), cat(chosen_g), cat(chosen_d), paired, assigned)
 
 
+def collect_tp_detections(pairs: CandidatePairs, gt_status: np.ndarray, det_status: np.ndarray,
+                          score: np.ndarray) -> list[np.ndarray]:
+    """Pass 1 as detection indices: per difficulty, which detections are true positives (arguments as in
+    :func:`collect_tp_scores`)."""
+    n_diff = det_status.shape[0]
+    paired = np.unique(pairs.det)
+    usable = ((det_status[:, paired] != -1) & (score[paired] > NO_DETECTION)[None, :]).T  # (Dp, 3)
+    paired_score = score[paired][:, None]
+
+    def key_of(loc: np.ndarray, overlap: np.ndarray, assigned: np.ndarray) -> np.ndarray:
+        return np.where(usable[loc] & ~assigned[loc], paired_score[loc], -np.inf)
+
+    a = _greedy(pairs, n_diff, key_of)
+    tp = (gt_status[a.config, a.gt] == 0) & (det_status[a.config, a.det] == 0)
+    return [a.det[tp & (a.config == k)] for k in range(n_diff)]
+
+
 def collect_tp_scores(pairs: CandidatePairs, gt_status: np.ndarray, det_status: np.ndarray,
                       score: np.ndarray) -> list[np.ndarray]:
     """Pass 1: per difficulty, the scores of the true positives (highest-score matching).
@@ -122,17 +139,7 @@ def collect_tp_scores(pairs: CandidatePairs, gt_status: np.ndarray, det_status: 
     Returns:
         Three arrays of TP scores (unsorted), easy, moderate, hard.
     """
-    n_diff = det_status.shape[0]
-    paired = np.unique(pairs.det)
-    usable = ((det_status[:, paired] != -1) & (score[paired] > NO_DETECTION)[None, :]).T  # (Dp, 3)
-    paired_score = score[paired][:, None]
-
-    def key_of(loc: np.ndarray, overlap: np.ndarray, assigned: np.ndarray) -> np.ndarray:
-        return np.where(usable[loc] & ~assigned[loc], paired_score[loc], -np.inf)
-
-    a = _greedy(pairs, n_diff, key_of)
-    tp = (gt_status[a.config, a.gt] == 0) & (det_status[a.config, a.det] == 0)
-    return [score[a.det[tp & (a.config == k)]] for k in range(n_diff)]
+    return [score[d] for d in collect_tp_detections(pairs, gt_status, det_status, score)]
 
 
 def assign_at_thresholds(pairs: CandidatePairs, config_difficulty: np.ndarray, config_threshold: np.ndarray,

@@ -24,7 +24,9 @@ BENCHMARKS: dict[str, str] = {
     "synth": "robustbench3d.synth.bench:run",
     "onnx": "robustbench3d.victims.onnx.bench:run",
     "victim": "robustbench3d.victims.bench:run",
+    "fpn-train": "robustbench3d.victims.fpointnet.bench_train:run",
     "attack": "robustbench3d.attacks.bench:run",
+    "bootstrap": "robustbench3d.eval.bench_bootstrap:run",
 }
 
 

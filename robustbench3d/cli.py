@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "data stats": ("robustbench3d.dataset_stats", "LiDAR/label statistics of KITTI-layout datasets, side by side"),
     "eval": ("robustbench3d.eval.cli", "score KITTI result files against ground-truth labels"),
     "show": ("robustbench3d.show", "draw a frame: image with 3D boxes and a bird's-eye view of the scan"),
+    "report": ("robustbench3d.report.cli", "leaderboard of runs: sortable HTML page and markdown with figures"),
     "attack apply": ("robustbench3d.attack_apply", "write an attacked copy of a dataset split (KITTI layout + meshes)"),
     "attack check": ("robustbench3d.attack_check", "check an attacked dataset geometrically against its clean one"),
     "attack train": ("robustbench3d.attack_train", "optimise a universal roof object against a white-box victim"),
@@ -34,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export-onnx": ("robustbench3d.victims.onnx.export_command", "export an F-PN cascade victim as per-stage ONNX"),
     "parity": ("robustbench3d.victims.onnx.parity_command", "torch vs onnxruntime parity: tensors, boxes, AP"),
     "bench": ("robustbench3d.bench", "run speed/memory benchmarks and print a table"),
+    "check": ("robustbench3d.gate", "regression gate: compare a run's AP and AP drops with a baseline"),
 }
 
 

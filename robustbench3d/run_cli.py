@@ -34,6 +34,29 @@ def parse_factory_args(items: list[str] | None, option: str) -> dict[str, dict[s
     return out
 
 
+def frames_line(requested: int | None, full: bool, data: str | None, split: str) -> str:
+    """The line ``run`` prints first: which frames of which split it evaluates (``requested``: the
+    ``--max-frames`` given), and how to get all."""
+    from robustbench3d.runner.config import default_max_frames
+
+    max_frames = default_max_frames(requested, full, data, split)
+    if data is not None:
+        where = f"split {split} of {data}"
+        return (f"frames: the first {max_frames} of {where} (--max-frames)" if max_frames is not None
+                else f"frames: every frame of {where}")
+    from robustbench3d.datasets import EMBEDDED, embedded_split
+
+    ids = embedded_split(EMBEDDED, split)
+    if ids is None:  # not a split of the embedded dataset: resolving it names the problem
+        return f"frames: split {split} of the embedded dataset"
+    where = f"the embedded {split} split"
+    if max_frames is None or max_frames >= len(ids):
+        return f"frames: all {len(ids)} frames of {where}{' (--full)' if full else ''}"
+    how = "--max-frames" if requested is not None else "the quick default, runner.config.DEFAULT_VAL_FRAMES"
+    return (f"frames: the first {max_frames} of the {len(ids)} frames of {where}, {ids[0]}..{ids[max_frames - 1]} "
+            f"({how}); --full runs all {len(ids)}")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--victims", required=True, metavar="NAME[,NAME...]",
                         help="registered victims, or ONNX victim directories (registered under their directory name)")
@@ -50,7 +73,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="KITTI-layout dataset root (default: the embedded procedural dataset in the cache, "
                              "generated if missing)")
     parser.add_argument("--split", default="val", help="split name, ImageSets/<split>.txt (default: val)")
-    parser.add_argument("--max-frames", type=int, metavar="N", help="evaluate only the first N frames of the split")
+    parser.add_argument("--max-frames", type=int, metavar="N",
+                        help="evaluate only the first N frames of the split (default on the embedded val split: "
+                             "the first DEFAULT_VAL_FRAMES, see --full; elsewhere: all)")
+    parser.add_argument("--full", action="store_true",
+                        help="evaluate the whole split (the embedded val split's default is a first-N slice)")
     parser.add_argument("--seed", type=int, default=0, metavar="S",
                         help="run seed: attack randomness per frame, and seed= of victims that take one (default 0)")
     parser.add_argument("--batch-size", type=int, default=4, metavar="B", help="frames per detect call (default 4)")
@@ -61,6 +88,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keyword argument of an attack's factory (repeatable)")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, metavar="W",
                         help="processes generating the embedded dataset if it is missing (default: CPUs)")
+    parser.add_argument("--executor", choices=("local", "ray"), default="local",
+                        help="where frame shards of the cells run: local worker processes, or a Ray cluster "
+                             "(docs/executors.md; default: local)")
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, metavar="J",
+                        help="worker processes (local; 1: everything in this process) or CPUs of the local Ray "
+                             "cluster started without --address (default: CPUs)")
+    parser.add_argument("--address", metavar="ADDR", help="a running Ray cluster to join (--executor ray)")
+    parser.add_argument("--bootstrap", type=int, default=1000, metavar="R",
+                        help="bootstrap resamples of the frames for the 95 %% confidence interval of every AP and "
+                             "(paired) AP drop; 0: none (default 1000)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars on stderr")
 
 
@@ -70,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
     from robustbench3d.attacks.controls import resolve_attack_references
     from robustbench3d.fileio import check_output_dir, remove_created_dir
     from robustbench3d.runner import RunConfig, run_benchmark, summary_table
+    from robustbench3d.runner.config import default_max_frames
     from robustbench3d.seed_table import SEED_TABLE_FILE, seed_table_text
     from robustbench3d.victims import resolve_victim_references
 
@@ -80,16 +118,29 @@ def run(args: argparse.Namespace) -> int:
                                                      parse_factory_args(args.victim_arg, "--victim-arg"))
     attacks, attack_args = resolve_attack_references(_names(args.attacks),
                                                      parse_factory_args(args.attack_arg, "--attack-arg"))
+    max_frames = default_max_frames(args.max_frames, args.full, args.data, args.split)
+    print(frames_line(args.max_frames, args.full, args.data, args.split), file=sys.stderr, flush=True)
     config = RunConfig(
         victims=tuple(victims), attacks=tuple(attacks),
         proposals=tuple(_names(args.proposals)), out=args.out, data=args.data, split=args.split,
-        max_frames=args.max_frames, seed=args.seed, batch_size=args.batch_size,
+        max_frames=max_frames, seed=args.seed, batch_size=args.batch_size,
         victim_args=victim_args,
         attack_args=attack_args,
-        workers=args.workers, progress=not args.no_progress,
+        workers=args.workers, progress=not args.no_progress, bootstrap=args.bootstrap,
     )
+    from robustbench3d.runner.executors import make_executor
+
+    executor = make_executor(args.executor, args.jobs, args.address)
+    if executor is None:  # one intra-op thread, as in every worker process: the same result files
+        from robustbench3d.runner.shards import worker_setup
+
+        worker_setup()
     try:
-        report = run_benchmark(config)
+        if executor is None:
+            report = run_benchmark(config)
+        else:
+            with executor:
+                report = run_benchmark(config, executor=executor)
     except BaseException:
         if created:  # a run that failed before writing any result leaves no directory behind
             remove_created_dir(out)

@@ -86,8 +86,26 @@ def paper_relative_drop(row: PaperRow) -> float:
     return (PAPER_CLEAN.bev[1] - row.bev[1]) / PAPER_CLEAN.bev[1]
 
 
-def _aps(get: Callable[[str], float | None], fmt: str) -> str:
-    """E M H values of ``get(difficulty)``; ``-`` if any is missing."""
+def interval(cell: CellResult, cls: str, metric: str, recall: str, difficulty: str, drop: bool = False
+             ) -> list[float] | None:
+    """The bootstrap 95 % interval of a cell's AP (``metrics_ci``) or, with ``drop``, of its paired drop
+    (``attack_effect.drop_ci``); None where the summary has none."""
+    table = (cell.effect or {}).get("drop_ci") if drop else cell.cell.get("metrics_ci")
+    try:
+        return None if table is None else table[cls][metric][recall][difficulty]
+    except KeyError:
+        return None
+
+
+def with_interval(text: str, ci: list[float] | None) -> str:
+    """``text [lo, hi]`` (one decimal), or ``text`` without an interval."""
+    return text if ci is None else f"{text} [{ci[0]:.1f}, {ci[1]:.1f}]"
+
+
+def _aps(get: Callable[[str], float | None], fmt: str,
+         ci: Callable[[str], list[float] | None] | None = None) -> str:
+    """E M H values of ``get(difficulty)`` (each followed by ``[lo, hi]`` where ``ci`` gives one); ``-`` if
+    any is missing."""
     values = []
     for d in DIFFICULTIES:
         try:
@@ -96,7 +114,7 @@ def _aps(get: Callable[[str], float | None], fmt: str) -> str:
             return _NONE
         if value is None:
             return _NONE
-        values.append(format(value, fmt))
+        values.append(with_interval(format(value, fmt), ci(d) if ci is not None else None))
     return " ".join(values)
 
 
@@ -120,8 +138,8 @@ def _row(spec: SeedRow, cell: CellResult) -> list[str]:
     paper = spec.paper
     return [
         spec.name, spec.proposals,
-        _aps(lambda d: cell.ap(CLASS, METRIC, "R40", d), "6.2f"),
-        _aps(lambda d: cell.ap(CLASS, METRIC, "R11", d), "6.2f"),
+        _aps(lambda d: cell.ap(CLASS, METRIC, "R40", d), "6.2f", lambda d: interval(cell, CLASS, METRIC, "R40", d)),
+        _aps(lambda d: cell.ap(CLASS, METRIC, "R11", d), "6.2f", lambda d: interval(cell, CLASS, METRIC, "R11", d)),
         _aps(lambda d: cell.clean_ap(CLASS, METRIC, "R40", d), "6.2f") if attacked else _NONE,
         _relative(cell) if attacked else _NONE,
         _percent(cell.attack_success_rate) if attacked else _NONE,
@@ -215,12 +233,21 @@ def _notes(section: VictimSection) -> list[str]:
     return notes
 
 
+def _legend(cells: Sequence[dict[str, Any]]) -> str:
+    """The legend, plus what ``[lo, hi]`` means when some cell carries bootstrap intervals."""
+    meta = next((c["metrics_ci"]["meta"] for c in cells if c.get("metrics_ci")), None)
+    if meta is None:
+        return LEGEND
+    return (f"{LEGEND}; [lo, hi] = {100 * meta['level']:.0f} % bootstrap interval over frames "
+            f"({meta['resamples']} resamples)")
+
+
 def seed_table_text(cells: Sequence[dict[str, Any]]) -> str:
     """The layout as plain text (:func:`robustbench3d.texttable.format_table`), one section per victim."""
     secs = sections(cells)
     if (empty := _no_layout(secs)) is not None:
         return f"{TITLE}: {empty}"
-    lines = [f"{TITLE}: {_subtitle(cells)}", LEGEND]
+    lines = [f"{TITLE}: {_subtitle(cells)}", _legend(cells)]
     for section in secs:
         lines.append(f"victim {section.victim}, {section.frames} frames")
         if section.rows:
@@ -245,7 +272,7 @@ def seed_table_markdown(cells: Sequence[dict[str, Any]]) -> str:
     lines = [f"# {TITLE}", ""]
     if (empty := _no_layout(secs)) is not None:
         return "\n".join([*lines, empty[0].upper() + empty[1:] + ".", ""])
-    lines += [f"{_subtitle(cells)}; {LEGEND}.", ""]
+    lines += [f"{_subtitle(cells)}; {_legend(cells)}.", ""]
     for section in secs:
         lines += [f"## {section.victim}", "", f"{section.frames} frames.", ""]
         if section.rows:

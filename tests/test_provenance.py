@@ -64,16 +64,20 @@ def test_digest_changes_when_a_label_file_changes_and_comes_back_when_restored(t
     assert identity(root)["sha256"] == before
 
 
-def test_digest_covers_split_order_and_the_whole_split(tmp_path):
+def test_digest_covers_split_order_and_the_evaluated_frames(tmp_path):
     a = identity(labels_only_dataset(tmp_path / "a"))
     b = identity(labels_only_dataset(tmp_path / "b", split=["000009", "000003", "000007"]))
     assert a["sha256"] != b["sha256"]
-    # --max-frames evaluates fewer frames, but the identity still covers every label file of the split
+    # --max-frames: the identity covers the evaluated frames (ids in order, label files), not the rest of
+    # the split, which a lazily generated dataset need not hold
     root = tmp_path / "a"
     short = identity(root, max_frames=1)
-    assert short["sha256"] == a["sha256"] and short["frames"] == 1 and short["last_frame"] == "000003"
-    (root / "training" / "label_2" / "000009.txt").write_text("")
-    assert identity(root, max_frames=1)["sha256"] != a["sha256"]
+    assert short["sha256"] == digest_by_hand(["000003"], [LABELS["000003"]])
+    assert (short["frames"], short["split_frames"], short["last_frame"]) == (1, 3, "000003")
+    (root / "training" / "label_2" / "000009.txt").unlink()
+    assert identity(root, max_frames=1)["sha256"] == short["sha256"]
+    (root / "training" / "label_2" / "000003.txt").write_text(LABELS["000003"].replace("24.24", "24.25"))
+    assert identity(root, max_frames=1)["sha256"] != short["sha256"]
 
 
 def test_missing_or_malformed_label_file_names_the_file(tmp_path):

@@ -100,7 +100,10 @@ def test_lidar_cluster_end_to_end(dataset, tmp_path, capsys):
     # the printed table shows BEV and 3D AP with both recall samplings
     bev40 = metrics["Car"]["bev"]["R40"]
     assert "BEV R40 (E M H)" in printed and "3D R11 (E M H)" in printed
-    assert " ".join(f"{bev40[d]:6.2f}" for d in ("easy", "moderate", "hard")) in printed
+    ci = det["metrics_ci"]["Car"]["bev"]["R40"]  # the run's default: 1000-resample bootstrap intervals
+    assert det["metrics_ci"]["meta"]["resamples"] == 1000
+    assert " ".join(f"{bev40[d]:6.2f} [{ci[d][0]:.1f}, {ci[d][1]:.1f}]" for d in ("easy", "moderate", "hard")
+                    ) in printed
 
     prov = det["provenance"]
     assert prov["seed"] == 0 and prov["run"]["victims"] == ["lidar-cluster"]
@@ -183,6 +186,19 @@ VICTIMS.register("test-broken-victim", VictimSpec(
     info=EntryInfo(Capabilities(modalities=("lidar",), backend="other", gradients=False, deterministic=True))))
 
 
+def _unloadable_victim():
+    """TEST ONLY: a factory that fails as a victim without weights does (every F-PN victim ships some)."""
+    from robustbench3d.errors import RobustBenchError
+
+    raise RobustBenchError("victim 'test-unloadable-victim' has no shipped weights; pass --victim-arg "
+                           "test-unloadable-victim:weights=FILE")
+
+
+VICTIMS.register("test-unloadable-victim", VictimSpec(
+    factory=_unloadable_victim,
+    info=EntryInfo(Capabilities(modalities=("lidar",), backend="other", gradients=False, deterministic=True))))
+
+
 @register_attack("test-camera-texture", requirements=AttackRequirements(needs_camera=True),
                  summary="TEST ONLY: a camera-only attack that must never be applied to a LiDAR-only victim")
 class CameraOnlyAttack(Attack):
@@ -195,7 +211,7 @@ class CameraOnlyAttack(Attack):
 
 def test_failing_victims_make_error_cells_and_the_run_goes_on(dataset, tmp_path, capsys):
     out = tmp_path / "run"
-    rc = run_cli(dataset, out, victims="test-broken-victim,fpointnet-v1,lidar-cluster", proposals="detector")
+    rc = run_cli(dataset, out, victims="test-broken-victim,test-unloadable-victim,lidar-cluster", proposals="detector")
     assert rc == 1
     assert "2 of 3 cells failed" in capsys.readouterr().err
     broken, fpn, good = read_summary(out / "summary.json")
@@ -205,7 +221,7 @@ def test_failing_victims_make_error_cells_and_the_run_goes_on(dataset, tmp_path,
     assert "simulated crash" in broken["provenance"]["traceback"]
     assert fpn["status"] == "error" and "no shipped weights" in fpn["reason"] and "--victim-arg" in fpn["reason"]
     assert good["status"] == "ok" and good["metrics"]["meta"]["frames"] == FRAMES
-    for cell in ("test-broken-victim+none+detector", "fpointnet-v1+none+detector"):
+    for cell in ("test-broken-victim+none+detector", "test-unloadable-victim+none+detector"):
         assert not (out / "cells" / cell / "data").exists() and not (out / "cells" / cell / "data.partial").exists()
     # error cells are retried on the next run, finished ones are not
     report = run_benchmark(RunConfig(victims=("test-broken-victim", "lidar-cluster"), attacks=("none",),

@@ -255,7 +255,7 @@ def fake_run(monkeypatch):
 
     state: dict = {"fail": None}
 
-    def run_benchmark(config):
+    def run_benchmark(config, executor=None):
         if state["fail"] is not None:
             if state["fail"] == "after-lock":  # the real runner removes the derived summary first
                 (Path(config.out) / "summary.json").unlink(missing_ok=True)

@@ -494,9 +494,9 @@ def test_circular_means_equal_the_per_slice_circular_mean_bit_for_bit():
 
 
 def test_batched_albedo_and_culls_equal_the_per_mesh_ones():
-    """The stacked-colour interpolation of the hits equals the per-mesh one bit for bit (grey meshes, torch
-    colours, a colour table of the wrong length falls back), and the stacked bounding spheres cull the same
-    rays as culling each mesh alone."""
+    """The stacked-colour interpolation of the hits equals interpolating hit by hit in each mesh's own colours
+    (grey meshes, torch colours), a colour table of the wrong length is refused, and the stacked bounding
+    spheres cull the same rays as culling each mesh alone."""
     from robustbench3d.sensors.lidar_render import _albedo, _culled_rays, _mesh_tensors
 
     rng = np.random.default_rng(3)
@@ -520,13 +520,18 @@ def test_batched_albedo_and_culls_equal_the_per_mesh_ones():
     counts = [len(m[0]) for m in meshes]
     off = np.cumsum([0, *counts])
     corners = np.stack([np.asarray(meshes[i][1])[j] + off[i] for i, j in zip(mesh, face, strict=True)])
-    loop = _albedo(meshes, mesh, face, u, v)
-    assert (loop[mesh == 2] == np.float32(0.5)).all()
-    assert _albedo(meshes, mesh, face, u, v, corners, counts).tobytes() == loop.tobytes()
+    want = np.full((n, 3), 0.5)
+    for h in range(n):  # hit by hit: (1 - u - v) c0 + u c1 + v c2 of the hit face's own vertex colours
+        col = meshes[mesh[h]][2]
+        if col is not None:
+            c = np.asarray(col, dtype=np.float64)[np.asarray(meshes[mesh[h]][1])[face[h]]]
+            want[h] = (1 - u[h] - v[h]) * c[0] + u[h] * c[1] + v[h] * c[2]
+    got = _albedo(meshes, mesh, u, v, corners, counts)
+    assert (got[mesh == 2] == np.float32(0.5)).all()
+    np.testing.assert_allclose(got, want.astype(np.float32), rtol=0, atol=1e-7)
     short = [*meshes[:1], (meshes[1][0], meshes[1][1], meshes[1][2][:-1]), *meshes[2:]]
-    keep = mesh != 1  # the short table is never indexed past its end
-    assert (_albedo(short, mesh[keep], face[keep], u[keep], v[keep], corners[keep], counts).tobytes()
-            == loop[keep].tobytes())
+    with pytest.raises(ValueError, match=r"field 'meshes\[1\]': albedo must be \(V, 3\) = \(162, 3\)"):
+        render_lidar(prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64)), short)
 
 
 def test_nearest_and_near_rays_equal_a_brute_force_over_the_lasers_rays():

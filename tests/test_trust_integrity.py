@@ -130,12 +130,16 @@ def run(dataset: Path, out: Path, proposals: tuple[str, ...], victims: tuple[str
 def test_victims_never_receive_labels_and_gt_mode_gets_exactly_the_2d_boxes(dataset, tmp_path):
     RECORD.clear()
     run(dataset, tmp_path / "run", ("detector", "gt"))
-    by_mode = {"detector": RECORD[:2], "gt": RECORD[2:]}  # 4 frames in batches of 3: two calls per cell
-    assert len(RECORD) == 4
+    # 4 frames in batches of 3: two calls per cell; then the determinism flag's probe, two calls on the first
+    # frame per cell (runner.flags), which must see no more than the cells' calls
+    by_mode = {"detector": RECORD[:2], "gt": RECORD[2:4]}
+    probes = {"detector": RECORD[4:6], "gt": RECORD[6:]}
+    assert len(RECORD) == 8
     ids = [f"{i:06d}" for i in range(FRAMES)]
     for mode, calls in by_mode.items():
         assert [f.frame_id for c in calls for f in c["frames"]] == ids
-        for call in calls:
+        assert [f.frame_id for c in probes[mode] for f in c["frames"]] == [ids[0], ids[0]]
+        for call in calls + probes[mode]:
             assert all(f.labels is None for f in call["frames"])
             assert not any(isinstance(o, Labels) for o in call["reachable"]), mode
             assert call["paths"] == [], mode
@@ -145,7 +149,7 @@ def test_victims_never_receive_labels_and_gt_mode_gets_exactly_the_2d_boxes(data
             if mode == "detector":
                 assert call["proposals"] == "detector" and strings == frame_strings | {"detector"}
     assert {f.name for f in dataclasses.fields(Proposals)} == {"boxes", "scores", "source", "types"}
-    for call in by_mode["gt"]:
+    for call in by_mode["gt"] + probes["gt"]:
         props = call["proposals"]
         assert isinstance(props, list) and len(props) == len(call["frames"])
         for frame, p in zip(call["frames"], props, strict=True):
@@ -216,7 +220,7 @@ def test_summary_lists_every_comparable_finished_cell_of_the_directory(dataset, 
     shorter = run(dataset, out, ("gt",), max_frames=2, seed=1)
     assert shorter.earlier == []
     assert shorter.left_out == [f"{SNOOP}+none+detector: another dataset: frames 4 (this run: 2); "
-                                "last_frame '000003' (this run: '000001')"]
+                                "last_frame '000003' (this run: '000001'); sha256 differs"]
 
 
 def test_a_nan_result_is_reported_without_a_missing_file(dataset, tmp_path):

@@ -19,6 +19,7 @@ from robustbench3d.victims.base import (
     VictimSpec,
     check_victim,
 )
+from robustbench3d.victims.shipped import shipped
 from robustbench3d.victims.spec import Capabilities, EntryInfo
 
 
@@ -28,8 +29,8 @@ def test_in_tree_victims_are_registered_with_metadata():
     assert isinstance(spec, VictimSpec)
     cap = spec.info.capabilities
     assert cap.modalities == ("camera", "lidar") and cap.backend == "torch" and cap.gradients and cap.deterministic
-    assert spec.info.weights_sha256 is None  # the full v1 network ships no weights
-    assert VICTIMS.get("fpointnet-v1-lite").info.weights_sha256 is not None  # the lite cascade does
+    for name in ("fpointnet-v1", "fpointnet-v1-lite"):  # both cascades ship weights (issue 17: the full one)
+        assert VICTIMS.get(name).info.weights_sha256 == shipped(name).sha256
 
 
 def test_listing_does_not_import_torch():
@@ -40,9 +41,9 @@ def test_listing_does_not_import_torch():
     assert out.stdout.strip() == "False"
 
 
-def test_factory_refuses_to_run_without_weights_unless_asked():
-    with pytest.raises(RobustBenchError, match="no shipped weights"):
-        create_victim("fpointnet-v1")
+def test_factory_refuses_to_run_without_weights_unless_asked(tmp_path):
+    with pytest.raises(RobustBenchError, match="no such cascade weights file"):
+        create_victim("fpointnet-v1", weights=tmp_path / "missing.pt")
     victim = create_victim("fpointnet-v1-lite", allow_untrained=True)
     assert isinstance(victim, Detector)
     assert isinstance(victim, ImageObjectnessOracle) and isinstance(victim, FrustumSegmentationOracle)
@@ -77,7 +78,8 @@ def test_victims_list_cli(capsys):
     assert {"fpointnet-v1", "fpointnet-v1-lite"} <= set(by_name) <= {"fpointnet-v1", "fpointnet-v1-lite",
                                                                      "fpointnet-v1-lite-onnx"}
     assert by_name["fpointnet-v1"]["capabilities"]["modalities"] == ["camera", "lidar"]
-    assert by_name["fpointnet-v1"]["weights_sha256"] is None and by_name["fpointnet-v1"]["origin"] == "in-tree"
+    assert by_name["fpointnet-v1"]["weights_sha256"] == shipped("fpointnet-v1").sha256
+    assert by_name["fpointnet-v1"]["origin"] == "in-tree"
     assert main(["victims", "list"]) == 0
     table = capsys.readouterr().out.splitlines()
     assert table[0].split()[:3] == ["name", "modalities", "backend"]

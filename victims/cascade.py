@@ -67,6 +67,21 @@ from robustbench3d.victims.yolo.config import YoloConfig
 from robustbench3d.victims.yolo.detector import YoloDetector, candidates_for_targets
 from robustbench3d.victims.yolo.model import Darknet
 
+#: Inference precisions of :meth:`FPointNetCascade.detect`'s frustum stages (victim kwarg ``precision``).
+PRECISIONS = ("float32", "bfloat16")
+
+
+class BFloat16FrustumStages(TorchFrustumStages):
+    """The frustum stages under ``torch.autocast("cpu", dtype=torch.bfloat16)`` (convolutions and matrix
+    products in bfloat16, as autocast chooses), outputs returned as float32."""
+
+    def _run(self, module: torch.nn.Module, points: np.ndarray, one_hot: np.ndarray) -> np.ndarray:  # type: ignore[override]
+        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16):
+            out = module(torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32)),
+                         torch.from_numpy(np.ascontiguousarray(one_hot, dtype=np.float32)))
+        return out.float().numpy()
+
+
 #: Temperature of the straight-through mask of :meth:`FPointNetCascade.frustum_box` (see
 #: :meth:`~robustbench3d.victims.fpointnet.model.FrustumPointNetV1.forward`).
 BOX_ORACLE_TEMPERATURE = 1.0
@@ -82,6 +97,15 @@ class FPointNetCascade:
         self.fpn = fpn.eval()
         self.settings = settings or CascadeSettings()
         self.car_class = self.yolo.cfg.class_names.index("Car")
+        self.precision = "float32"
+
+    def with_precision(self, precision: str) -> FPointNetCascade:
+        """Set the precision of :meth:`detect`'s frustum stages (one of :data:`PRECISIONS`; the 2D stage and
+        the attack oracles stay float32); returns ``self``."""
+        if precision not in PRECISIONS:
+            raise RobustBenchError(f"victim argument 'precision': {precision!r} is not one of {', '.join(PRECISIONS)}")
+        self.precision = precision
+        return self
 
     # ---- construction ------------------------------------------------------------------
     @property
@@ -146,7 +170,8 @@ class FPointNetCascade:
         """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes,
         i.e. proposals with ``source="gt"``)."""
         return detect_frames(frames, proposals, detect_2d=self.yolo.detect, car_class=self.car_class,
-                             stages=TorchFrustumStages(self.fpn), settings=self.settings,
+                             stages=(BFloat16FrustumStages if self.precision == "bfloat16" else TorchFrustumStages)(
+                                 self.fpn), settings=self.settings,
                              num_points=self.num_points, num_object_points=self.fpn.cfg.num_object_points)
 
     # ---- ImageObjectnessOracle --------------------------------------------------------

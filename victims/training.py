@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -158,6 +159,7 @@ def run(task: TrainingTask, out_dir: str | Path, options: LoopOptions, resume: b
         bar = tqdm(total=len(batches), initial=state["batch"], desc=f"epoch {epoch + 1}/{options.epochs}",
                    file=sys.stderr, disable=not options.progress, leave=False)
         sums: dict[str, float] = state.get("running", {})
+        t_epoch = time.perf_counter()
         for bi in range(state["batch"], len(batches)):
             rng = np.random.default_rng([options.seed, epoch, bi])
             generator = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))
@@ -185,17 +187,21 @@ def run(task: TrainingTask, out_dir: str | Path, options: LoopOptions, resume: b
                 bar.close()
                 return state
         bar.close()
+        t_train = time.perf_counter() - t_epoch
         task.model.eval()
         with torch.no_grad():
             val = task.evaluate()
         count = max(sums.pop("_count", 1.0), 1.0)
+        seconds = state.setdefault("seconds", {"train": 0.0, "val": 0.0})  # wall time, outside the log
+        seconds["train"] += t_train
+        seconds["val"] += time.perf_counter() - t_epoch - t_train
         record = {"epoch": epoch + 1, "step": state["step"],
                   **{f"train_{k}": v / count for k, v in sums.items()}, **{f"val_{k}": v for k, v in val.items()}}
         state["history"].append(record)
         state.update(epoch=epoch + 1, batch=0, running={})
         checkpoint()
         atomic_write_text(out / LOG, "".join(json.dumps(r, sort_keys=True) + "\n" for r in state["history"]))
-        print(json.dumps(record, sort_keys=True), file=sys.stderr)
+        print(json.dumps({**record, "epoch_train_seconds": round(t_train, 3)}, sort_keys=True), file=sys.stderr)
     state["finished"] = True
     _save(out / MODEL, task.export())
     return state

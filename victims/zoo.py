@@ -52,9 +52,11 @@ def _cascade(name: str, fpn_config: str, weights: str | Path | None, yolo_weight
                  summary="YOLO 2D stage -> Frustum-PointNet v1 (1024 pts), KITTI Car")
 def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
                  fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,
-                 seed: int = 0, gather: str = "random") -> FPointNetCascade:
-    """The F-PN v1 cascade with the full v1 network (§1.6)."""
-    return _cascade("fpointnet-v1", "full", weights, yolo_weights, fpointnet_weights, allow_untrained, seed, gather)
+                 seed: int = 0, gather: str = "random", precision: str = "float32") -> FPointNetCascade:
+    """The F-PN v1 cascade with the full v1 network (§1.6); ``precision="bfloat16"`` runs the frustum
+    stages of ``detect`` under bfloat16 autocast."""
+    return _cascade("fpointnet-v1", "full", weights, yolo_weights, fpointnet_weights, allow_untrained, seed,
+                    gather).with_precision(precision)
 
 
 @register_victim("fpointnet-v1-lite", capabilities=CASCADE_CAPABILITIES,
@@ -62,7 +64,8 @@ def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path 
                  summary="mini3-YOLO 960x288 -> Frustum-PointNet v1 lite (512 pts, CPU config)")
 def fpointnet_v1_lite(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
                       fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,
-                      seed: int = 0, gather: str = "random") -> FPointNetCascade:
-    """The cascade with the "lite" F-PN config (N = 512, global feature 256, seg head 128-64)."""
+                      seed: int = 0, gather: str = "random", precision: str = "float32") -> FPointNetCascade:
+    """The cascade with the "lite" F-PN config (N = 512, global feature 256, seg head 128-64);
+    ``precision="bfloat16"`` runs the frustum stages of ``detect`` under bfloat16 autocast."""
     return _cascade("fpointnet-v1-lite", "lite", weights, yolo_weights, fpointnet_weights, allow_untrained,
-                    seed, gather)
+                    seed, gather).with_precision(precision)

@@ -17,7 +17,7 @@ import numpy as np
 
 from robustbench3d.errors import DataFormatError
 from robustbench3d.kitti.calib import Calibration, read_calibration
-from robustbench3d.kitti.image import check_image_fits_calibration, read_image
+from robustbench3d.kitti.image import check_image_fits_calibration, read_image, read_image_size
 from robustbench3d.kitti.labels import Labels, read_labels
 from robustbench3d.kitti.splits import read_split
 from robustbench3d.kitti.velodyne import read_scan
@@ -99,6 +99,26 @@ class LazyImageFrame(Frame):
         return int(self.size[0]), int(self.size[1])
 
 
+@dataclass(frozen=True, eq=False)
+class FileImageFrame(LazyImageFrame):
+    """A :class:`LazyImageFrame` whose image is a dataset file decoded on first access
+    (:meth:`KittiDataset.lazy_frame`). Its size comes from the file's header; a file that cannot be
+    decoded raises :class:`DataFormatError` naming it, as an eager read does (bad input, not a
+    deferred failure). ``make_image`` is a plain function that decodes once for the frame and its
+    copies; it is not wrapped, so nothing but the frame's data is reachable through its attributes
+    (a victim must not find the dataset's paths there)."""
+
+    def __post_init__(self) -> None:
+        pass
+
+    def __getattr__(self, name: str) -> np.ndarray:  # only called while ``image`` is not yet set
+        if name != "image":
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        image = self.make_image()
+        object.__setattr__(self, "image", image)
+        return image
+
+
 class KittiDataset:
     """Frames of ``root/<subset>`` listed by ``root/ImageSets/<split>.txt`` (or every frame found).
 
@@ -140,6 +160,31 @@ class KittiDataset:
         calib = self.calib(frame_id)
         check_image_fits_calibration((image.shape[1], image.shape[0]), calib, path, self.path("calib", frame_id))
         return image, calib
+
+    def image_size(self, frame_id: str) -> tuple[int, int]:
+        """(width, height) of the frame's image from its file header (no pixel is decoded)."""
+        return read_image_size(self.path("image", frame_id))
+
+    def lazy_frame(self, frame_id: str, labels: Labels | None) -> FileImageFrame:
+        """The frame with ``labels``: scan and calibration read now, the image decoded on first
+        access (a consumer that never reads it, like a victim given ground-truth 2D boxes, never pays
+        for it). The header's size is checked against the calibration now, as :meth:`image` does."""
+        path, calib = self.path("image", frame_id), self.calib(frame_id)
+        size = read_image_size(path)
+        check_image_fits_calibration(size, calib, path, self.path("calib", frame_id))
+
+        decoded: list[np.ndarray] = []
+
+        def decode() -> np.ndarray:
+            if not decoded:
+                image = read_image(path)
+                if (int(image.shape[1]), int(image.shape[0])) != size:
+                    raise DataFormatError(path, f"decoded size {image.shape[1]}x{image.shape[0]} differs from "
+                                          f"the header's {size[0]}x{size[1]}")
+                decoded.append(image)
+            return decoded[0]
+
+        return FileImageFrame(frame_id, self.scan(frame_id), calib, labels, size, decode)
 
     def scan(self, frame_id: str) -> np.ndarray:
         return read_scan(self.path("scan", frame_id))

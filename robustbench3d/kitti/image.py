@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from robustbench3d.errors import DataFormatError
-from robustbench3d.fileio import atomic_write_bytes, read_data_bytes
+from robustbench3d.fileio import atomic_write_bytes, data_file_errors, read_data_bytes
 
 if TYPE_CHECKING:
     from PIL.Image import Image as PILImage
@@ -48,6 +48,21 @@ def read_image(path: str | Path) -> np.ndarray:
         raise DataFormatError(path, f"unreadable image ({exc.__class__.__name__}: {exc})") from None
     with im:
         return _to_rgb(im, path)
+
+
+def read_image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image file from its header alone (the pixels are not decoded)."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    with data_file_errors(path):
+        f = open(path, "rb")  # noqa: SIM115 - closed below, after Pillow has read the header
+    with f:
+        try:
+            with Image.open(f) as im:
+                return int(im.size[0]), int(im.size[1])
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+            raise DataFormatError(path, f"unreadable image ({exc.__class__.__name__}: {exc})") from None
 
 
 def _to_rgb(im: PILImage, path: Path) -> np.ndarray:

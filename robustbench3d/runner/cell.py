@@ -8,13 +8,17 @@ victim *without* labels in every mode (:func:`~robustbench3d.victims.base.victim
 Detections are written as KITTI result files into ``data.partial/`` (one file per frame, empty
 for no detection), parsed back and evaluated: the metrics are those of the files on disk.
 ``data.partial/`` becomes ``data/`` once the cell is done.
+
+:func:`detect_frames` (attack, detect, write) is the one loop over frames: :func:`run_cell` runs it over
+the whole cell in this process, the frame shards of :mod:`robustbench3d.runner.shards` over their
+frames in worker processes.
 """
 
 from __future__ import annotations
 
 import shutil
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,6 +37,8 @@ from robustbench3d.victims.base import victim_inputs
 ATTACK_STREAM = 0x41545443  # "ATTC"
 PARTIAL = "data.partial"
 DATA = "data"
+#: Per-shard completion records of a cell computed in frame shards (:mod:`robustbench3d.runner.shards`).
+SHARD_MARKS = "shards.partial"
 
 
 class CellFailure(RobustBenchError):
@@ -54,12 +60,8 @@ class CellInputs:
     batch_size: int
     classes: tuple[str, ...]
     progress: bool
-
-
-def _batches(inputs: CellInputs) -> Iterator[list[tuple[str, Labels]]]:
-    pairs = list(zip(inputs.gt.frame_ids, inputs.gt.labels, strict=True))
-    for start in range(0, len(pairs), inputs.batch_size):
-        yield pairs[start:start + inputs.batch_size]
+    #: Bootstrap resamples of the cells' AP intervals (0: none), see :mod:`robustbench3d.runner.effect`.
+    bootstrap: int = 0
 
 
 def _attacked(attack: Attack, name: str, frame: Frame, gt: Labels, seed: int) -> Frame:
@@ -81,6 +83,8 @@ def _detect(victim: Any, name: str, frames: Sequence[Frame], labels: Sequence[La
         out = victim.detect(bare, given)
     except DeferredImageError as exc:  # an attacked image is rendered when the victim first reads it
         raise CellFailure(f"attack {attack_name!r} failed: {exc}") from exc
+    except DataFormatError:
+        raise  # a bad input file (e.g. a clean image, decoded when first read): the command exits 2
     except Exception as exc:
         raise CellFailure(f"victim {name!r} failed on frames {ids}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(out, list | tuple) or len(out) != len(frames):
@@ -113,45 +117,81 @@ def _as_result_file(det: Labels, path: Path, victim_name: str) -> tuple[str, Lab
         raise CellFailure(f"{where}: {exc}") from exc
 
 
+def detect_frames(victim: Any, victim_name: str, attack: Attack, attack_name: str, proposals: str,
+                  kitti: KittiDataset, seed: int, batch_size: int, pairs: Sequence[tuple[str, Labels]],
+                  out_dir: Path, done: Callable[[int], object] | None = None) -> list[tuple[str, Labels]]:
+    """Attack, detect and write ``out_dir/NNNNNN.txt`` (atomically) for every frame of ``pairs``
+    (frame id, ground truth), in batches of ``batch_size`` counted from the first pair; return each
+    frame's result-file text and the detections parsed back from it. ``attack`` must be prepared.
+    Raises :class:`CellFailure` if the victim or the attack fails."""
+    found_all: list[tuple[str, Labels]] = []
+    for start in range(0, len(pairs), batch_size):
+        batch = pairs[start:start + batch_size]
+        frames = []
+        for fid, gt in batch:
+            clean = kitti.lazy_frame(fid, gt)  # the image is decoded only if the victim or the attack reads it
+            frames.append(_attacked(attack, attack_name, clean, gt, seed))
+        labels = [gt for _, gt in batch]
+        found = _detect(victim, victim_name, frames, labels, proposals, attack_name)
+        for frame, det in zip(frames, found, strict=True):
+            path = out_dir / f"{frame.frame_id}.txt"
+            text, parsed = _as_result_file(det, path, victim_name)
+            atomic_write_text(path, text)
+            found_all.append((text, parsed))
+        if done is not None:
+            done(len(batch))
+    return found_all
+
+
+def prepare_attack(attack: Attack, attack_name: str, victim: Any) -> None:
+    """``attack.prepare(victim)``; raises :class:`CellFailure` if it fails."""
+    try:
+        attack.prepare(victim)
+    except Exception as exc:
+        raise CellFailure(f"attack {attack_name!r} could not be prepared: {type(exc).__name__}: {exc}") from exc
+
+
 def run_cell(victim: Any, victim_name: str, attack: Attack, attack_name: str, proposals: str,
              inputs: CellInputs, cell_dir: Path) -> dict[str, Any]:
     """Run the cell, write ``cell_dir/data/NNNNNN.txt`` for every frame and return the metrics
     (the evaluator's JSON). Raises :class:`CellFailure` if the victim or the attack fails."""
     from tqdm import tqdm
 
+    partial = cell_dir / PARTIAL
+    shutil.rmtree(partial, ignore_errors=True)
+    shutil.rmtree(cell_dir / SHARD_MARKS, ignore_errors=True)
+    partial.mkdir(parents=True)
+    prepare_attack(attack, attack_name, victim)
+    pairs = list(zip(inputs.gt.frame_ids, inputs.gt.labels, strict=True))
+    bar = tqdm(total=len(pairs), unit="frame", file=sys.stderr, disable=not inputs.progress,
+               desc=f"{victim_name}/{attack_name}/{proposals}", dynamic_ncols=True, leave=False)
+    try:
+        found = detect_frames(victim, victim_name, attack, attack_name, proposals, inputs.kitti, inputs.seed,
+                              inputs.batch_size, pairs, partial, bar.update)
+    finally:
+        bar.close()
+    metrics = evaluate_cell(inputs, [parsed for _, parsed in found])
+    promote(cell_dir)
+    return metrics
+
+
+def evaluate_cell(inputs: CellInputs, detections: Sequence[Labels]) -> dict[str, Any]:
+    """The evaluator's JSON of a cell's detections (one :class:`Labels` per frame of ``inputs.gt``)."""
     from robustbench3d.eval.kitti_eval import evaluate
     from robustbench3d.eval.rules import METRICS
 
-    partial = cell_dir / PARTIAL
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
-    try:
-        attack.prepare(victim)
-    except Exception as exc:
-        raise CellFailure(f"attack {attack_name!r} could not be prepared: {type(exc).__name__}: {exc}") from exc
-    kitti, seed = inputs.kitti, inputs.seed
-    detections: list[Labels] = []
-    bar = tqdm(total=len(inputs.gt.frame_ids), unit="frame", file=sys.stderr, disable=not inputs.progress,
-               desc=f"{victim_name}/{attack_name}/{proposals}", dynamic_ncols=True, leave=False)
-    try:
-        for batch in _batches(inputs):
-            frames = []
-            for fid, gt in batch:
-                clean = Frame(fid, kitti.image(fid), kitti.scan(fid), kitti.calib(fid), gt)
-                frames.append(_attacked(attack, attack_name, clean, gt, seed))
-            labels = [gt for _, gt in batch]
-            found = _detect(victim, victim_name, frames, labels, proposals, attack_name)
-            for frame, det in zip(frames, found, strict=True):
-                path = partial / f"{frame.frame_id}.txt"
-                text, parsed = _as_result_file(det, path, victim_name)
-                atomic_write_text(path, text)
-                detections.append(parsed)
-            bar.update(len(batch))
-    finally:
-        bar.close()
-    metrics = evaluate(inputs.gt.labels, detections, classes=inputs.classes, metrics=METRICS)
-    promote(cell_dir)
-    return metrics
+    return evaluate(inputs.gt.labels, list(detections), classes=inputs.classes, metrics=METRICS)
+
+
+def victim_failure(name: str, exc: Exception) -> CellFailure:
+    """The :class:`CellFailure` of a victim that could not be created (with a hint on factory arguments)."""
+    from robustbench3d.registry import PluginImportError
+
+    hint = (f" (factory arguments are given with --victim-arg {name}:KEY=VALUE)"
+            if isinstance(exc, RobustBenchError | TypeError) and not isinstance(exc, PluginImportError) else "")
+    failure = CellFailure(f"victim {name!r} could not be created: {type(exc).__name__}: {exc}{hint}")
+    failure.__cause__ = exc
+    return failure
 
 
 def promote(cell_dir: Path) -> None:
@@ -166,7 +206,7 @@ def promote(cell_dir: Path) -> None:
 
 def remove_results(cell_dir: Path) -> None:
     """Delete a cell's result files (finished or partial), e.g. before recording a skip or an error."""
-    for sub in (DATA, PARTIAL, "data.old"):
+    for sub in (DATA, PARTIAL, "data.old", SHARD_MARKS):
         shutil.rmtree(cell_dir / sub, ignore_errors=True)
 
 

@@ -12,6 +12,21 @@ from typing import Any
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.victims.spec import PROPOSAL_SOURCES
 
+#: Frames a ``robustbench3d run`` on the embedded ``val`` split evaluates by default: the first N ids
+#: of the split (``--full``: all of them; ``--max-frames`` sets another N). A quick default, chosen
+#: from the precision it costs (the bootstrap intervals printed with each AP); provisional.
+DEFAULT_VAL_FRAMES = 150
+
+
+def default_max_frames(max_frames: int | None, full: bool, data: str | Path | None, split: str) -> int | None:
+    """The ``max_frames`` of a run: ``max_frames`` if given, None (the whole split) with ``full`` or
+    on a ``--data`` dataset or another split, else :data:`DEFAULT_VAL_FRAMES` (the embedded val split)."""
+    if full and max_frames is not None:
+        raise RobustBenchError("--full and --max-frames exclude each other: --full evaluates the whole split")
+    if max_frames is not None or full or data is not None or split != "val":
+        return max_frames
+    return DEFAULT_VAL_FRAMES
+
 
 def _unique(values: tuple[str, ...], what: str) -> None:
     if not values:
@@ -41,6 +56,8 @@ class RunConfig:
         classes: evaluated classes.
         workers: processes generating the embedded dataset if it is missing.
         progress: progress bars on stderr.
+        bootstrap: resamples of the bootstrap 95 % intervals over frames attached to every ok cell's AP
+            (``metrics_ci``) and attack effect's drop (``drop_ci``); 0 disables them.
     """
 
     victims: tuple[str, ...]
@@ -57,6 +74,7 @@ class RunConfig:
     classes: tuple[str, ...] = ("Car",)
     workers: int = 1
     progress: bool = True
+    bootstrap: int = 1000
 
     def __post_init__(self) -> None:
         for what in ("victims", "attacks", "proposals"):
@@ -71,6 +89,8 @@ class RunConfig:
             raise RobustBenchError(f"--batch-size must be at least 1, got {self.batch_size}")
         if self.seed < 0:
             raise RobustBenchError(f"--seed must be non-negative, got {self.seed}")
+        if self.bootstrap < 0:
+            raise RobustBenchError(f"--bootstrap must be non-negative (0 disables), got {self.bootstrap}")
         if self.workers < 1:
             raise RobustBenchError(f"--workers must be at least 1, got {self.workers}")
         for what, args, names in (("victim", self.victim_args, self.victims),
@@ -89,7 +109,7 @@ class RunConfig:
                 "max_frames": self.max_frames, "seed": self.seed, "batch_size": self.batch_size,
                 "victim_args": {k: dict(v) for k, v in self.victim_args.items()},
                 "attack_args": {k: dict(v) for k, v in self.attack_args.items()},
-                "classes": list(self.classes)}
+                "classes": list(self.classes), "bootstrap": self.bootstrap}
 
 
 @dataclass(frozen=True)

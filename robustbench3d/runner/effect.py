@@ -15,6 +15,11 @@ the summary is written, so it always refers to the clean cell on disk) holds:
   clean cell matches no Car.
 
 Both cells' numbers come from their result files on disk (``cells/<cell>/data/*.txt``).
+
+With ``bootstrap`` resamples (the run's ``RunConfig.bootstrap``; 0: none), every ``ok`` cell also gets
+``metrics_ci``, the percentile bootstrap 95 % interval over frames of each AP in ``metrics``, and every
+attack effect ``drop_ci``, the interval of the paired drop (clean and attacked AP on the same resampled
+frames); :mod:`robustbench3d.eval.bootstrap`, resampling weights from the run seed.
 """
 
 from __future__ import annotations
@@ -79,27 +84,96 @@ def success_rate(gt: Sequence[Labels], clean: Sequence[Labels], attacked: Sequen
             "rate": missed / n_clean if n_clean else None}
 
 
+class Intervals:
+    """Bootstrap intervals of the cells of one run (resampled APs cached per cell directory).
+
+    Args:
+        gt, frame_ids: the run's ground truth and frame ids (the cells' frames).
+        resamples: bootstrap resamples (at least 1); seed: the run seed (the resampling weights).
+    """
+
+    def __init__(self, gt: Sequence[Labels], frame_ids: Sequence[str], resamples: int, seed: int):
+        from robustbench3d.eval.bootstrap import resample_weights
+
+        self.gt, self.frame_ids, self.resamples, self.seed = gt, frame_ids, resamples, seed
+        self.weights = resample_weights(len(frame_ids), resamples, seed)
+        self._cache: dict[Path, dict] = {}
+
+    def resampled(self, cell: dict[str, Any], cell_dir: Path) -> dict:
+        """Resampled APs of an ``ok`` cell's result files (the classes and metrics of its ``metrics``)."""
+        from robustbench3d.eval.bootstrap import FrameBootstrap
+
+        if cell_dir not in self._cache:
+            meta = cell["metrics"]["meta"]
+            prep = FrameBootstrap(self.gt, read_results(cell_dir / "data", self.frame_ids), meta["classes"],
+                                  meta["metrics"])
+            self._cache[cell_dir] = prep.resampled(self.weights)
+        return self._cache[cell_dir]
+
+    def _table(self, values: dict, paired: bool) -> dict[str, Any]:
+        from robustbench3d.eval.bootstrap import interval_table
+
+        return interval_table(values, len(self.frame_ids), self.resamples, self.seed, paired=paired)
+
+    def _current(self, table: Any) -> bool:
+        meta = table.get("meta", {}) if isinstance(table, dict) else {}
+        return (meta.get("resamples"), meta.get("seed"), meta.get("frames")) == (
+            self.resamples, self.seed, len(self.frame_ids))
+
+    def metrics_ci(self, cell: dict[str, Any], cell_dir: Path) -> dict[str, Any]:
+        """The cell's ``metrics_ci`` (kept as recorded when drawn with the same resamples, seed and frames)."""
+        old = cell.get("metrics_ci")
+        return old if self._current(old) else self._table(self.resampled(cell, cell_dir), paired=False)
+
+    def drop_ci(self, clean: dict[str, Any], clean_dir: Path, attacked: dict[str, Any], attacked_dir: Path
+                ) -> dict[str, Any]:
+        """Interval of the paired drop clean - attacked (kept as recorded when current, see :meth:`metrics_ci`)."""
+        from robustbench3d.eval.bootstrap import paired_differences
+
+        old = attacked.get("attack_effect") or {}
+        if self._current(old.get("drop_ci")) and old.get("clean_fingerprint") == clean["provenance"]["fingerprint"]:
+            return old["drop_ci"]
+        return self._table(paired_differences(self.resampled(clean, clean_dir), self.resampled(attacked, attacked_dir)),
+                           paired=True)
+
+
 def attack_effect(clean_cell: dict[str, Any], attacked_cell: dict[str, Any], clean_dir: Path, attacked_dir: Path,
-                  gt: Sequence[Labels], frame_ids: Sequence[str]) -> dict[str, Any]:
-    """The ``attack_effect`` record of an ``ok`` attacked cell against its ``ok`` clean cell."""
+                  gt: Sequence[Labels], frame_ids: Sequence[str], intervals: Intervals | None = None) -> dict[str, Any]:
+    """The ``attack_effect`` record of an ``ok`` attacked cell against its ``ok`` clean cell (with
+    ``drop_ci`` when ``intervals`` are given)."""
     clean_ap, attacked_ap = APResult(clean_cell["metrics"]), APResult(attacked_cell["metrics"])
     clean, drop, relative = _tables(clean_ap, attacked_ap)
     iou = (clean_ap.iou(SUCCESS_CLASS, SUCCESS_METRIC)
            if SUCCESS_CLASS in clean_ap.classes and SUCCESS_METRIC in clean_ap.metrics(SUCCESS_CLASS) else 0.7)
     success = success_rate(gt, read_results(clean_dir / "data", frame_ids),
                            read_results(attacked_dir / "data", frame_ids), iou)
-    return {"clean_cell": clean_dir.name, "clean_fingerprint": clean_cell["provenance"]["fingerprint"],
-            "clean": clean, "drop": drop, "relative_drop": relative, "success": success}
+    out = {"clean_cell": clean_dir.name, "clean_fingerprint": clean_cell["provenance"]["fingerprint"],
+           "clean": clean, "drop": drop, "relative_drop": relative, "success": success}
+    if intervals is not None:
+        out["drop_ci"] = intervals.drop_ci(clean_cell, clean_dir, attacked_cell, attacked_dir)
+    return out
 
 
 def attach_effects(cells: list[dict[str, Any]], cells_dir: Path, gt: Sequence[Labels],
-                   frame_ids: Sequence[str]) -> list[int]:
+                   frame_ids: Sequence[str], bootstrap: int = 0, seed: int = 0) -> list[int]:
     """Set ``attack_effect`` on every attacked cell of ``cells`` (in place): the record for an ``ok`` one whose
-    clean cell is among ``cells`` and ``ok``, else null (clean cells are left as they are). Returns the
-    indices of changed cells."""
+    clean cell is among ``cells`` and ``ok``, else null (clean cells are left as they are); with
+    ``bootstrap`` resamples also ``metrics_ci`` on every ``ok`` cell and ``drop_ci`` in each record
+    (``bootstrap=0`` removes them). Returns the indices of changed cells."""
     clean = {(c["victim"], c["proposals"]): c for c in cells
              if c["attack"] == CLEAN_ATTACK and c["status"] == "ok"}
+    intervals = Intervals(gt, frame_ids, bootstrap, seed) if bootstrap > 0 else None
     changed = []
+    for i, cell in enumerate(cells):
+        if cell["status"] == "ok" and intervals is not None:
+            key = CellKey(cell["victim"], cell["attack"], cell["proposals"])
+            ci = intervals.metrics_ci(cell, cells_dir / key.dirname)
+            if cell.get("metrics_ci") != ci:
+                cell["metrics_ci"] = ci
+                changed.append(i)
+        elif "metrics_ci" in cell:
+            del cell["metrics_ci"]
+            changed.append(i)
     for i, cell in enumerate(cells):
         if cell["attack"] == CLEAN_ATTACK:  # the clean cells themselves carry no comparison (no key)
             continue
@@ -108,12 +182,12 @@ def attach_effects(cells: list[dict[str, Any]], cells_dir: Path, gt: Sequence[La
         effect = None
         if cell["status"] == "ok" and base is not None:
             effect = attack_effect(base, cell, cells_dir / clean_key(key).dirname, cells_dir / key.dirname, gt,
-                                   frame_ids)
+                                   frame_ids, intervals)
         if cell.get("attack_effect", None) != effect or "attack_effect" not in cell:
             cell["attack_effect"] = effect
             changed.append(i)
-    return changed
+    return sorted(set(changed))
 
 
-__all__ = ["CLEAN_ATTACK", "attach_effects", "attack_effect", "clean_key", "read_results", "success_rate",
+__all__ = ["CLEAN_ATTACK", "Intervals", "attach_effects", "attack_effect", "clean_key", "read_results", "success_rate",
            "with_clean_cells"]

@@ -46,7 +46,6 @@ from robustbench3d.provenance import (
     reset_peak_rss,
     utc_now,
 )
-from robustbench3d.registry import PluginImportError
 from robustbench3d.results import SCHEMA_VERSION, read_json, validate_summary, write_long_csv, write_validated
 from robustbench3d.runner.cell import (
     ATTACK_STREAM,
@@ -55,10 +54,13 @@ from robustbench3d.runner.cell import (
     remove_results,
     results_complete,
     run_cell,
+    victim_failure,
 )
 from robustbench3d.runner.collect import earlier_cells
 from robustbench3d.runner.config import CellKey, RunConfig, fingerprint, grid
 from robustbench3d.runner.effect import CLEAN_ATTACK, attach_effects, with_clean_cells
+from robustbench3d.runner.executors import Executor
+from robustbench3d.runner.flags import record_flags
 from robustbench3d.runner.records import (
     attack_record,
     cell_config,
@@ -142,12 +144,7 @@ class _VictimSlot:
             except DataFormatError:
                 raise  # a bad file the user pointed at (e.g. weights=): bad input, the command exits 2
             except Exception as exc:
-                hint = (f" (factory arguments are given with --victim-arg {self.name}:KEY=VALUE)"
-                        if isinstance(exc, RobustBenchError | TypeError) and not isinstance(exc, PluginImportError)
-                        else "")
-                self._error = CellFailure(f"victim {self.name!r} could not be created: {type(exc).__name__}: "
-                                          f"{exc}{hint}")
-                self._error.__cause__ = exc
+                self._error = victim_failure(self.name, exc)
         if self._error is not None:
             raise self._error
         return self._victim
@@ -179,12 +176,15 @@ def _reusable(cell_dir: Path, print_fn: Callable[[str], None], want: str, frame_
     return cell
 
 
-def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = None) -> RunReport:
+def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = None,
+                  executor: Executor | None = None) -> RunReport:
     """Run (or resume) every cell of ``config``; write cell files, ``summary.json`` and the CSV.
 
     Args:
         config: what to run.
         print_fn: receives one progress line per cell (default: stderr).
+        executor: where frame shards of the cells run (:mod:`robustbench3d.runner.executors`; the
+            caller closes it); None: every cell in this process, one after another.
     Raises:
         RobustBenchError: unknown names, bad arguments, an unusable dataset (before any cell runs).
     """
@@ -201,13 +201,14 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
     with _exclusive(out):
         for stale in (SUMMARY_FILE, CSV_FILE, SEED_TABLE_FILE):  # derived files: rewritten at the end, never stale
             (out / stale).unlink(missing_ok=True)
-        dataset = resolve_dataset(config.data, config.split, workers=config.workers, progress=config.progress)
+        dataset = resolve_dataset(config.data, config.split, workers=config.workers, progress=config.progress,
+                                  lazy=True, max_frames=config.max_frames, log=log)  # only the frames evaluated
         gt = load_ground_truth(dataset, config.max_frames)
         identity = dataset_identity(dataset, gt)
         log(f"dataset {identity['root']} split {identity['split']}: {identity['frames']} of "
             f"{identity['split_frames']} frames (labels sha256 {identity['sha256'][:12]})")
         inputs = CellInputs(kitti=dataset.kitti(), gt=gt, seed=config.seed, batch_size=config.batch_size,
-                            classes=config.classes, progress=config.progress)
+                            classes=config.classes, progress=config.progress, bootstrap=config.bootstrap)
         for attack in attacks.values():  # e.g. exact occlusion on a generated dataset
             attack.bind_dataset(inputs.kitti)
         evaluation = evaluation_record(config.classes)
@@ -219,12 +220,18 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
             kwargs = victim_kwargs(name, config.victim_args.get(name, {}), config.seed)
             slots[name], records[name] = _VictimSlot(name, kwargs), victim_record(name, kwargs)
         cells = grid(config)
-        for i, key in enumerate(cells, start=1):
-            cfg = cell_config(key, records[key.victim], attack_records[key.attack], identity, config.seed,
-                              config.batch_size, evaluation)
-            outcome = _run_one(run, key, cfg, slots[key.victim], attacks[key.attack], out / "cells" / key.dirname)
-            log(f"[{i}/{len(cells)}] {key}: {_describe(outcome)}")
-            report.outcomes.append(outcome)
+        cfgs = [cell_config(key, records[key.victim], attack_records[key.attack], identity, config.seed,
+                            config.batch_size, evaluation) for key in cells]
+        if executor is not None:  # frame shards of every cell on the executor's workers
+            from robustbench3d.runner.parallel import run_cells
+
+            report.outcomes.extend(run_cells(run, cells, cfgs, attacks, out / "cells", executor))
+        else:
+            for i, (key, cfg) in enumerate(zip(cells, cfgs, strict=True), start=1):
+                outcome = _run_one(run, key, cfg, slots[key.victim], attacks[key.attack],
+                                   out / "cells" / key.dirname)
+                log(f"[{i}/{len(cells)}] {key}: {_describe(outcome)}")
+                report.outcomes.append(outcome)
         found = earlier_cells(out / "cells", {key.dirname for key in cells}, identity, evaluation, config.seed,
                               gt.frame_ids, CELL_FILE)
         report.earlier, report.left_out = found.included, found.left_out
@@ -233,6 +240,7 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
         for line in report.left_out:
             log(f"left out of the summary: {line}")
         _record_effects(report, out / "cells", inputs)
+        record_flags(report, out / "cells", inputs, attacks, lambda name: slots[name].get(), log, CELL_FILE)
         summary = write_validated(out / SUMMARY_FILE, report.summary)
         write_long_csv(out / CSV_FILE, summary)
         write_seed_table(out / SEED_TABLE_FILE, summary)
@@ -243,7 +251,7 @@ def _record_effects(report: RunReport, cells_dir: Path, inputs: CellInputs) -> N
     """Compare every attacked cell of the summary with its clean cell (:mod:`.effect`); rewrite the
     ``cell.json`` of each cell whose comparison changed (atomically, the cell stays finished)."""
     cells = report.summary
-    for i in attach_effects(cells, cells_dir, inputs.gt.labels, inputs.gt.frame_ids):
+    for i in attach_effects(cells, cells_dir, inputs.gt.labels, inputs.gt.frame_ids, inputs.bootstrap, inputs.seed):
         cell = cells[i]
         key = CellKey(cell["victim"], cell["attack"], cell["proposals"])
         write_validated(cells_dir / key.dirname / CELL_FILE, cell, cell_only=True)

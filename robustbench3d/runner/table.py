@@ -8,6 +8,7 @@ from typing import Any
 
 from robustbench3d.eval.rules import DIFFICULTIES
 from robustbench3d.results import CellResult
+from robustbench3d.seed_table import interval, with_interval
 from robustbench3d.texttable import format_table
 
 #: (metric, recall sampling) column groups of the table.
@@ -16,11 +17,15 @@ _LABEL = {"bev": "BEV", "3d": "3D"}
 
 
 def _value(cell: CellResult, cls: str, metric: str, recall: str, difficulty: str) -> str:
-    """AP, followed for an attacked cell by its change against the clean cell, e.g. ``71.20(-8.15)``."""
-    text = f"{cell.ap(cls, metric, recall, difficulty):6.2f}"
+    """AP, followed for an attacked cell by its change against the clean cell, e.g. ``71.20(-8.15)``; each
+    with its bootstrap interval where the cell has one, e.g. ``71.20 [69.8, 72.6](-8.15 [-9.9, -6.4])``."""
+    text = with_interval(f"{cell.ap(cls, metric, recall, difficulty):6.2f}",
+                         interval(cell, cls, metric, recall, difficulty))
     if cell.effect is not None:
         with contextlib.suppress(LookupError):
-            text += f"({-cell.drop(cls, metric, recall, difficulty):+.2f})"
+            drop_ci = interval(cell, cls, metric, recall, difficulty, drop=True)
+            change = None if drop_ci is None else [-drop_ci[1], -drop_ci[0]]
+            text += f"({with_interval(f'{-cell.drop(cls, metric, recall, difficulty):+.2f}', change)})"
     return text
 
 
@@ -51,6 +56,10 @@ def summary_table(cells: Sequence[dict[str, Any]], cls: str = "Car") -> str:
         head.append("ASR %")
         title += ("; attacked cells: (AP change against the clean cell 'none'), ASR = Cars matched clean "
                   "and missed attacked (moderate, BEV IoU 0.7)")
+    ci_meta = next((r.cell["metrics_ci"]["meta"] for r in results if "metrics_ci" in r.cell), None)
+    if ci_meta is not None:
+        title += (f"; [lo, hi] = {100 * ci_meta['level']:.0f} % bootstrap interval over frames "
+                  f"({ci_meta['resamples']} resamples; AP changes: paired, the same frames for both cells)")
     lines = [title, format_table(head, rows)]
     lines += [f"{r.status}: {r.victim} / {r.attack} / {r.proposals}: {r.reason}" for r in results if r.status != "ok"]
     return "\n".join(lines)

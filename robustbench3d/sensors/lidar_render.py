@@ -30,6 +30,7 @@ from robustbench3d.sensors import lidar_model as lm
 from robustbench3d.sensors.lidar_beams import BeamPattern, estimate_pattern, scan_ring_ids
 from robustbench3d.sensors.materials import Mat
 from robustbench3d.sensors.mesh import face_normals
+from robustbench3d.sensors.pattern_cache import PatternCache
 from robustbench3d.sensors.raycast import cast_ray_pairs
 
 #: Albedo of meshes given without colours (linear RGB).
@@ -87,9 +88,12 @@ def prepare_scan(scan: np.ndarray, ring_ids: np.ndarray | None = None,
     return _prepare_rays(*_scan_pattern(scan, ring_ids, pattern), rays)
 
 
-def _prepare_rays(pts: np.ndarray, ring: np.ndarray, pattern: BeamPattern, az: np.ndarray,
+def _prepare_rays(pts: np.ndarray, ring: np.ndarray, pattern: BeamPattern, az: np.ndarray | None,
                   rays: np.ndarray | None) -> PreparedScan:
-    """:func:`prepare_scan` of checked points, their laser ids, pattern and azimuths (:func:`_scan_pattern`)."""
+    """:func:`prepare_scan` of checked points, their laser ids, pattern and azimuths (:func:`_scan_pattern`);
+    ``az`` None: computed here, on a laser-ordered scan only for the points of the lasers of ``rays``."""
+    if az is None:
+        az = _azimuths(pts, ring, None if rays is None else pattern.ray_rings(np.asarray(rays, dtype=np.int64)))
     sub: slice | np.ndarray = slice(None)
     if rays is not None:
         sub = np.flatnonzero(pattern.near_rays(np.asarray(rays, dtype=np.int64), ring, az))
@@ -118,10 +122,27 @@ def _prepare_rays(pts: np.ndarray, ring: np.ndarray, pattern: BeamPattern, az: n
     return PreparedScan(pts, pattern, ring, point_ray, rng_m, by_ray, sorted_ray)
 
 
-def _scan_pattern(scan: np.ndarray, ring_ids: np.ndarray | None, pattern: BeamPattern | None
-                  ) -> tuple[np.ndarray, np.ndarray, BeamPattern, np.ndarray]:
-    """(float32 points (N, 4), laser ids (N,), beam pattern, azimuths degrees(atan2(y, x)) (N,) float64) of
-    :func:`prepare_scan`."""
+def _azimuths(pts: np.ndarray, ring: np.ndarray, lasers: np.ndarray | None) -> np.ndarray:
+    """degrees(atan2(y, x)) (N,) float64 of float32 points (N, 4); with ``lasers`` (laser ids) on a laser-ordered
+    scan only from the first to the last of those lasers' points (NaN elsewhere: never read there, see
+    :meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.near_rays`), the same values element by element."""
+    lo, hi = 0, len(pts)
+    if lasers is not None and len(ring) and np.all(ring[1:] >= ring[:-1]):
+        if len(lasers) == 0:
+            return np.full(len(pts), np.nan)
+        lo = int(np.searchsorted(ring, lasers.min(), "left"))
+        hi = int(np.searchsorted(ring, lasers.max(), "right"))
+    part = np.arctan2(pts[lo:hi, 1].astype(np.float64), pts[lo:hi, 0].astype(np.float64))
+    np.degrees(part, out=part)
+    if (lo, hi) == (0, len(pts)):
+        return part
+    az = np.full(len(pts), np.nan)
+    az[lo:hi] = part
+    return az
+
+
+def _checked_points(scan: np.ndarray, ring_ids: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(float32 points (N, 4), laser ids (N,): given, else recovered from the scan)."""
     pts = np.asarray(scan)
     if pts.ndim != 2 or pts.shape[1] != 4:
         raise ValueError(f"render_lidar: field 'scan': expected shape (N, 4), got {pts.shape}")
@@ -132,8 +153,15 @@ def _scan_pattern(scan: np.ndarray, ring_ids: np.ndarray | None, pattern: BeamPa
         ring = np.asarray(ring_ids, dtype=np.int64).reshape(-1)
         if len(ring) != len(pts):
             raise ValueError(f"render_lidar: field 'ring_ids': {len(ring)} ids for {len(pts)} points")
-    az = np.arctan2(pts[:, 1].astype(np.float64), pts[:, 0].astype(np.float64))
-    np.degrees(az, out=az)
+    return pts, ring
+
+
+def _scan_pattern(scan: np.ndarray, ring_ids: np.ndarray | None, pattern: BeamPattern | None
+                  ) -> tuple[np.ndarray, np.ndarray, BeamPattern, np.ndarray]:
+    """(float32 points (N, 4), laser ids (N,), beam pattern, azimuths degrees(atan2(y, x)) (N,) float64) of
+    :func:`prepare_scan`."""
+    pts, ring = _checked_points(scan, ring_ids)
+    az = _azimuths(pts, ring, None)
     if pattern is None:
         pattern = estimate_pattern(pts, ring, azimuth_deg=az)
     return pts, ring, pattern, az
@@ -168,7 +196,7 @@ def _mesh_tensors(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.nd
     for i, m in enumerate(meshes):
         if len(m) != 3:
             raise ValueError(f"render_lidar: field 'meshes[{i}]': expected (vertices, faces, albedo_rgb or None)")
-        v, f, _ = m
+        v, f, col = m
         vn = None if isinstance(v, torch.Tensor) else np.asarray(v, dtype=np.float64)
         vt = v if vn is None else torch.as_tensor(vn)
         if vt.dtype != torch.float64:
@@ -180,6 +208,10 @@ def _mesh_tensors(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.nd
             raise ValueError(f"render_lidar: field 'meshes[{i}]': face indices outside [0, {len(vt)})")
         if not (bool(torch.isfinite(vt.detach()).all()) if vn is None else np.isfinite(vn).all()):  # vt shares vn
             raise ValueError(f"render_lidar: field 'meshes[{i}]': vertices contain NaN or inf")
+        shape = None if col is None else tuple(col.shape) if isinstance(col, torch.Tensor) else np.shape(col)
+        if shape is not None and shape != (len(vt), 3):
+            raise ValueError(f"render_lidar: field 'meshes[{i}]': albedo must be (V, 3) = ({len(vt)}, 3) "
+                             f"(one colour per vertex), got {shape}")
         out.append((vt, fa))
     return out
 
@@ -203,13 +235,24 @@ def _culled_rays(pattern: BeamPattern, meshes: list[tuple[torch.Tensor, np.ndarr
     return out
 
 
-def _prepared(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], ring_ids: np.ndarray | None
+def _prepared(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], ring_ids: np.ndarray | None,
+              patterns: PatternCache | None = None
               ) -> tuple[PreparedScan, list[tuple[torch.Tensor, np.ndarray]], list[np.ndarray]]:
     """(prepared scan, checked meshes, culled rays per mesh); a raw scan is prepared only on the culled rays."""
     mts = _mesh_tensors(meshes)
     if isinstance(scan, PreparedScan):
         return scan, mts, _culled_rays(scan.pattern, mts)
-    pts, ring, pattern, az = _scan_pattern(scan, ring_ids, None)
+    az: np.ndarray | None = None
+    if patterns is None:
+        pts, ring, pattern, az = _scan_pattern(scan, ring_ids, None)
+    else:  # a kept pattern needs the azimuths of the culled rays' lasers only (_prepare_rays)
+        pts, ring = _checked_points(scan, ring_ids)
+        key, kept = patterns.lookup(pts, ring_ids)
+        if kept is None:
+            az = _azimuths(pts, ring, None)
+            kept = estimate_pattern(pts, ring, azimuth_deg=az)
+            patterns.store(key, kept)
+        pattern = kept
     culls = _culled_rays(pattern, mts)
     rays = np.unique(np.concatenate(culls)) if culls else np.zeros(0, dtype=np.int64)
     return _prepare_rays(pts, ring, pattern, az, rays), mts, culls
@@ -310,40 +353,27 @@ class LidarRenderResult:
     tests: int
 
 
-def _albedo(meshes: Sequence[MeshInput], mesh: np.ndarray, face: np.ndarray, u: np.ndarray,
-            v: np.ndarray, corners: np.ndarray | None = None, n_vertices: Sequence[int] | None = None) -> np.ndarray:
-    """(K, 3) float32 vertex colours interpolated at the hits ((1 - u - v) c0 + u c1 + v c2).
-
-    ``corners`` (K, 3) (the hit faces' vertex indices into the meshes' stacked vertices) and ``n_vertices`` (the
-    meshes' vertex counts), when given and every colour table has one row per vertex, interpolate all hits in
-    one product over the stacked colours: per hit the same terms, summed in the same order."""
+def _albedo(meshes: Sequence[MeshInput], mesh: np.ndarray, u: np.ndarray, v: np.ndarray, corners: np.ndarray,
+            n_vertices: Sequence[int]) -> np.ndarray:
+    """(K, 3) float32 vertex colours interpolated at the hits ((1 - u - v) c0 + u c1 + v c2), clipped to [0, 1]
+    (:data:`DEFAULT_ALBEDO` on meshes without colours): ``corners`` (K, 3) are the hit faces' vertex indices into
+    the meshes' stacked vertices, ``n_vertices`` the meshes' vertex counts (colour tables checked to match by
+    :func:`_mesh_tensors`); all hits in one product over the stacked colours."""
     out = np.full((len(mesh), 3), DEFAULT_ALBEDO, dtype=np.float64)
     cols = [None if col is None else np.asarray(col.detach() if isinstance(col, torch.Tensor) else col,
                                                 dtype=np.float64) for _, _, col in meshes]
-    if corners is not None and n_vertices is not None and all(
-            c is None or c.shape == (nv, 3) for c, nv in zip(cols, n_vertices, strict=True)):
-        if any(c is not None for c in cols):
-            table = np.concatenate([np.zeros((nv, 3)) if c is None else c for c, nv in zip(cols, n_vertices,
-                                                                                             strict=True)])
-            k = np.flatnonzero(np.array([c is not None for c in cols], dtype=bool)[mesh])
-            w = np.stack([1 - u[k] - v[k], u[k], v[k]], axis=1)
-            out[k] = np.einsum("kj,kjc->kc", w, table[corners[k]])
-        return np.clip(out, 0.0, 1.0).astype(np.float32)
-    for i in np.unique(mesh):
-        _, f, _ = meshes[i]
-        c = cols[i]
-        if c is None:
-            continue
-        k = mesh == i
-        fk = np.asarray(f, dtype=np.int64)[face[k]]
+    if any(c is not None for c in cols):
+        table = np.concatenate([np.zeros((nv, 3)) if c is None else c for c, nv in zip(cols, n_vertices,
+                                                                                         strict=True)])
+        k = np.flatnonzero(np.array([c is not None for c in cols], dtype=bool)[mesh])
         w = np.stack([1 - u[k] - v[k], u[k], v[k]], axis=1)
-        out[k] = np.einsum("kj,kjc->kc", w, c[fk])
+        out[k] = np.einsum("kj,kjc->kc", w, table[corners[k]])
     return np.clip(out, 0.0, 1.0).astype(np.float32)
 
 
 def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *,
                  rng: np.random.Generator | None = None, range_noise_m: float = 0.0, dropout: float = 0.0,
-                 ring_ids: np.ndarray | None = None) -> LidarRenderResult:
+                 ring_ids: np.ndarray | None = None, patterns: PatternCache | None = None) -> LidarRenderResult:
     """Render ``meshes`` into ``scan`` (see the module docstring).
 
     Args:
@@ -354,6 +384,9 @@ def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *
         range_noise_m: standard deviation of the Gaussian range noise, clipped at 3 sd, m.
         dropout: probability that a mesh return is dropped.
         ring_ids: (N,) laser of each point when known (else recovered from the scan).
+        patterns: where the estimated beam pattern of a raw ``scan`` is looked up and kept
+            (:class:`~robustbench3d.sensors.pattern_cache.PatternCache`; the same result, faster on a scan seen
+            before).
     """
     if not 0.0 <= dropout < 1.0:
         raise ValueError(f"render_lidar: field 'dropout': must be in [0, 1), got {dropout!r}")
@@ -361,7 +394,7 @@ def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *
         raise ValueError(f"render_lidar: field 'range_noise_m': must be >= 0, got {range_noise_m!r}")
     if (dropout > 0 or range_noise_m > 0) and rng is None:
         raise ValueError("render_lidar: field 'rng': required when dropout or range_noise_m is on")
-    prep, mts, culls = _prepared(scan, meshes, ring_ids)
+    prep, mts, culls = _prepared(scan, meshes, ring_ids, patterns)
     tr = _trace(prep, mts, culls)
     keep = ~tr.hidden & lm.in_range(tr.t.detach().numpy())
     if dropout > 0 and keep.any():
@@ -386,7 +419,7 @@ def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *
         f_off = np.cumsum([0] + [len(fa) for _, fa in mts])
         corners = np.concatenate([fa + v_off[i] for i, (_, fa) in enumerate(mts)])[f_off[mesh] + face]
         normals = face_normals(np.concatenate(verts), corners)  # all hit faces at once (element-wise)
-        albedo = _albedo(meshes, mesh, face, u, v, corners, [len(vi) for vi in verts])
+        albedo = _albedo(meshes, mesh, u, v, corners, [len(vi) for vi in verts])
         rho = lm.material_reflectivity(np.full(len(sel), int(MESH_MATERIAL)), albedo)
         refl = lm.reflectance_mean(rho, lm.cos_incidence(normals, ray_d), t.detach().numpy())
         added[:, 3] = lm.quantize_reflectance(refl, np.zeros(len(sel), dtype=bool))

@@ -21,10 +21,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from robustbench3d.victims.fpointnet.box_coding import (
@@ -34,6 +35,8 @@ from robustbench3d.victims.fpointnet.box_coding import (
     NUM_SIZE_CLUSTER,
 )
 from robustbench3d.victims.fpointnet.glue import NUM_BOX_OUTPUTS, GatherMode, object_point_indices
+
+Layout = Literal["conv", "rows"]
 
 
 @dataclass(frozen=True)
@@ -84,6 +87,26 @@ def fc_stack(in_ch: int, widths: Sequence[int], eps: float) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def run_mlp(seq: nn.Sequential, x: torch.Tensor, rows: bool) -> torch.Tensor:
+    """Apply a :func:`shared_mlp` stack (or one 1x1 ``Conv1d``) to ``x``.
+
+    ``rows=False``: ``x`` is (B, C, N) and the modules run as defined. ``rows=True``: ``x`` is
+    (B, N, C); each 1x1 convolution runs as the per-point ``Linear`` with the same weight and bias
+    and each BatchNorm on the (B·N, C) rows: the same arithmetic (statistics over B·N per channel),
+    laid out for a single matrix product per layer.
+    """
+    if not rows:
+        return seq(x)
+    for m in seq if isinstance(seq, nn.Sequential) else (seq,):
+        if isinstance(m, nn.Conv1d):
+            x = F.linear(x, m.weight[:, :, 0], m.bias)
+        elif isinstance(m, nn.BatchNorm1d):
+            x = m(x.reshape(-1, x.shape[-1])).reshape(x.shape)
+        else:
+            x = m(x)
+    return x
+
+
 def dropout(x: torch.Tensor, p: float, training: bool, generator: torch.Generator | None) -> torch.Tensor:
     """Inverted dropout drawing its mask from ``generator`` (identity when not training)."""
     if not training or p <= 0.0:
@@ -104,9 +127,18 @@ class InstanceSegNet(nn.Module):
         head_in = cfg.seg_point_mlp[-1] + cfg.seg_global_mlp[-1] + cfg.one_hot_dim
         self.head = shared_mlp(head_in, cfg.seg_head, cfg.bn_eps)
         self.classifier = nn.Conv1d(cfg.seg_head[-1], 2, 1)
+        self.rows = False  # layout of the per-point layers, see run_mlp (not part of the state dict)
 
     def forward(self, points: torch.Tensor, one_hot: torch.Tensor,
                 generator: torch.Generator | None = None) -> torch.Tensor:
+        if self.rows:
+            point_feat = run_mlp(self.point_mlp, points, True)  # (B, N, C)
+            global_feat = run_mlp(self.global_mlp, point_feat, True).amax(dim=1)
+            global_feat = torch.cat([global_feat, one_hot.to(global_feat.dtype)], dim=1)
+            n = points.shape[1]
+            feat = torch.cat([point_feat, global_feat[:, None, :].expand(-1, n, -1)], dim=2)
+            feat = dropout(run_mlp(self.head, feat, True), self.cfg.dropout, self.training, generator)
+            return run_mlp(self.classifier, feat, True)
         x = points.transpose(1, 2)  # (B, C, N)
         point_feat = self.point_mlp(x)
         global_feat = self.global_mlp(point_feat).amax(dim=2)
@@ -127,9 +159,13 @@ class CenterRegressionNet(nn.Module):
         self.out = nn.Linear(cfg.tnet_fc[-1], 3)
         nn.init.zeros_(self.out.weight)  # as the PyTorch port: start at the mask centroid
         nn.init.zeros_(self.out.bias)
+        self.rows = False
 
     def forward(self, object_points: torch.Tensor, one_hot: torch.Tensor) -> torch.Tensor:
-        feat = self.mlp(object_points.transpose(1, 2)).amax(dim=2)
+        if self.rows:
+            feat = run_mlp(self.mlp, object_points, True).amax(dim=1)
+        else:
+            feat = self.mlp(object_points.transpose(1, 2)).amax(dim=2)
         return self.out(self.fc(torch.cat([feat, one_hot.to(feat.dtype)], dim=1)))
 
 
@@ -141,9 +177,13 @@ class BoxEstimationNet(nn.Module):
         self.mlp = shared_mlp(3, cfg.box_mlp, cfg.bn_eps)
         self.fc = fc_stack(cfg.box_mlp[-1] + cfg.one_hot_dim, cfg.box_fc, cfg.bn_eps)
         self.out = nn.Linear(cfg.box_fc[-1], NUM_BOX_OUTPUTS)
+        self.rows = False
 
     def forward(self, object_points: torch.Tensor, one_hot: torch.Tensor) -> torch.Tensor:
-        feat = self.mlp(object_points.transpose(1, 2)).amax(dim=2)
+        if self.rows:
+            feat = run_mlp(self.mlp, object_points, True).amax(dim=1)
+        else:
+            feat = self.mlp(object_points.transpose(1, 2)).amax(dim=2)
         return self.out(self.fc(torch.cat([feat, one_hot.to(feat.dtype)], dim=1)))
 
 
@@ -185,6 +225,16 @@ class FrustumPointNetV1(nn.Module):
         self.box = BoxEstimationNet(cfg)
         self.register_buffer("mean_sizes", torch.tensor(MEAN_SIZES, dtype=torch.float32), persistent=False)
 
+    def set_layout(self, layout: Layout) -> FrustumPointNetV1:
+        """Run the per-point layers as 1x1 convolutions on (B, C, N) (``"conv"``, the default and the
+        ONNX export's) or as ``Linear`` on (B·N, C) rows (``"rows"``, faster to train). Same
+        parameters, same state dict, same outputs to float tolerance (tests/test_fpointnet_fast.py)."""
+        if layout not in ("conv", "rows"):
+            raise ValueError(f"unknown layout {layout!r} (expected 'conv' or 'rows')")
+        for net in (self.seg, self.tnet, self.box):
+            net.rows = layout == "rows"
+        return self
+
     def forward(self, points: torch.Tensor, one_hot: torch.Tensor, *, gather: GatherMode = "topk",
                 rng: np.random.Generator | Sequence[np.random.Generator] | None = None,
                 generator: torch.Generator | None = None,
@@ -210,7 +260,7 @@ class FrustumPointNetV1(nn.Module):
             soft = torch.sigmoid((logits[..., 1] - logits[..., 0]) / straight_through).to(xyz.dtype)
             maskf = maskf + (soft - soft.detach())  # exactly the hard mask in the forward pass
         centroid = (maskf[..., None] * xyz).sum(dim=1) / count.clamp_min(1).to(xyz.dtype)[:, None]
-        margin = (logits[..., 1] - logits[..., 0]).detach().cpu().numpy()
+        margin = (logits[..., 1] - logits[..., 0]).detach().float().cpu().numpy()
         idx_np = object_point_indices(mask.cpu().numpy(), margin, self.cfg.num_object_points, gather, rng)
         idx = torch.from_numpy(idx_np).to(points.device)
         centred = xyz - centroid[:, None, :]

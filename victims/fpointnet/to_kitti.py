@@ -55,7 +55,8 @@ def as_numpy_outputs(out: FrustumOutputs | FPointNetOutput) -> FrustumOutputs:
 
 def _softmax(x: np.ndarray, axis: int) -> np.ndarray:
     x = np.asarray(x)
-    e = np.exp(x - x.max(axis=axis, keepdims=True))
+    with np.errstate(over="ignore"):  # x - max below the dtype's range is -inf: exp gives the exact 0
+        e = np.exp(x - x.max(axis=axis, keepdims=True))
     return e / e.sum(axis=axis, keepdims=True)
 
 

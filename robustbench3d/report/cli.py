@@ -1,0 +1,113 @@
+"""``robustbench3d report RUN_DIR [RUN_DIR ...] --out DIR``: a leaderboard a person reads.
+
+Writes ``DIR/leaderboard.html`` (one self-contained file: sortable table with an R40/R11 toggle, figures,
+transfer heat-map, scene figures, each cell's provenance one click away), ``DIR/leaderboard.md`` and the
+figures as ``DIR/figures/*.png``. Runs on different datasets, protocols or package versions go to separate
+sections, each saying what differs; ``--strict`` refuses them instead (exit 2).
+
+Standard library only at module level.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+from typing import Any
+
+HTML_FILE = "leaderboard.html"
+MD_FILE = "leaderboard.md"
+FIGURES = "figures"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="output directories of `robustbench3d run`")
+    parser.add_argument("--out", required=True, metavar="DIR", help="directory to write the report into")
+    parser.add_argument("--strict", action="store_true",
+                        help="refuse runs that are not comparable instead of separating them into sections")
+    parser.add_argument("--scenes", type=int, default=3, metavar="N",
+                        help="scene figures per section: the N attacked cells with the largest relative drop, one "
+                             "per attack, each on its worst frame (default 3; 0: none)")
+    parser.add_argument("--title", default="robustbench3d leaderboard", help="page title")
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text)
+
+
+def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = print) -> tuple[list[Any], list[str]]:
+    """The report's section views (tables and figures) and page notes."""
+    from robustbench3d.errors import RobustBenchError
+    from robustbench3d.report import data, figures
+    from robustbench3d.report.page import Figure, SectionView
+    from robustbench3d.report.scenes import SceneSource, scene
+
+    if scenes < 0:
+        raise RobustBenchError(f"--scenes must be 0 or more, got {scenes}")
+    secs = data.sections(data.read_runs(runs), strict=strict)
+    notes = []
+    if len(secs) > 1:
+        notes.append(f"The runs hold {len(secs)} groups of cells that are not comparable (different dataset, "
+                     "protocol or package versions); each is its own section and nothing is compared across them.")
+    views = []
+    for k, sec in enumerate(secs):
+        df = data.table(sec)
+        view = SectionView(sec, df)
+        ok = df[df["status"] == "ok"]
+        for victim in dict.fromkeys(ok["victim"]):
+            view.figures.append(Figure(f"s{k + 1}_ap_{_slug(victim)}.png", figures.ap_figure(df, victim),
+                                       f"{victim}: Car AP per difficulty per attack (R40), BEV (top) and 3D "
+                                       "(bottom), one column per proposal source.", f"AP per attack, {victim}"))
+        if ok["drop_R40"].notna().any():
+            view.figures.append(Figure(f"s{k + 1}_drop.png", figures.drop_figure(df),
+                                       "BEV AP drop at moderate (R40), clean − attacked, per victim and attack, "
+                                       "against the clean cell with the same proposals.", "AP drop per victim"))
+        cells = [rc.cell for rc in sec.cells]
+        matrices = {p: data.transfer_matrix(cells, p) for p in dict.fromkeys(df["proposals"])}
+        if any(len(m) for m in matrices.values()):
+            view.transfer = Figure(f"s{k + 1}_transfer.png", figures.transfer_figure(matrices),
+                                   "Transfer matrix: relative BEV AP drop at moderate (R40, %) of each object (rows: "
+                                   "the victim it was trained against · the attack) on each evaluated victim "
+                                   "(columns); outlined: white-box (trained against the evaluated victim); n/a: "
+                                   "not run or clean AP 0.", "transfer matrix")
+        else:
+            view.transfer_note = ("No cell evaluates an object trained against a victim (clean cells and controls "
+                                  "only), so there is no transfer matrix.")
+        if not scenes:
+            view.scene_notes.append("Scene figures were not asked for (--scenes 0).")
+        else:
+            attacked = ok[ok["rel_drop_R40"].notna()].sort_values("rel_drop_R40", ascending=False, kind="stable")
+            picked = attacked.drop_duplicates("attack").head(scenes)
+            if len(picked):
+                source = SceneSource(sec.cells[int(picked.index[0])].cell["dataset"])
+                for i in picked.index:
+                    log(f"report: scene figure of {sec.cells[int(i)].name}")
+                    sc = scene(source, sec.cells[int(i)])
+                    if sc.png is None:
+                        view.scene_notes.append(sc.caption)
+                    else:
+                        view.scenes.append(Figure(f"s{k + 1}_scene_{_slug(sc.cell.name)}_{sc.frame}.png", sc.png,
+                                                  sc.caption, f"scene {sc.cell.name} frame {sc.frame}"))
+            else:
+                view.scene_notes.append("No attacked cell with a clean comparison: no scene figure.")
+        views.append(view)
+    return views, notes
+
+
+def run(args: argparse.Namespace) -> int:
+    from robustbench3d.fileio import atomic_write_bytes, atomic_write_text, check_output_dir
+    from robustbench3d.report.page import html_page, markdown
+
+    out = check_output_dir(args.out, "--out")
+    views, notes = build(args.runs, args.scenes, args.strict)
+    (out / FIGURES).mkdir(parents=True, exist_ok=True)
+    for view in views:
+        for fig in [*view.figures, *([view.transfer] if view.transfer else []), *view.scenes]:
+            atomic_write_bytes(out / FIGURES / fig.name, fig.png)
+    runs = [str(Path(r)) for r in args.runs]
+    atomic_write_text(out / MD_FILE, markdown(views, args.title, runs, notes, FIGURES))
+    atomic_write_text(out / HTML_FILE, html_page(views, args.title, runs, notes))
+    for note in notes:
+        print(f"report: {note}")
+    print(f"report: {out / HTML_FILE}, {out / MD_FILE} ({len(views)} section(s))")
+    return 0

@@ -1,0 +1,308 @@
+"""The report's data: run summaries read back, grouped into comparable sections, as tables.
+
+A *section* holds the cells that may share one table: the same dataset (sha256 over split and labels,
+split, frame count, generator parameters), the same protocol (the evaluation configuration, each
+metric's IoU threshold, the recall points, the difficulty definitions and the run seed) and the same
+package versions. Cells that differ in any of these are never put in one table: :func:`sections`
+separates them and says which fields differ, and ``strict`` refuses instead. The proposal source is a
+column of every table and every comparison (clean reference, drop, transfer) stays within one source.
+
+pandas is imported inside the functions that build tables; the module itself is standard library only.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from robustbench3d.errors import DataFormatError, RobustBenchError
+
+CLASS = "Car"
+DIFFICULTIES = ("easy", "moderate", "hard")
+RECALLS = ("R40", "R11")
+METRICS = ("bev", "3d")
+SUMMARY = "summary.json"
+
+
+@dataclass(frozen=True)
+class RunCell:
+    """One summary cell and the run directory it came from."""
+
+    run: Path
+    index: int
+    cell: Mapping[str, Any]
+
+    @property
+    def name(self) -> str:
+        """The cell's directory name, ``victim+attack+proposals``."""
+        return f"{self.cell['victim']}+{self.cell['attack']}+{self.cell['proposals']}"
+
+    @property
+    def source(self) -> str:
+        """``RUN/summary.json[index]``: where the cell's numbers are read from."""
+        return f"{self.run / SUMMARY}[{self.index}]"
+
+
+def read_summary_tolerant(path: Path) -> list[dict[str, Any]]:
+    """A ``summary.json`` validated against the shipped schema; cell keys the schema does not know (``flags``,
+    confidence intervals written by newer runs) are kept but not validated."""
+    from robustbench3d.results import load_schema, read_json, validate_summary
+
+    data = read_json(path)
+    known = set(load_schema()["$defs"]["cell"]["properties"])
+    if isinstance(data, list):
+        validate_summary([{k: v for k, v in c.items() if k in known} if isinstance(c, dict) else c for c in data],
+                         path)
+    else:
+        validate_summary(data, path)
+    return data
+
+
+def read_runs(runs: Sequence[str | Path]) -> list[RunCell]:
+    """Every cell of each run's validated ``summary.json``, in run and summary order."""
+
+    if not runs:
+        raise RobustBenchError("report: no run directory given")
+    out: list[RunCell] = []
+    seen: set[Path] = set()
+    for run in map(Path, runs):
+        if not run.is_dir():
+            raise DataFormatError(run, "not a run directory (expected the --out directory of `robustbench3d run`)")
+        if run.resolve() in seen:
+            raise RobustBenchError(f"report: run directory {run} is given twice")
+        seen.add(run.resolve())
+        cells = read_summary_tolerant(run / SUMMARY)
+        if not cells:
+            raise DataFormatError(run / SUMMARY, "the summary lists no cell")
+        out += [RunCell(run, i, c) for i, c in enumerate(cells)]
+    return out
+
+
+#: Protocol fields read from the evaluator's output: unknown for a cell without metrics (skipped, error).
+FROM_METRICS = ("iou", "recall_points", "difficulty")
+
+
+def comparability_key(cell: Mapping[str, Any]) -> dict[str, Any]:
+    """What must be equal for two cells to share a table (see the module doc); plain JSON types. A cell
+    without metrics has None for the :data:`FROM_METRICS` fields."""
+    ds = cell["dataset"]
+    prov = cell["provenance"]
+    meta = (cell.get("metrics") or {}).get("meta")
+    return {
+        "dataset": {k: ds.get(k) for k in ("sha256", "split", "frames", "split_frames", "embedded")},
+        "protocol": {
+            "evaluation": prov["config"].get("evaluation"),
+            "iou": None if meta is None else meta.get("min_overlap"),
+            "recall_points": None if meta is None else meta.get("recall_points", sorted(RECALLS)),
+            "difficulty": None if meta is None else meta.get("difficulty"),
+            "seed": prov["config"].get("seed"),
+        },
+        "versions": {"robustbench3d": prov["package"]["version"], **prov.get("versions", {})},
+    }
+
+
+def _flat(obj: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(obj, Mapping) and obj:
+        out: dict[str, Any] = {}
+        for k, v in obj.items():
+            out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    return {prefix: obj}
+
+
+def key_differences(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[str]:
+    """``field: A != B`` for every leaf where two comparability keys differ (dotted paths, sorted)."""
+    fa, fb = _flat(a), _flat(b)
+    out = []
+    for k in sorted(set(fa) | set(fb)):
+        if fa.get(k, "(absent)") != fb.get(k, "(absent)"):
+            va, vb = (json.dumps(x.get(k, "(absent)"))[:80] for x in (fa, fb))
+            out.append(f"{k}: {va} != {vb}")
+    return out
+
+
+@dataclass
+class Section:
+    """Cells that are comparable (one :func:`comparability_key`), and why they differ from section 1."""
+
+    key: dict[str, Any]
+    cells: list[RunCell] = field(default_factory=list)
+    differs: list[str] = field(default_factory=list)
+
+    @property
+    def runs(self) -> list[Path]:
+        return list(dict.fromkeys(c.run for c in self.cells))
+
+
+def _masked(key: dict[str, Any]) -> dict[str, Any]:
+    return {**key, "protocol": {**key["protocol"], **dict.fromkeys(FROM_METRICS)}}
+
+
+def sections(cells: Iterable[RunCell], strict: bool = False) -> list[Section]:
+    """Group cells by :func:`comparability_key`, in order of first appearance. With ``strict`` more than
+    one group is refused (:class:`RobustBenchError` naming the runs and the fields that differ). The
+    same cell (victim, attack, proposals) twice in a section is kept once when its configuration
+    fingerprint is equal and refused otherwise. A cell without metrics joins a section that agrees with it
+    on every other field (one holding cells of its own run first)."""
+    groups: list[Section] = []
+    cells_list = list(cells)
+    for rc in sorted(cells_list, key=lambda c: c.cell.get("metrics") is None):  # cells with metrics found sections
+        key = comparability_key(rc.cell)
+        partial = key["protocol"]["iou"] is None and key["protocol"]["recall_points"] is None
+        # a cell without metrics prefers a section holding cells of its own run
+        candidates = sorted(groups, key=lambda s: rc.run not in s.runs) if partial else groups
+        for sec in candidates:
+            if sec.key == key or (partial and _masked(sec.key) == key):
+                break
+        else:
+            sec = Section(key)
+            groups.append(sec)
+        twin = next((c for c in sec.cells if c.name == rc.name), None)
+        if twin is None:
+            sec.cells.append(rc)
+        elif twin.cell["provenance"]["fingerprint"] != rc.cell["provenance"]["fingerprint"]:
+            raise RobustBenchError(f"report: cell {rc.name} is in {twin.source} and {rc.source} with different "
+                                   "configurations on the same dataset and protocol; report the runs separately")
+    order = {id(rc): i for i, rc in enumerate(cells_list)}
+    for sec in groups:
+        sec.cells.sort(key=lambda c: order[id(c)])  # back to run and summary order
+    for sec in groups[1:]:
+        sec.differs = key_differences(groups[0].key, sec.key)
+    if strict and len(groups) > 1:
+        why = "; ".join(f"{', '.join(map(str, s.runs))} vs {', '.join(map(str, groups[0].runs))}: "
+                        + ", ".join(s.differs) for s in groups[1:])
+        raise RobustBenchError(f"report: the runs are not comparable (different dataset, protocol or versions) "
+                               f"and --strict refuses to separate them: {why}")
+    return groups
+
+
+def _get(tree: Any, *path: str) -> Any:
+    for p in path:
+        if not isinstance(tree, Mapping) or p not in tree:
+            return None
+        tree = tree[p]
+    return tree
+
+
+def _interval(value: Any) -> tuple[float, float] | None:
+    """(low, high) of a confidence interval written as [lo, hi] or {low|lo|lower, high|hi|upper}."""
+    if isinstance(value, Sequence) and not isinstance(value, str) and len(value) == 2:
+        lo, hi = value
+    elif isinstance(value, Mapping):
+        lo = next((value[k] for k in ("low", "lo", "lower") if k in value), None)
+        hi = next((value[k] for k in ("high", "hi", "upper") if k in value), None)
+    else:
+        return None
+    if isinstance(lo, int | float) and isinstance(hi, int | float):
+        return float(lo), float(hi)
+    return None
+
+
+def cell_ci(cell: Mapping[str, Any], metric: str, recall: str, difficulty: str) -> tuple[float, float] | None:
+    """The AP's confidence interval when the cell carries one (``metrics_ci`` in the metrics' layout)."""
+    for name in ("metrics_ci", "ci"):
+        found = _interval(_get(cell.get(name), CLASS, metric, recall, difficulty))
+        if found is not None:
+            return found
+    return None
+
+
+def trained_against(cell: Mapping[str, Any]) -> str | None:
+    """The victim the cell's attack object was optimised against, or None (clean cell, controls)."""
+    name = _get(cell, "provenance", "config", "attack", "object", "object", "made_by", "victim", "name")
+    return name if isinstance(name, str) else None
+
+
+def ap_column(metric: str, recall: str, difficulty: str) -> str:
+    return f"{metric}_{recall}_{difficulty}"
+
+
+def effect_column(what: str, recall: str) -> str:
+    return f"{what}_{recall}"
+
+
+def table(section: Section) -> Any:
+    """One row per cell: identity, status, BEV and 3D AP (R40 and R11, E/M/H); the clean AP, drop and relative
+    drop of BEV moderate (R40 and R11); attack success rate; the intervals of BEV moderate AP and drop where
+    recorded; flags; the object's training victim and where the numbers come from. A pandas DataFrame (AP in
+    percent, relative drop and ASR as fractions, NaN where there is no value)."""
+    import pandas as pd
+
+    rows = []
+    nan = float("nan")
+    for rc in section.cells:
+        c = rc.cell
+        ok = c["status"] == "ok"
+        row: dict[str, Any] = {"run": str(rc.run), "cell": rc.name, "victim": c["victim"], "attack": c["attack"],
+                               "proposals": c["proposals"], "status": c["status"], "reason": c.get("reason") or "",
+                               "trained_against": trained_against(c) or "", "source": rc.source}
+        for metric in METRICS:
+            for recall in RECALLS:
+                for d in DIFFICULTIES:
+                    v = _get(c, "metrics", CLASS, metric, recall, d) if ok else None
+                    row[ap_column(metric, recall, d)] = nan if v is None else float(v)
+        effect = c.get("attack_effect") if ok else None
+        for recall in RECALLS:
+            for what, tab in (("clean", "clean"), ("drop", "drop"), ("rel_drop", "relative_drop")):
+                v = _get(effect, tab, CLASS, "bev", recall, "moderate")
+                row[effect_column(what, recall)] = nan if v is None else float(v)
+            ci = cell_ci(c, "bev", recall, "moderate")
+            row[effect_column("ci_low", recall)] = nan if ci is None else ci[0]
+            row[effect_column("ci_high", recall)] = nan if ci is None else ci[1]
+            dci = _interval(_get(effect, "drop_ci", CLASS, "bev", recall, "moderate"))
+            row[effect_column("dci_low", recall)] = nan if dci is None else dci[0]
+            row[effect_column("dci_high", recall)] = nan if dci is None else dci[1]
+        rate = _get(effect, "success", "rate")
+        row["asr"] = nan if rate is None else float(rate)
+        flags = c.get("flags") or []
+        row["flags"] = [(str(f.get("code", "?")), str(f.get("message", ""))) for f in flags if isinstance(f, Mapping)]
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def transfer_entries(cells: Iterable[Mapping[str, Any]], metric: str = "bev", recall: str = "R40",
+                     difficulty: str = "moderate") -> list[dict[str, Any]]:
+    """The transfer matrix in long form: one entry per ``ok`` attacked cell whose object was trained against a
+    victim: ``trained_against``, ``object`` (attack name), ``evaluated`` (the cell's victim), ``proposals`` and
+    ``value``, the relative drop of ``metric`` AP (fraction; None where the clean AP is 0). Cells without a
+    training victim (clean, controls) or without a clean comparison are left out. The same (object, evaluated
+    victim, proposals) twice with different values, or one object name standing for two object files, is
+    refused."""
+    out: dict[tuple[str, str, str, str], dict[str, Any]] = {}
+    objects: dict[str, Any] = {}
+    for c in cells:
+        source = trained_against(c)
+        if source is None or c.get("status") != "ok" or not c.get("attack_effect"):
+            continue
+        sha = _get(c, "provenance", "config", "attack", "object", "object", "ply_sha256")
+        if objects.setdefault(c["attack"], sha) != sha:
+            raise RobustBenchError(f"report: attack {c['attack']!r} names two different object files "
+                                   f"({objects[c['attack']]} and {sha}); report their runs separately")
+        value = _get(c["attack_effect"], "relative_drop", CLASS, metric, recall, difficulty)
+        entry = {"trained_against": source, "object": c["attack"], "evaluated": c["victim"],
+                 "proposals": c["proposals"], "value": None if value is None else float(value)}
+        k = (source, c["attack"], c["victim"], c["proposals"])
+        if k in out and out[k]["value"] != entry["value"]:
+            raise RobustBenchError(f"report: two cells evaluate object {c['attack']!r} on {c['victim']} with "
+                                   f"{c['proposals']} proposals with different results")
+        out[k] = entry
+    return list(out.values())
+
+
+def transfer_matrix(cells: Iterable[Mapping[str, Any]], proposals: str, metric: str = "bev", recall: str = "R40",
+                    difficulty: str = "moderate") -> Any:
+    """The transfer matrix of one proposal source: a DataFrame, rows (victim trained against, object), columns
+    the evaluated victims (sorted), values the relative drop (fraction, NaN where not run or undefined).
+    Empty (no rows) when no cell carries an object trained against a victim."""
+    import pandas as pd
+
+    entries = [e for e in transfer_entries(cells, metric, recall, difficulty) if e["proposals"] == proposals]
+    if not entries:
+        return pd.DataFrame()
+    frame = pd.DataFrame(entries)
+    frame["value"] = frame["value"].astype("float64")
+    return frame.pivot(index=["trained_against", "object"], columns="evaluated", values="value").sort_index(
+        axis=0).sort_index(axis=1)

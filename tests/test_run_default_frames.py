@@ -1,0 +1,45 @@
+"""``run``'s frames: a first-N slice of the embedded val split by default, ``--full`` for the whole
+split, ``--max-frames`` for another slice; the line printed at the start says which."""
+
+from __future__ import annotations
+
+import pytest
+
+from robustbench3d.cli import main
+from robustbench3d.datasets import EMBEDDED
+from robustbench3d.errors import RobustBenchError
+from robustbench3d.run_cli import frames_line
+from robustbench3d.runner.config import DEFAULT_VAL_FRAMES, default_max_frames
+from robustbench3d.synth.writer import in_val
+
+
+def test_the_default_is_a_slice_of_the_embedded_val_split_only():
+    assert default_max_frames(None, False, None, "val") == DEFAULT_VAL_FRAMES
+    assert default_max_frames(None, True, None, "val") is None  # --full
+    assert default_max_frames(40, False, None, "val") == 40
+    assert default_max_frames(None, False, "/data/kitti", "val") is None  # a --data dataset: the whole split
+    assert default_max_frames(None, False, None, "train") is None
+    with pytest.raises(RobustBenchError, match="--full and --max-frames exclude each other"):
+        default_max_frames(5, True, None, "val")
+
+
+def test_the_printed_line_names_the_frames_and_the_full_count():
+    val = [i for i in range(EMBEDDED.frames) if in_val(EMBEDDED.seed, i, EMBEDDED.val_fraction)]  # by hand
+    n = len(val)
+    last = f"{val[DEFAULT_VAL_FRAMES - 1]:06d}"
+    assert frames_line(None, False, None, "val") == (
+        f"frames: the first {DEFAULT_VAL_FRAMES} of the {n} frames of the embedded val split, 000000..{last} "
+        f"(the quick default, runner.config.DEFAULT_VAL_FRAMES); --full runs all {n}")
+    assert frames_line(None, True, None, "val") == f"frames: all {n} frames of the embedded val split (--full)"
+    assert frames_line(3, False, None, "val") == (f"frames: the first 3 of the {n} frames of the embedded val "
+                                                  f"split, 000000..{val[2]:06d} (--max-frames); --full runs all {n}")
+    assert frames_line(5000, False, None, "val") == f"frames: all {n} frames of the embedded val split"
+    assert frames_line(None, False, "/d", "val") == "frames: every frame of split val of /d"
+    assert frames_line(7, False, "/d", "val") == "frames: the first 7 of split val of /d (--max-frames)"
+
+
+def test_full_with_max_frames_is_refused_with_exit_2(tmp_path, capsys):
+    assert main(["run", "--victims", "fpointnet-v1-lite", "--full", "--max-frames", "3", "--out",
+                 str(tmp_path / "run"), "--no-progress"]) == 2
+    assert "--full and --max-frames exclude each other" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
