@@ -8,6 +8,7 @@ import csv
 import io
 
 import pytest
+from cell_builders import hand_cell
 
 from robustbench3d.eval.matches import best_f1_threshold, matched_ground_truth
 from robustbench3d.kitti.labels import parse_labels
@@ -146,29 +147,10 @@ def ap_table(e: float, m: float, h: float) -> dict:
 
 
 def cell(attack: str, bev40: tuple[float, float, float], fingerprint: str = SHA) -> dict:
-    return {
-        "schema_version": 1, "victim": "v", "attack": attack, "proposals": "detector", "status": "ok", "reason": None,
-        "dataset": {"root": "/d", "split": "val", "frames": 2, "split_frames": 2, "sha256": SHA, "embedded": None,
-                    "manifest": None},
-        "metrics": {"Car": {"bev": {"R40": ap_table(*bev40), "R11": ap_table(50.0, 50.0, 50.0)}},
-                    "meta": {"evaluator": "robustbench3d.eval", "version": "1", "ap_unit": "percent", "frames": 2,
-                             "classes": ["Car"], "metrics": ["bev"], "min_overlap": {"Car": {"bev": 0.7}}}},
-        "provenance": {
-            "fingerprint": fingerprint, "config": {"victim": {"name": "v", "origin": "x", "kwargs": {},
-                                                              "capabilities": None, "weights_sha256": None,
-                                                              "weight_files": {}},
-                                                   "attack": {"name": attack, "origin": "x", "params": {}, "object": {},
-                                                              "requirements": {"needs_gradients": False,
-                                                                               "needs_camera": False,
-                                                                               "needs_lidar": False}},
-                                                   "proposals": "detector", "dataset": {}, "seed": 0, "batch_size": 1,
-                                                   "evaluation": {}},
-            "run": {"victims": ["v"], "attacks": [attack], "proposals": ["detector"]},
-            "package": {"name": "robustbench3d", "version": "0"}, "git": {"commit": None, "dirty": None},
-            "versions": {"python": "3", "numpy": "2", "torch": None, "onnxruntime": None},
-            "platform": {"system": "Linux", "machine": "x", "cpu": None, "cpu_count": 2}, "seed": 0,
-            "determinism": {}, "started": "2026-01-01T00:00:00Z", "finished": "2026-01-01T00:00:01Z", "seconds": 1.0},
-    }
+    metrics = {"Car": {"bev": {"R40": ap_table(*bev40), "R11": ap_table(50.0, 50.0, 50.0)}},
+               "meta": {"evaluator": "robustbench3d.eval", "version": "1", "ap_unit": "percent", "frames": 2,
+                        "classes": ["Car"], "metrics": ["bev"], "min_overlap": {"Car": {"bev": 0.7}}}}
+    return hand_cell(attack, metrics, fingerprint, SHA)
 
 
 def write_results(cell_dir, rows: dict[str, list[str]]) -> None:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cell_builders import hand_cell
 
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.eval.bootstrap import resample_weights
@@ -30,27 +31,7 @@ _spec.loader.exec_module(GEN)
 
 
 def _cell(attack: str, metrics: dict, fingerprint: str) -> dict:
-    return {
-        "schema_version": 1, "victim": "v", "attack": attack, "proposals": "detector", "status": "ok", "reason": None,
-        "dataset": {"root": "/d", "split": "val", "frames": metrics["meta"]["frames"],
-                    "split_frames": metrics["meta"]["frames"], "sha256": SHA, "embedded": None, "manifest": None},
-        "metrics": metrics,
-        "provenance": {
-            "fingerprint": fingerprint, "config": {"victim": {"name": "v", "origin": "x", "kwargs": {},
-                                                              "capabilities": None, "weights_sha256": None,
-                                                              "weight_files": {}},
-                                                   "attack": {"name": attack, "origin": "x", "params": {}, "object": {},
-                                                              "requirements": {"needs_gradients": False,
-                                                                               "needs_camera": False,
-                                                                               "needs_lidar": False}},
-                                                   "proposals": "detector", "dataset": {}, "seed": 0, "batch_size": 1,
-                                                   "evaluation": {}},
-            "run": {"victims": ["v"], "attacks": [attack], "proposals": ["detector"]},
-            "package": {"name": "robustbench3d", "version": "0"}, "git": {"commit": None, "dirty": None},
-            "versions": {"python": "3", "numpy": "2", "torch": None, "onnxruntime": None},
-            "platform": {"system": "Linux", "machine": "x", "cpu": None, "cpu_count": 2}, "seed": 0,
-            "determinism": {}, "started": "2026-01-01T00:00:00Z", "finished": "2026-01-01T00:00:01Z", "seconds": 1.0},
-    }
+    return hand_cell(attack, metrics, fingerprint, SHA)
 
 
 @pytest.fixture
