@@ -66,7 +66,8 @@ def bev_iou_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         if len(poly) < 3:
             break
         poly = _clip(poly, pb[i], pb[(i + 1) % 4])
-    inter = _area(poly) if len(poly) >= 3 else a.new_zeros(())
+    # the clipped polygon's area is >= 0; on slivers (aspect 1e9) its rounding (~eps x long side^2) can dip below
+    inter = _area(poly).clamp_min(0.0) if len(poly) >= 3 else a.new_zeros(())
     union = (a[2] * a[3]).abs() + (b[2] * b[3]).abs() - inter
     ok = union > 0
     return torch.where(ok, inter / torch.where(ok, union, torch.ones_like(union)), torch.zeros_like(union))

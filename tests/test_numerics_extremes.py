@@ -119,7 +119,7 @@ places = st.floats(min_value=-1e4, max_value=1e4)
 yaws = st.floats(min_value=-math.pi, max_value=math.pi)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200, deadline=None, derandomize=True)  # the same examples on every run (a seeded search)
 @given(x=places, z=places, la=sizes, wa=sizes, ry_a=yaws, dx=st.floats(-2, 2), dz=st.floats(-2, 2),
        lb_ratio=st.floats(0.25, 4), wb_ratio=st.floats(0.25, 4), ry_b=yaws, turn=yaws)
 def test_iou_properties(x, z, la, wa, ry_a, dx, dz, lb_ratio, wb_ratio, ry_b, turn) -> None:
@@ -130,7 +130,10 @@ def test_iou_properties(x, z, la, wa, ry_a, dx, dz, lb_ratio, wb_ratio, ry_b, tu
     ab, ba = float(bev_iou(a, b)[0, 0]), float(bev_iou(b, a)[0, 0])
     t = float(bev_iou_torch(box5(a), box5(b)))
     assert 0.0 <= ab <= 1.0 and 0.0 <= t <= 1.0
-    assert ab == pytest.approx(ba, abs=1e-7) and t == pytest.approx(ab, abs=1e-7)
+    # areas from corners: rounding ~ eps x (long side)^2, relative to the area l w: eps x aspect (1902 m x 1e-6 m
+    # boxes differ by 1e-7 between two correct implementations)
+    tol = 1e-7 + 64 * np.finfo(np.float64).eps * scale / min(la, wa)
+    assert ab == pytest.approx(ba, abs=tol) and t == pytest.approx(ab, abs=tol)
     c, s = math.cos(turn), math.sin(turn)  # rotating (x, z) like a yaw increase: x' = c x + s z, z' = -s x + c z
 
     def rot(bx: np.ndarray) -> np.ndarray:
