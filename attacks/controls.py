@@ -5,11 +5,15 @@
 colours, param ``seed``) put a physical but unoptimised object on every target car
 (:class:`~robustbench3d.attacks.roof.RoofObjectAttack`): how much AP a mere object costs.
 ``object-file`` (param ``path``) applies any object file (:mod:`robustbench3d.attacks.objectfile`);
-:func:`resolve_attack_references` lets ``run --attacks`` name such a file directly.
+:func:`resolve_attack_references` lets ``run --attacks`` name such a file directly. Every roof-object
+factory also takes the attack's settings (:data:`~robustbench3d.attacks.roof.SETTINGS`: eot, jitter ranges,
+LiDAR noise and dropout, supersample, occlusion, cull) as keyword arguments
+(:func:`~robustbench3d.attacks.roof.roof_settings`).
 """
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -17,6 +21,7 @@ import numpy as np
 
 from robustbench3d.attacks import ATTACKS, register_attack
 from robustbench3d.attacks.base import Attack
+from robustbench3d.attacks.roof import roof_settings, settings_parameters
 from robustbench3d.attacks.spec import AttackRequirements, AttackSpec, AttackSpecError
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.kitti.dataset import Frame
@@ -40,16 +45,18 @@ class NoAttack(Attack):
 
 
 @register_attack("benign-sphere", summary="control: the undeformed grey sphere (r 0.40 m) on every target car's roof")
-def benign_sphere_attack(eot: bool = False) -> RoofObjectAttack:
+@roof_settings
+def benign_sphere_attack(**settings: Any) -> RoofObjectAttack:
     """:func:`~robustbench3d.attacks.object.benign_sphere` on every target car (EOT jitter if ``eot``)."""
     from robustbench3d.attacks.object import benign_sphere
     from robustbench3d.attacks.roof import RoofObjectAttack
 
-    return RoofObjectAttack(benign_sphere(), identity={"attack": "benign-sphere"}, eot=eot)
+    return RoofObjectAttack(benign_sphere(), identity={"attack": "benign-sphere"}, **settings)
 
 
 @register_attack("random-shape", summary="control: a seeded random smooth shape with random colours (param seed)")
-def random_shape_attack(seed: int = 0, eot: bool = False) -> RoofObjectAttack:
+@roof_settings
+def random_shape_attack(seed: int = 0, **settings: Any) -> RoofObjectAttack:
     """:func:`~robustbench3d.attacks.object.random_shape` of ``seed`` on every target car."""
     from robustbench3d.attacks.object import random_shape
     from robustbench3d.attacks.roof import RoofObjectAttack
@@ -58,17 +65,18 @@ def random_shape_attack(seed: int = 0, eot: bool = False) -> RoofObjectAttack:
         obj = random_shape(seed)
     except ValueError as exc:
         raise AttackSpecError(str(exc)) from None
-    return RoofObjectAttack(obj, identity={"attack": "random-shape", "seed": seed}, eot=eot)
+    return RoofObjectAttack(obj, identity={"attack": "random-shape", "seed": seed}, **settings)
 
 
 @register_attack("object-file", summary="the object in a PLY object file (param path) on every target car")
-def object_file_attack(path: str, eot: bool = False) -> RoofObjectAttack:
+@roof_settings
+def object_file_attack(path: str, **settings: Any) -> RoofObjectAttack:
     """The object of the file ``path`` (checked by :func:`~robustbench3d.attacks.objectfile.read_object_file`)."""
     from robustbench3d.attacks.objectfile import read_object_file
     from robustbench3d.attacks.roof import RoofObjectAttack
 
     loaded = read_object_file(path)
-    return RoofObjectAttack(loaded.obj, identity=loaded.made_by, sha256=loaded.sha256, eot=eot)
+    return RoofObjectAttack(loaded.obj, identity=loaded.made_by, sha256=loaded.sha256, **settings)
 
 
 class ObjectFileFactory:
@@ -79,9 +87,11 @@ class ObjectFileFactory:
         self.path = Path(path).expanduser().resolve()
         self.__module__ = __name__
         self.__qualname__ = f"ObjectFileFactory[{self.path}]"
+        # what AttackSpec.create binds: the roof-object settings, keyword-only
+        self.__signature__ = inspect.Signature(settings_parameters(), return_annotation="RoofObjectAttack")
 
-    def __call__(self, *, eot: bool = False) -> RoofObjectAttack:
-        return object_file_attack(str(self.path), eot=eot)
+    def __call__(self, **settings: Any) -> RoofObjectAttack:
+        return object_file_attack(str(self.path), **settings)
 
 
 def resolve_attack_reference(reference: str) -> str:

@@ -12,7 +12,12 @@ dataset made by the procedural generator once :meth:`RoofObjectAttack.bind_datas
 ``synth_manifest.json``): the frame's scene is rebuilt and its depths around the roofs are cached on disk
 (:mod:`robustbench3d.attacks.depth_cache`); on any other dataset, or without a bound dataset, it is the
 clean scan's depth map (:func:`robustbench3d.sensors.camera_depth.lidar_depth_map`); ``occlusion="none"``
-hides nothing. A frame without targets is returned as is.
+hides nothing. A frame without targets is returned as is. ``cull=False`` renders the full scene instead of
+the culled rays and pixels (every LiDAR ray at every face, the whole image): the reference the culling is
+measured against, the same frame bit for bit at a far higher cost.
+
+Every roof-object factory of the registry takes the attack's settings (:data:`SETTINGS`) as keyword
+arguments, through one decorator (:func:`roof_settings`): ``run --attack-arg adv-object:dropout=0.05``.
 
 The attacked frame is a :class:`~robustbench3d.kitti.dataset.LazyImageFrame`: the LiDAR render is done in
 :meth:`RoofObjectAttack.apply`, the camera render (and the scene depth it needs) on the first read of its
@@ -23,6 +28,10 @@ given ground-truth 2D boxes) never pays for it.
 from __future__ import annotations
 
 import copy
+import functools
+import inspect
+import numbers
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -47,6 +56,33 @@ if TYPE_CHECKING:
     from robustbench3d.sensors.camera_depth import DepthSource
 
 OCCLUSION_MODES = ("scan", "none")
+#: The settings of :class:`RoofObjectAttack` (keyword arguments of its constructor) that every roof-object
+#: factory also takes (:func:`roof_settings`), in constructor order.
+SETTINGS = ("eot", "position_jitter_m", "yaw_jitter_rad", "range_noise_m", "dropout", "supersample", "occlusion",
+            "cull")
+
+
+def check_settings(settings: dict[str, Any]) -> None:
+    """Raise ValueError ``field '<name>': <problem>`` for the first setting of ``settings`` (names of
+    :data:`SETTINGS`) of the wrong type or out of range (values as JSON gives them: true/false, numbers, strings)."""
+    for name, value in settings.items():
+        if name in ("eot", "cull"):
+            ok, want = isinstance(value, (bool, np.bool_)), "true or false"
+        elif name == "supersample":
+            ok = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_)) and value >= 1
+            want = "an integer >= 1"
+        elif name == "occlusion":
+            ok, want = isinstance(value, str) and value in OCCLUSION_MODES, f"one of {', '.join(OCCLUSION_MODES)}"
+        elif name in SETTINGS:
+            real = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)) and np.isfinite(value)
+            if name == "dropout":
+                ok, want = real and 0 <= value < 1, "a number in [0, 1)"
+            else:
+                ok, want = real and value >= 0, "a finite number >= 0"
+        else:
+            raise ValueError(f"field {name!r}: not a setting of the roof-object attack ({', '.join(SETTINGS)})")
+        if not ok:
+            raise ValueError(f"field {name!r}: expected {want}, got {value!r}")
 
 
 class RoofObjectAttack(Attack):
@@ -62,20 +98,19 @@ class RoofObjectAttack(Attack):
         range_noise_m, dropout: LiDAR realism passed to the renderer (off by default).
         supersample: camera samples per pixel side.
         occlusion: camera occlusion source: "scan" (the clean scan's depth map) or "none".
+        cull: render only the rays and pixels the objects can reach (default); False: the full-scene reference
+            (module doc).
+
+    Settings of the wrong type or out of range raise ValueError naming the field (:func:`check_settings`).
     """
 
     def __init__(self, obj: RoofObject, *, identity: dict[str, Any] | None = None, sha256: str | None = None,
                  eot: bool = False, position_jitter_m: float = POSITION_JITTER_M,
                  yaw_jitter_rad: float = YAW_JITTER_RAD, range_noise_m: float = 0.0, dropout: float = 0.0,
-                 supersample: int = 3, occlusion: str = "scan") -> None:
-        if occlusion not in OCCLUSION_MODES:
-            raise ValueError(f"field 'occlusion': expected one of {', '.join(OCCLUSION_MODES)}, got {occlusion!r}")
-        for name, value in (("position_jitter_m", position_jitter_m), ("yaw_jitter_rad", yaw_jitter_rad),
-                            ("range_noise_m", range_noise_m)):
-            if not np.isfinite(value) or value < 0:
-                raise ValueError(f"field '{name}': must be a finite number >= 0, got {value!r}")
-        if not 0 <= dropout < 1:
-            raise ValueError(f"field 'dropout': must be in [0, 1), got {dropout!r}")
+                 supersample: int = 3, occlusion: str = "scan", cull: bool = True) -> None:
+        check_settings({"eot": eot, "position_jitter_m": position_jitter_m, "yaw_jitter_rad": yaw_jitter_rad,
+                        "range_noise_m": range_noise_m, "dropout": dropout, "supersample": supersample,
+                        "occlusion": occlusion, "cull": cull})
         self.obj = obj
         self.identity = dict(identity or {})
         self.sha256 = sha256 or object_sha256(obj)
@@ -86,6 +121,7 @@ class RoofObjectAttack(Attack):
         self.dropout = float(dropout)
         self.supersample = int(supersample)
         self.occlusion = occlusion
+        self.cull = bool(cull)
         self._vertices = obj.vertices()
         self._dataset: tuple[Path, str] | None = None  # (root, dataset key) of a bound generated dataset
 
@@ -138,24 +174,59 @@ class RoofObjectAttack(Attack):
         faces, colors = self.obj.faces.copy(), self.obj.colors.copy()  # writable: the renderers wrap them in torch
         velo = [(frame.calib.rect_to_velo_points(v), faces, colors) for v, _ in placed]
         lidar = render_lidar(frame.scan, velo, rng=rng, range_noise_m=self.range_noise_m, dropout=self.dropout,
-                             patterns=default_pattern_cache())
+                             patterns=default_pattern_cache(), cull=self.cull)
         scan = np.ascontiguousarray(lidar.scan, dtype=frame.scan.dtype)
         rect = [(v, faces, colors) for v, _ in placed]
         settings = copy.copy(self)  # the image is this call's, whatever changes the attack later
 
         def camera_image() -> np.ndarray:
             return render_camera(frame.image, frame.calib, rect, scene_depth=settings.scene_depth(frame, targets),
-                                 supersample=settings.supersample).image
+                                 supersample=settings.supersample, full_image=not settings.cull).image
 
         return LazyImageFrame(frame.frame_id, scan, frame.calib, frame.labels, frame.image_size, camera_image)
 
     def describe(self) -> dict[str, Any]:
+        """Object, placement and sensor settings; the jitter ranges appear with EOT on or when not the defaults,
+        ``cull`` only when off (so the defaults describe the attack as they did before these settings existed)."""
+        jitter = {"position_jitter_m": self.position_jitter_m, "yaw_jitter_rad": self.yaw_jitter_rad}
         return {
             "object": {"ply_sha256": self.sha256, "made_by": self.identity,
                        "bounds": [float(b) for b in self.obj.bounds]},
             "placement": {"rule": PLACEMENT_RULE, "eot": self.eot,
-                          **({"position_jitter_m": self.position_jitter_m, "yaw_jitter_rad": self.yaw_jitter_rad}
-                             if self.eot else {})},
+                          **(jitter if self.eot or (self.position_jitter_m, self.yaw_jitter_rad)
+                             != (POSITION_JITTER_M, YAW_JITTER_RAD) else {})},
             "lidar": {"range_noise_m": self.range_noise_m, "dropout": self.dropout},
             "camera": {"supersample": self.supersample, "occlusion": self.occlusion},
+            **({} if self.cull else {"cull": False}),
         }
+
+
+def settings_parameters() -> list[inspect.Parameter]:
+    """The keyword-only parameters of :data:`SETTINGS`, with :class:`RoofObjectAttack`'s defaults."""
+    params = inspect.signature(RoofObjectAttack.__init__).parameters
+    return [params[name].replace(kind=inspect.Parameter.KEYWORD_ONLY) for name in SETTINGS]
+
+
+def roof_settings(factory: Callable[..., RoofObjectAttack]) -> Callable[..., RoofObjectAttack]:
+    """Decorator of a registry factory ``(own params, **settings) -> RoofObjectAttack`` that passes the settings
+    on to the attack: the signature :meth:`~robustbench3d.attacks.spec.AttackSpec.create` binds gains every
+    :data:`SETTINGS` keyword with the constructor's default (other names are refused as unknown parameters), and
+    a value of the wrong type or out of range raises :class:`~robustbench3d.attacks.spec.AttackSpecError`
+    ``field '<name>': ...`` before the factory runs."""
+    from robustbench3d.attacks.spec import AttackSpecError
+
+    own = [p for p in inspect.signature(factory).parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
+    signature = inspect.Signature(own + settings_parameters(), return_annotation="RoofObjectAttack")
+
+    @functools.wraps(factory)
+    def wrapper(*args: Any, **kwargs: Any) -> RoofObjectAttack:
+        bound = signature.bind(*args, **kwargs)  # TypeError for unknown names, as calling a plain function
+        settings = {k: bound.arguments.pop(k) for k in SETTINGS if k in bound.arguments}
+        try:
+            check_settings(settings)
+        except ValueError as exc:
+            raise AttackSpecError(str(exc)) from None
+        return factory(*bound.args, **bound.kwargs, **settings)
+
+    wrapper.__signature__ = signature  # type: ignore[attr-defined]
+    return wrapper

@@ -9,7 +9,7 @@ seed, victim with its weights sha256, training-data identity, steps and wall tim
 writes entries; ``objects/reproduce.sh`` retrains the objects.
 
 :func:`register_shipped_objects` is a loader of :data:`robustbench3d.attacks.ATTACKS`: on the first
-lookup every entry becomes an attack of that name whose factory (param ``eot``) checks the files against
+lookup every entry becomes an attack of that name whose factory (the roof-object settings) checks the files against
 the manifest and then loads the PLY as the ``object-file`` attack does.
 
 Standard library only: listing attacks reads this manifest without importing numpy or torch.
@@ -17,6 +17,7 @@ Standard library only: listing attacks reads this manifest without importing num
 
 from __future__ import annotations
 
+import inspect
 import json
 import re
 from dataclasses import dataclass
@@ -24,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from robustbench3d.errors import DataFormatError, RobustBenchError
-from robustbench3d.fileio import atomic_write_text, sha256_file
+from robustbench3d.fileio import sha256_file, upsert_json_entry
 
 if TYPE_CHECKING:
     from robustbench3d.attacks.roof import RoofObjectAttack
@@ -197,12 +198,21 @@ def shipped_object(name: str, manifest: Path | None = None) -> ShippedObject | N
 def upsert_entry(manifest: Path, entry: dict[str, Any]) -> dict[str, Any]:
     """Replace (or add) the entry of ``entry["name"]``, check the result and write the manifest atomically
     (entries sorted by name); returns the new content."""
-    data = read_manifest(manifest)
-    data["objects"] = sorted([e for e in data["objects"] if e["name"] != entry["name"]] + [entry],
-                             key=lambda e: e["name"])
-    validate_manifest(data, manifest)
-    atomic_write_text(manifest, json.dumps(data, indent=2, sort_keys=True) + "\n")
-    return data
+    return upsert_json_entry(manifest, read_manifest(manifest), "objects", "name", entry,
+                             lambda data: validate_manifest(data, manifest))
+
+
+class _SettingsSignature:
+    """``__signature__`` of a factory instance: the roof-object settings, keyword-only (what ``AttackSpec.create``
+    binds), built on first use (it imports numpy). On the class itself there is none (inspect then reads the
+    class's own signature)."""
+
+    def __get__(self, instance: object, owner: type | None = None) -> inspect.Signature:
+        if instance is None:
+            raise AttributeError("__signature__")
+        from robustbench3d.attacks.roof import settings_parameters
+
+        return inspect.Signature(settings_parameters(), return_annotation="RoofObjectAttack")
 
 
 class ShippedObjectFactory:
@@ -214,13 +224,16 @@ class ShippedObjectFactory:
         self.__module__ = __name__
         self.__qualname__ = f"ShippedObjectFactory[{entry.name}@{entry.manifest}:{entry.sha256}]"
 
-    def __call__(self, *, eot: bool = False) -> RoofObjectAttack:
+    __signature__ = _SettingsSignature()
+
+    def __call__(self, **settings: Any) -> RoofObjectAttack:
         """Verify the files against the manifest, then load the PLY as the ``object-file`` attack does
-        (:func:`~robustbench3d.attacks.controls.object_file_attack`; EOT jitter if ``eot``)."""
+        (:func:`~robustbench3d.attacks.controls.object_file_attack`, with the attack's ``settings``:
+        :data:`~robustbench3d.attacks.roof.SETTINGS`)."""
         from robustbench3d.attacks.controls import object_file_attack
 
         self.entry.verify()
-        attack = object_file_attack(str(self.entry.path), eot=eot)
+        attack = object_file_attack(str(self.entry.path), **settings)
         if attack.sha256 != self.entry.sha256:  # the file changed between the check and the load
             raise RobustBenchError(f"{self.entry.path}: changed while loading (sha256 {attack.sha256}, "
                                    f"{self.entry.manifest} records {self.entry.sha256})")

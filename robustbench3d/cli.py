@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train fpointnet": ("robustbench3d.victims.train_fpointnet", "train Frustum-PointNet v1 on GT-box frustums"),
     "export-onnx": ("robustbench3d.victims.onnx.export_command", "export an F-PN cascade victim as per-stage ONNX"),
     "parity": ("robustbench3d.victims.onnx.parity_command", "torch vs onnxruntime parity: tensors, boxes, AP"),
+    "tradeoff": ("robustbench3d.tradeoff.cli", "speed/accuracy trade of the harness's settings: Pareto table"),
     "bench": ("robustbench3d.bench", "run speed/memory benchmarks and print a table"),
     "check": ("robustbench3d.gate", "regression gate: compare a run's AP and AP drops with a baseline"),
 }

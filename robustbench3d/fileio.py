@@ -2,18 +2,20 @@
 
 Atomic writes (a reader never sees a half-written file, a crash leaves no partial output); reading
 a data file, where any OS error becomes a :class:`DataFormatError` naming the file; and the
-up-front checks of output paths (``--out``, ``--json``) that fail before any work is done.
+up-front checks of output paths (``--out``, ``--json``) that fail before any work is done; and the
+entry update of the shipped-file manifests (weights, objects).
 """
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from robustbench3d.errors import DataFormatError, RobustBenchError
 
@@ -179,3 +181,18 @@ def remove_created_dir(path: str | Path, scaffolding: tuple[str, ...] = (".lock"
             p.unlink()
     path.rmdir()
     return True
+
+
+def upsert_json_entry(path: str | Path, data: dict[str, Any], list_key: str, id_key: str, entry: Mapping[str, Any],
+                      check: Callable[[dict[str, Any]], object] | None = None) -> dict[str, Any]:
+    """Replace the entry of ``data[list_key]`` whose ``id_key`` equals ``entry``'s (or add ``entry``), sort
+    that list by ``id_key``, call ``check(data)`` (it raises on a bad result: nothing is written), then
+    write ``data`` to ``path`` atomically (indented JSON, sorted keys, final newline); returns ``data``.
+    ``data`` is the file's current content, read and checked by the caller (a shipped-file manifest)."""
+    ident = entry[id_key]
+    kept = [e for e in data[list_key] if e[id_key] != ident]
+    data[list_key] = sorted([*kept, dict(entry)], key=lambda e: e[id_key])
+    if check is not None:
+        check(data)
+    atomic_write_text(path, json.dumps(data, indent=2, sort_keys=True) + "\n")
+    return data

@@ -34,12 +34,10 @@ def parse_factory_args(items: list[str] | None, option: str) -> dict[str, dict[s
     return out
 
 
-def frames_line(requested: int | None, full: bool, data: str | None, split: str) -> str:
-    """The line ``run`` prints first: which frames of which split it evaluates (``requested``: the
-    ``--max-frames`` given), and how to get all."""
-    from robustbench3d.runner.config import default_max_frames
-
-    max_frames = default_max_frames(requested, full, data, split)
+def frames_line(max_frames: int | None, requested: int | None, full: bool, data: str | None, split: str) -> str:
+    """The line ``run`` prints first: which frames of which split it evaluates (``max_frames``: the run's,
+    from :func:`~robustbench3d.runner.config.default_max_frames`; ``requested``: the ``--max-frames``
+    given), and how to get all."""
     if data is not None:
         where = f"split {split} of {data}"
         return (f"frames: the first {max_frames} of {where} (--max-frames)" if max_frames is not None
@@ -119,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     attacks, attack_args = resolve_attack_references(_names(args.attacks),
                                                      parse_factory_args(args.attack_arg, "--attack-arg"))
     max_frames = default_max_frames(args.max_frames, args.full, args.data, args.split)
-    print(frames_line(args.max_frames, args.full, args.data, args.split), file=sys.stderr, flush=True)
+    print(frames_line(max_frames, args.max_frames, args.full, args.data, args.split), file=sys.stderr, flush=True)
     config = RunConfig(
         victims=tuple(victims), attacks=tuple(attacks),
         proposals=tuple(_names(args.proposals)), out=args.out, data=args.data, split=args.split,

@@ -1,12 +1,15 @@
 """Sanity flags (robustbench3d.runner.flags): each flag triggered on purpose and left silent on the shipped
 objects and honest cells; the runner writes them into cell.json and summary.json, prints them, and keeps
-the determinism verdict of a reused cell."""
+the determinism verdict of a reused cell; that verdict comes from the process that computed the cell
+(the run's own with --jobs 1, a shard worker with --jobs 2), never from a victim created for it."""
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +24,8 @@ from robustbench3d.kitti import Labels, write_split
 from robustbench3d.kitti.labels import read_labels
 from robustbench3d.results import read_summary, validate_summary
 from robustbench3d.runner import RunConfig, run_benchmark
+from robustbench3d.runner.config import CellKey
+from robustbench3d.runner.executors import LocalExecutor
 from robustbench3d.runner.flags import (
     CODES,
     attack_flags,
@@ -31,6 +36,7 @@ from robustbench3d.runner.flags import (
     training_gradients,
     twin_source,
 )
+from robustbench3d.runner.shards import CellJob, Shard, finished_shard
 from robustbench3d.testing import write_kitti_frame
 from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
@@ -212,9 +218,23 @@ class HalfOracle:
         return out
 
 
-for _name, _jitter in (("test-flags-half-oracle", False), ("test-flags-jittery", True)):
+#: Pids of the processes that created a jittery victim, as this process saw it (a spawned worker has its own).
+created_in: list[int] = []
+
+
+def half_oracle(labels_dir: str) -> HalfOracle:
+    return HalfOracle(labels_dir)
+
+
+def jittery_oracle(labels_dir: str) -> HalfOracle:
+    created_in.append(os.getpid())
+    return HalfOracle(labels_dir, jitter=True)
+
+
+# module-level factories: a worker process unpickles the registry entry by reference to them
+for _name, _factory in (("test-flags-half-oracle", half_oracle), ("test-flags-jittery", jittery_oracle)):
     VICTIMS.register(_name, VictimSpec(
-        factory=(lambda j: (lambda labels_dir: HalfOracle(labels_dir, jitter=j)))(_jitter),
+        factory=_factory,
         info=EntryInfo(Capabilities(modalities=("lidar",), backend="other", gradients=False, deterministic=True),
                        summary="TEST ONLY: half the GT cars unless the scan is marked")))
 
@@ -266,6 +286,61 @@ def test_runner_writes_prints_and_keeps_flags(toy, tmp_path):
     assert all(o.reused for o in again.outcomes)
     assert read_summary(tmp_path / "run" / "summary.json") == summary
     assert {p: p.stat().st_mtime_ns for p in before} == before
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_the_determinism_check_runs_where_the_victim_already_is(toy, tmp_path, jobs):
+    labels = {"labels_dir": str(toy / "training" / "label_2")}
+    config = RunConfig(victims=("test-flags-half-oracle", "test-flags-jittery"), attacks=("none",),
+                       proposals=("gt",), out=tmp_path / "run", data=toy, max_frames=2, batch_size=1,
+                       progress=False, victim_args={"test-flags-half-oracle": labels, "test-flags-jittery": labels})
+    created_in.clear()
+    lines: list[str] = []
+    if jobs == 1:
+        run_benchmark(config, lines.append)
+    else:
+        with LocalExecutor(2, shard_frames=1) as executor:  # two one-frame shards per cell
+            run_benchmark(config, lines.append, executor=executor)
+    summary = read_summary(tmp_path / "run" / "summary.json")
+    codes = {c["victim"]: [f["code"] for f in c["flags"]] for c in summary}
+    assert codes == {"test-flags-half-oracle": ["partial-split"],
+                     "test-flags-jittery": ["partial-split", "victim-nondeterministic"]}
+    (flag,) = [f for f in summary[1]["flags"] if f["code"] == "victim-nondeterministic"]
+    # HalfOracle moves its 2 boxes (frame 000000, no marker) by 0.05 m per call: the two checks' files differ
+    assert flag["message"].startswith("two detect calls on frame 000000 (clean, proposals gt) gave different "
+                                      "detections (2 and 2 rows; first difference at row 1)")
+    # --jobs 1: the one victim the cells used, created once; --jobs 2: none created in this process
+    assert created_in == ([os.getpid()] if jobs == 1 else [])
+
+
+def shard_with_mark(tmp_path: Path, index: int, mark_extra: dict) -> Shard:
+    """A one-frame shard of a hand-made cell directory whose result file and record an earlier run left."""
+    key = CellKey("v", "none", "gt")
+    job = CellJob(key=key, cell_dir=str(tmp_path), fingerprint="fp", victim_spec=None, victim_kwargs={},
+                  attack=b"", kitti=None, seed=0, batch_size=1)
+    fid = f"{index:06d}"
+    shard = Shard(job, index, index, ((fid, Labels.empty()),))
+    text = "Car 0.00 0 0.00 1.00 2.00 3.00 4.00 1.50 1.60 4.00 1.00 1.70 15.00 0.00 0.90\n"
+    (tmp_path / "data.partial").mkdir(parents=True, exist_ok=True)
+    (tmp_path / "data.partial" / f"{fid}.txt").write_text(text)
+    shard.mark_path.parent.mkdir(exist_ok=True)
+    mark = {"fingerprint": "fp", "frames": [fid], "sha256": [hashlib.sha256(text.encode()).hexdigest()]}
+    shard.mark_path.write_text(json.dumps({**mark, **mark_extra}))
+    return shard
+
+
+def test_a_resumed_first_shard_brings_its_determinism_verdict(tmp_path):
+    nondet = {"code": "victim-nondeterministic", "message": "two detect calls differ"}
+    got = finished_shard(shard_with_mark(tmp_path / "a", 0, {"victim_probe": [nondet]}))
+    assert got is not None and got.reused and got.victim_probe == [nondet]
+    got = finished_shard(shard_with_mark(tmp_path / "b", 0, {"victim_probe": []}))
+    assert got is not None and got.victim_probe == []
+    # a first shard without a (valid) verdict is computed again; a later shard needs none
+    for bad in ({}, {"victim_probe": None}, {"victim_probe": [{"code": "partial-split", "message": "m"}]},
+                {"victim_probe": [{"code": "victim-nondeterministic"}]}):
+        assert finished_shard(shard_with_mark(tmp_path / "c", 0, bad)) is None, bad
+    got = finished_shard(shard_with_mark(tmp_path / "d", 1, {}))
+    assert got is not None and got.victim_probe is None
 
 
 def test_flags_are_schema_checked():

@@ -27,15 +27,22 @@ def test_the_printed_line_names_the_frames_and_the_full_count():
     val = [i for i in range(EMBEDDED.frames) if in_val(EMBEDDED.seed, i, EMBEDDED.val_fraction)]  # by hand
     n = len(val)
     last = f"{val[DEFAULT_VAL_FRAMES - 1]:06d}"
-    assert frames_line(None, False, None, "val") == (
+    def line(requested, full, data, split="val"):  # as run prints it: the run's max_frames, then the flags
+        return frames_line(default_max_frames(requested, full, data, split), requested, full, data, split)
+
+    assert line(None, False, None) == (
         f"frames: the first {DEFAULT_VAL_FRAMES} of the {n} frames of the embedded val split, 000000..{last} "
         f"(the quick default, runner.config.DEFAULT_VAL_FRAMES); --full runs all {n}")
-    assert frames_line(None, True, None, "val") == f"frames: all {n} frames of the embedded val split (--full)"
-    assert frames_line(3, False, None, "val") == (f"frames: the first 3 of the {n} frames of the embedded val "
-                                                  f"split, 000000..{val[2]:06d} (--max-frames); --full runs all {n}")
-    assert frames_line(5000, False, None, "val") == f"frames: all {n} frames of the embedded val split"
-    assert frames_line(None, False, "/d", "val") == "frames: every frame of split val of /d"
-    assert frames_line(7, False, "/d", "val") == "frames: the first 7 of split val of /d (--max-frames)"
+    assert line(None, True, None) == f"frames: all {n} frames of the embedded val split (--full)"
+    assert line(3, False, None) == (f"frames: the first 3 of the {n} frames of the embedded val "
+                                    f"split, 000000..{val[2]:06d} (--max-frames); --full runs all {n}")
+    assert line(5000, False, None) == f"frames: all {n} frames of the embedded val split"
+    assert line(None, False, "/d") == "frames: every frame of split val of /d"
+    assert line(7, False, "/d") == "frames: the first 7 of split val of /d (--max-frames)"
+    # the line describes the max_frames it is given (it no longer recomputes it)
+    assert frames_line(4, None, False, None, "val") == (
+        f"frames: the first 4 of the {n} frames of the embedded val split, 000000..{val[3]:06d} "
+        f"(the quick default, runner.config.DEFAULT_VAL_FRAMES); --full runs all {n}")
 
 
 def test_full_with_max_frames_is_refused_with_exit_2(tmp_path, capsys):

@@ -15,10 +15,19 @@ frame, proposal])``), so a frustum's result does not depend on the batch or on o
 in eval mode (BatchNorm running statistics, no dropout). Proposal filters follow §1.3: 2D height
 >= 25 px, and at least ``min_points_detector`` (5) frustum points for detector boxes or one for
 GT boxes.
+
+Fidelity knobs (victim arguments, for speed/accuracy sweeps; the defaults are the trained
+settings): ``num_points`` — points each frustum is resampled to (the segmentation PointNet
+max-pools over them, so any N works; the T-Net / box stage still gathers the trained M object
+points, repeating points when fewer are masked); ``input_size`` — the 2D stage's "WxH" input
+(letterbox, decoding and the objectness oracle follow it); ``precision`` — float32, bfloat16
+autocast or a float64 copy of the frustum stages. ``frustum_logits`` / ``frustum_box`` resample to
+the same ``num_points`` as ``detect``. :meth:`FPointNetCascade.fidelity` lists the values in effect.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -68,7 +77,12 @@ from robustbench3d.victims.yolo.detector import YoloDetector, candidates_for_tar
 from robustbench3d.victims.yolo.model import Darknet
 
 #: Inference precisions of :meth:`FPointNetCascade.detect`'s frustum stages (victim kwarg ``precision``).
-PRECISIONS = ("float32", "bfloat16")
+PRECISIONS = ("float32", "bfloat16", "float64")
+#: Bounds of the victim argument ``num_points``. Any N >= 1 runs (the segmentation net max-pools
+#: over N; resampling draws with replacement; the object-point gather repeats points). The upper
+#: bound keeps a typo from exhausting memory: the full config's segmentation pass holds about
+#: 4 x N x 1603 float32 per-point features per batch of 4 frustums (~1.7 GB at 65536).
+NUM_POINTS_RANGE = (1, 65536)
 
 
 class BFloat16FrustumStages(TorchFrustumStages):
@@ -80,6 +94,48 @@ class BFloat16FrustumStages(TorchFrustumStages):
             out = module(torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32)),
                          torch.from_numpy(np.ascontiguousarray(one_hot, dtype=np.float32)))
         return out.float().numpy()
+
+
+class Float64FrustumStages(TorchFrustumStages):
+    """The frustum stages run by a float64 copy of the network (given): inputs (float32 points from
+    the numpy glue) widened to float64, outputs returned as float64 (the glue rounds them to float32)."""
+
+    def _run(self, module: torch.nn.Module, points: np.ndarray, one_hot: np.ndarray) -> np.ndarray:  # type: ignore[override]
+        with torch.inference_mode():
+            return module(torch.from_numpy(np.asarray(points, dtype=np.float64)),
+                          torch.from_numpy(np.asarray(one_hot, dtype=np.float64))).numpy()
+
+
+def parse_num_points(value: object) -> int | None:
+    """The victim argument ``num_points``: None (the network's trained N) or an int in
+    :data:`NUM_POINTS_RANGE`; anything else raises :class:`RobustBenchError` naming it."""
+    if value is None:
+        return None
+    lo, hi = NUM_POINTS_RANGE
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or not lo <= int(value) <= hi:
+        raise RobustBenchError(f"victim argument 'num_points': {value!r} is not an integer in [{lo}, {hi}]")
+    return int(value)
+
+
+def parse_input_size(value: object, max_stride: int) -> tuple[int, int] | None:
+    """The victim argument ``input_size``: None (the trained size), ``"WxH"`` or a (W, H) pair of
+    positive multiples of ``max_stride`` (the network's largest downsampling); anything else raises
+    :class:`RobustBenchError` naming it."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        parts: list[object] = [int(p) if p.strip().isdigit() else p for p in value.lower().split("x")]
+    else:
+        parts = list(value) if isinstance(value, list | tuple) else [value]
+    sides = [int(p) for p in parts if isinstance(p, int | np.integer) and not isinstance(p, bool) and p > 0]
+    if len(parts) != 2 or len(sides) != 2:
+        raise RobustBenchError(f"victim argument 'input_size': {value!r} is not WxH with positive integers "
+                               "(e.g. '640x192')")
+    w, h = sides
+    if w % max_stride or h % max_stride:
+        raise RobustBenchError(f"victim argument 'input_size': {w}x{h} is not a multiple of the 2D network's "
+                               f"largest stride {max_stride} in both sides")
+    return w, h
 
 
 #: Temperature of the straight-through mask of :meth:`FPointNetCascade.frustum_box` (see
@@ -98,19 +154,45 @@ class FPointNetCascade:
         self.settings = settings or CascadeSettings()
         self.car_class = self.yolo.cfg.class_names.index("Car")
         self.precision = "float32"
+        self._fpn64: FrustumPointNetV1 | None = None
+        self._num_points: int | None = None
 
     def with_precision(self, precision: str) -> FPointNetCascade:
-        """Set the precision of :meth:`detect`'s frustum stages (one of :data:`PRECISIONS`; the 2D stage and
-        the attack oracles stay float32); returns ``self``."""
+        """Set the precision of :meth:`detect`'s frustum stages (one of :data:`PRECISIONS`): "bfloat16"
+        autocast, or "float64" on a float64 copy of the network (the float32 glue in between). The 2D
+        stage and the attack oracles stay float32. Returns ``self``."""
         if precision not in PRECISIONS:
             raise RobustBenchError(f"victim argument 'precision': {precision!r} is not one of {', '.join(PRECISIONS)}")
         self.precision = precision
+        if precision == "float64" and self._fpn64 is None:
+            self._fpn64 = copy.deepcopy(self.fpn).double().eval()
         return self
+
+    def with_num_points(self, num_points: int | None) -> FPointNetCascade:
+        """Resample every frustum to ``num_points`` points in :meth:`detect` and the frustum oracles
+        (None: the network's trained N; see :func:`parse_num_points`). Returns ``self``."""
+        self._num_points = parse_num_points(num_points)
+        return self
+
+    def with_input_size(self, input_size: str | Sequence[int] | None) -> FPointNetCascade:
+        """Run the 2D stage at ``input_size`` ("WxH" or (W, H), multiples of the network's largest
+        stride; None keeps the current size): letterbox, decoding (strides are input size / grid
+        size) and the objectness oracle follow it; anchors stay in input pixels. Returns ``self``."""
+        size = parse_input_size(input_size, max(self.yolo.net.head_strides))
+        if size is not None and size != tuple(self.yolo.cfg.input_size):
+            self.yolo.cfg = replace(self.yolo.cfg, input_size=size)
+        return self
+
+    def fidelity(self) -> dict[str, Any]:
+        """The fidelity settings in effect: frustum points, 2D input (W, H) and frustum-stage precision."""
+        return {"num_points": self.num_points, "input_size": list(self.yolo.cfg.input_size),
+                "precision": self.precision}
 
     # ---- construction ------------------------------------------------------------------
     @property
     def num_points(self) -> int:
-        return self.fpn.cfg.num_points
+        """Points per frustum: the ``num_points`` victim argument, else the network's trained N."""
+        return self._num_points if self._num_points is not None else self.fpn.cfg.num_points
 
     @classmethod
     def untrained(cls, fpn_config: FPointNetConfig | str = "full", yolo_config: YoloConfig | str = "mini",
@@ -169,9 +251,14 @@ class FPointNetCascade:
     def detect(self, frames: Sequence[Frame], proposals: ProposalsArg = "detector") -> list[Labels]:
         """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes,
         i.e. proposals with ``source="gt"``)."""
+        stages: TorchFrustumStages
+        if self.precision == "float64":
+            assert self._fpn64 is not None
+            stages = Float64FrustumStages(self._fpn64)
+        else:
+            stages = (BFloat16FrustumStages if self.precision == "bfloat16" else TorchFrustumStages)(self.fpn)
         return detect_frames(frames, proposals, detect_2d=self.yolo.detect, car_class=self.car_class,
-                             stages=(BFloat16FrustumStages if self.precision == "bfloat16" else TorchFrustumStages)(
-                                 self.fpn), settings=self.settings,
+                             stages=stages, settings=self.settings,
                              num_points=self.num_points, num_object_points=self.fpn.cfg.num_object_points)
 
     # ---- ImageObjectnessOracle --------------------------------------------------------

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import DataFormatError, RobustBenchError
-from robustbench3d.fileio import sha256_file
+from robustbench3d.fileio import sha256_file, upsert_json_entry
 
 MANIFEST_FORMAT = "robustbench3d.shipped_weights/1"
 MANIFEST_NAME = "manifest.json"
@@ -84,11 +84,6 @@ def shipped_sha256(victim: str) -> str | None:
 
 
 def upsert_entry(manifest: Path, entry: dict[str, Any]) -> dict[str, Any]:
-    """Replace (or add) the entry of ``entry["victim"]`` and write the manifest atomically."""
-    from robustbench3d.fileio import atomic_write_text
-
-    data = read_manifest(manifest)
-    data["weights"] = [e for e in data["weights"] if e["victim"] != entry["victim"]] + [entry]
-    data["weights"].sort(key=lambda e: e["victim"])
-    atomic_write_text(manifest, json.dumps(data, indent=2, sort_keys=True) + "\n")
-    return data
+    """Replace (or add) the entry of ``entry["victim"]`` and write the manifest atomically (entries sorted
+    by victim); returns the new content."""
+    return upsert_json_entry(manifest, read_manifest(manifest), "weights", "victim", entry)

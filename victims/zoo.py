@@ -5,10 +5,16 @@ weights (:mod:`robustbench3d.victims.shipped`, ``weights/manifest.json``) loads 
 checked against the sha256 its registry entry declares. Otherwise pass ``weights=`` (a file written
 by :meth:`~robustbench3d.victims.cascade.FPointNetCascade.save`) or the two trainers' outputs
 (``yolo_weights=``, ``fpointnet_weights=``), or ``allow_untrained=True`` for plumbing tests.
+
+Both cascades take the fidelity knobs of :mod:`robustbench3d.victims.cascade` (defaults: the
+trained settings, results unchanged): ``num_points`` (points per frustum), ``input_size`` (the 2D
+stage's "WxH") and ``precision`` ("float32", "bfloat16" or "float64"), e.g.
+``--victim-arg fpointnet-v1-lite:num_points=1024 --victim-arg fpointnet-v1-lite:input_size=640x192``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -52,11 +58,14 @@ def _cascade(name: str, fpn_config: str, weights: str | Path | None, yolo_weight
                  summary="YOLO 2D stage -> Frustum-PointNet v1 (1024 pts), KITTI Car")
 def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
                  fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,
-                 seed: int = 0, gather: str = "random", precision: str = "float32") -> FPointNetCascade:
-    """The F-PN v1 cascade with the full v1 network (§1.6); ``precision="bfloat16"`` runs the frustum
-    stages of ``detect`` under bfloat16 autocast."""
+                 seed: int = 0, gather: str = "random", precision: str = "float32", num_points: int | None = None,
+                 input_size: str | Sequence[int] | None = None) -> FPointNetCascade:
+    """The F-PN v1 cascade with the full v1 network (§1.6; N = 1024). ``precision="bfloat16"`` runs the
+    frustum stages of ``detect`` under bfloat16 autocast, ``"float64"`` on a float64 copy of the network
+    (the 2D stage stays float32); ``num_points`` resamples frustums to N points; ``input_size`` ("WxH")
+    sets the 2D stage's input (multiples of its largest stride)."""
     return _cascade("fpointnet-v1", "full", weights, yolo_weights, fpointnet_weights, allow_untrained, seed,
-                    gather).with_precision(precision)
+                    gather).with_precision(precision).with_num_points(num_points).with_input_size(input_size)
 
 
 @register_victim("fpointnet-v1-lite", capabilities=CASCADE_CAPABILITIES,
@@ -64,8 +73,10 @@ def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path 
                  summary="mini3-YOLO 960x288 -> Frustum-PointNet v1 lite (512 pts, CPU config)")
 def fpointnet_v1_lite(weights: str | Path | None = None, *, yolo_weights: str | Path | None = None,
                       fpointnet_weights: str | Path | None = None, allow_untrained: bool = False,
-                      seed: int = 0, gather: str = "random", precision: str = "float32") -> FPointNetCascade:
-    """The cascade with the "lite" F-PN config (N = 512, global feature 256, seg head 128-64);
-    ``precision="bfloat16"`` runs the frustum stages of ``detect`` under bfloat16 autocast."""
+                      seed: int = 0, gather: str = "random", precision: str = "float32",
+                      num_points: int | None = None, input_size: str | Sequence[int] | None = None) -> FPointNetCascade:
+    """The cascade with the "lite" F-PN config (N = 512, global feature 256, seg head 128-64; shipped
+    2D stage mini3 at 960x288). ``precision``, ``num_points`` and ``input_size`` as for
+    :func:`fpointnet_v1`."""
     return _cascade("fpointnet-v1-lite", "lite", weights, yolo_weights, fpointnet_weights, allow_untrained,
-                    seed, gather).with_precision(precision)
+                    seed, gather).with_precision(precision).with_num_points(num_points).with_input_size(input_size)

@@ -21,7 +21,10 @@ FIGURES = "figures"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="output directories of `robustbench3d run`")
+    parser.add_argument("runs", nargs="*", metavar="RUN_DIR", help="output directories of `robustbench3d run`")
+    parser.add_argument("--tradeoff", action="append", default=[], metavar="DIR",
+                        help="output directory of `robustbench3d tradeoff`: its Pareto table and figure become a "
+                             "section (repeatable)")
     parser.add_argument("--out", required=True, metavar="DIR", help="directory to write the report into")
     parser.add_argument("--strict", action="store_true",
                         help="refuse runs that are not comparable instead of separating them into sections")
@@ -95,18 +98,31 @@ def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = pri
 
 
 def run(args: argparse.Namespace) -> int:
+    from robustbench3d.errors import RobustBenchError
     from robustbench3d.fileio import atomic_write_bytes, atomic_write_text, check_output_dir
-    from robustbench3d.report.page import html_page, markdown
+    from robustbench3d.report.page import Figure, html_page, img_html, markdown
+    from robustbench3d.report.tradeoff_view import TradeoffView, tradeoff_html, tradeoff_markdown
 
+    if not args.runs and not args.tradeoff:
+        raise RobustBenchError("give at least one RUN_DIR or --tradeoff DIR")
     out = check_output_dir(args.out, "--out")
-    views, notes = build(args.runs, args.scenes, args.strict)
+    trades = [TradeoffView.read(p) for p in args.tradeoff]  # bad files fail before any work
+    views, notes = build(args.runs, args.scenes, args.strict) if args.runs else ([], [])
     (out / FIGURES).mkdir(parents=True, exist_ok=True)
     for view in views:
         for fig in [*view.figures, *([view.transfer] if view.transfer else []), *view.scenes]:
             atomic_write_bytes(out / FIGURES / fig.name, fig.png)
-    runs = [str(Path(r)) for r in args.runs]
-    atomic_write_text(out / MD_FILE, markdown(views, args.title, runs, notes, FIGURES))
-    atomic_write_text(out / HTML_FILE, html_page(views, args.title, runs, notes))
+    html_extra, md_extra = [], []
+    for k, trade in enumerate(trades):
+        atomic_write_bytes(out / FIGURES / trade.figure_name, trade.png)
+        fig = Figure(trade.figure_name, trade.png, "Wall time of the clean + attacked cell against |ΔAP| from each "
+                     "sweep's reference (left, Pareto front dashed); frames evaluated against the interval width "
+                     "(right).", trade.title)
+        html_extra.append(tradeoff_html(trade, k, img_html(fig)))
+        md_extra.append(tradeoff_markdown(trade, FIGURES))
+    runs = [str(Path(r)) for r in [*args.runs, *args.tradeoff]]
+    atomic_write_text(out / MD_FILE, markdown(views, args.title, runs, notes, FIGURES, md_extra))
+    atomic_write_text(out / HTML_FILE, html_page(views, args.title, runs, notes, html_extra))
     for note in notes:
         print(f"report: {note}")
     print(f"report: {out / HTML_FILE}, {out / MD_FILE} ({len(views)} section(s))")

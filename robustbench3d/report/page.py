@@ -147,7 +147,7 @@ def _cell_html(row: Any, col: Column, recall: str = "R40") -> str:
             f'title="R40 {t40} · R11 {t11}">{t40 if recall == "R40" else t11}</td>')
 
 
-def _img(fig: Figure) -> str:
+def img_html(fig: Figure) -> str:
     data = base64.b64encode(fig.png).decode("ascii")
     return (f'<figure><img src="data:image/png;base64,{data}" alt="{html.escape(fig.alt)}">'
             f"<figcaption>{html.escape(fig.caption)}</figcaption></figure>")
@@ -248,8 +248,9 @@ def cell_json(view: SectionView, i: int) -> str:
     return json.dumps(view.section.cells[i].cell, indent=1, sort_keys=False, ensure_ascii=False)
 
 
-def html_page(views: Sequence[SectionView], title: str, runs: Sequence[str], notes: Sequence[str]) -> str:
-    """The whole self-contained page."""
+def html_page(views: Sequence[SectionView], title: str, runs: Sequence[str], notes: Sequence[str],
+              extra: Sequence[str] = ()) -> str:
+    """The whole self-contained page; ``extra``: further ``<section>`` markup (e.g. speed/accuracy trades)."""
     out = ['<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">',
            '<meta name="viewport" content="width=device-width, initial-scale=1">',
            f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body>",
@@ -282,11 +283,12 @@ def html_page(views: Sequence[SectionView], title: str, runs: Sequence[str], not
                        f'<td data-v="{src}"><a class="prov" href="#prov-{k}-{i}" title="{src}">cell.json</a></td></tr>')
         out.append("</tbody></table></div>")
         for fig in view.figures:
-            out.append(_img(fig))
+            out.append(img_html(fig))
         out.append("<h3>Transfer matrix</h3>")
-        out.append(_img(view.transfer) if view.transfer else f'<p class="note">{html.escape(view.transfer_note)}</p>')
+        out.append(img_html(view.transfer) if view.transfer
+                   else f'<p class="note">{html.escape(view.transfer_note)}</p>')
         out.append("<h3>Scenes</h3>")
-        out += [_img(s) for s in view.scenes]
+        out += [img_html(s) for s in view.scenes]
         out += [f'<p class="note">{html.escape(n)}</p>' for n in view.scene_notes]
         out.append("<h3>Provenance of every cell</h3>")
         for i in range(len(view.section.cells)):
@@ -294,6 +296,7 @@ def html_page(views: Sequence[SectionView], title: str, runs: Sequence[str], not
             out.append(f'<details id="prov-{k}-{i}"><summary>{html.escape(rc.name)} — {html.escape(rc.source)}'
                        f"</summary><pre>{html.escape(cell_json(view, i))}</pre></details>")
         out.append("</section>")
+    out += list(extra)
     out.append(f"<script>{JS}</script></body></html>")
     return "\n".join(out)
 
@@ -303,8 +306,9 @@ def _md_escape(text: str) -> str:
 
 
 def markdown(views: Sequence[SectionView], title: str, runs: Sequence[str], notes: Sequence[str],
-             figure_dir: str) -> str:
-    """The leaderboard as markdown: per section the table (R40, R11 in parentheses) and the figures as links."""
+             figure_dir: str, extra: Sequence[str] = ()) -> str:
+    """The leaderboard as markdown: per section the table (R40, R11 in parentheses) and the figures as links;
+    ``extra``: further markdown sections appended."""
     lines = [f"# {title}", "", f"From {', '.join(runs)}. AP in % (R40, R11 in parentheses); drops and the "
              "relative drop are BEV moderate against the clean cell with the same proposals; ASR in %.", ""]
     lines += [f"> {n}" for n in notes] + ([""] if notes else [])
@@ -338,4 +342,5 @@ def markdown(views: Sequence[SectionView], title: str, runs: Sequence[str], note
         if not view.transfer:
             lines += [view.transfer_note, ""]
         lines += [*view.scene_notes, ""] if view.scene_notes else []
+    lines += [e.rstrip() + "\n" for e in extra]
     return "\n".join(lines).rstrip() + "\n"

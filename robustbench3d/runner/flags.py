@@ -12,7 +12,11 @@ suspicious), recomputed whenever the summary is written and printed by ``run``. 
   optimised parameter that never left its initial value (colours all the neutral grey, or vertices the
   template's: every step's gradient was zero).
 * ``victim-nondeterministic``: two ``detect`` calls on the split's first frame (clean, this cell's proposal
-  source) gave different detections as written to the result files. Checked when a cell is computed.
+  source) gave different detections as written to the result files (:func:`determinism`). Checked by the
+  process that already holds the victim: with an executor, the worker of a cell's first shard right after
+  that shard; without one, the run's process after its cells, on the victim they used. Once per victim x
+  proposal source in that process; every cell of that victim x proposal source computed by the run is
+  flagged if one of its checks found a difference (:func:`record_flags`). No victim is created for it.
 * ``onnx-torch-divergence``: an ONNX victim's AP differs from its torch twin's (the victim named as
   ``source`` in the ONNX manifest, with the weights hash recorded there; same attack, proposals and
   dataset, both in the summary) by more than :class:`~robustbench3d.victims.onnx.parity.Tolerances`'
@@ -35,7 +39,8 @@ from robustbench3d.runner.config import CellKey
 
 if TYPE_CHECKING:
     from robustbench3d.attacks.base import Attack
-    from robustbench3d.runner.cell import CellInputs
+    from robustbench3d.kitti.dataset import KittiDataset
+    from robustbench3d.kitti.labels import Labels
     from robustbench3d.runner.grid import RunReport
 
 ATTACK_RAISES_AP = "attack-raises-ap"
@@ -164,26 +169,39 @@ def attack_flags(attack: Attack) -> list[Flag]:
     return object_out_of_bounds(obj.vertices()) + training_gradients(identity, obj.vertices(), obj.colors)
 
 
-def determinism(victim: Any, proposals: str, inputs: CellInputs, runs: int = 2) -> list[Flag]:
-    """``victim-nondeterministic`` from ``runs`` ``detect`` calls on the split's first frame (clean)."""
-    from robustbench3d.kitti.dataset import Frame
+def determinism(victim: Any, proposals: str, kitti: KittiDataset, frame_id: str, gt: Labels,
+                runs: int = 2) -> list[Flag]:
+    """``victim-nondeterministic`` from ``runs`` ``detect`` calls on frame ``frame_id`` (clean; ``gt`` only
+    feeds ``proposals="gt"``), for the process that holds ``victim``. Never raises: a failing re-run is
+    itself flagged (the victim has just worked through a cell)."""
     from robustbench3d.kitti.labels import RESULT_PRECISION
     from robustbench3d.victims.base import victim_inputs
 
-    fid, gt = inputs.gt.frame_ids[0], inputs.gt.labels[0]
-    kitti = inputs.kitti
     texts = []
-    for _ in range(runs):
-        frame = Frame(fid, kitti.image(fid), kitti.scan(fid), kitti.calib(fid), gt)
-        bare, given = victim_inputs([frame], [gt], proposals)
-        texts.append(victim.detect(bare, given)[0].to_text(RESULT_PRECISION))
+    try:
+        for _ in range(runs):
+            bare, given = victim_inputs([kitti.lazy_frame(frame_id, gt)], [gt], proposals)
+            texts.append(victim.detect(bare, given)[0].to_text(RESULT_PRECISION))
+    except Exception as exc:
+        return [flag(VICTIM_NONDETERMINISTIC, f"the determinism re-run failed: {type(exc).__name__}: {exc}")]
     if all(t == texts[0] for t in texts):
         return []
     a, b = (t.splitlines() for t in texts[:2])
     first = next((i for i, (x, y) in enumerate(zip(a, b, strict=False)) if x != y), min(len(a), len(b)))
-    return [flag(VICTIM_NONDETERMINISTIC, f"two detect calls on frame {fid} (clean, proposals {proposals}) gave "
-                                          f"different detections ({len(a)} and {len(b)} rows; first difference at "
-                                          f"row {first + 1}): its AP may not reproduce")]
+    return [flag(VICTIM_NONDETERMINISTIC, f"two detect calls on frame {frame_id} (clean, proposals {proposals}) "
+                                          f"gave different detections ({len(a)} and {len(b)} rows; first "
+                                          f"difference at row {first + 1}): its AP may not reproduce")]
+
+
+def probe_flags(value: Any) -> list[Flag] | None:
+    """``value`` as a determinism verdict (a list of ``victim-nondeterministic`` flags, as :func:`determinism`
+    returns and a shard record stores it), or None if it is not one."""
+    if not isinstance(value, list):
+        return None
+    if not all(isinstance(f, dict) and set(f) == {"code", "message"} and f["code"] == VICTIM_NONDETERMINISTIC
+               and isinstance(f["message"], str) and f["message"] for f in value):
+        return None
+    return [dict(f) for f in value]
 
 
 def twin_source(victim: str) -> dict[str, Any] | None:
@@ -235,19 +253,19 @@ def onnx_divergence(cells: Sequence[Mapping[str, Any]],
     return out
 
 
-def record_flags(report: RunReport, cells_dir: Path, inputs: CellInputs, attacks: Mapping[str, Attack],
-                 victim_of: Callable[[str], Any], log: Callable[[str], None], cell_file: str = "cell.json") -> None:
+def record_flags(report: RunReport, cells_dir: Path, attacks: Mapping[str, Attack], log: Callable[[str], None],
+                 cell_file: str = "cell.json") -> None:
     """Set ``flags`` on every cell of ``report.summary`` (in place), rewrite the ``cell.json`` of each cell whose
-    flags changed (atomically) and log every flag. Determinism is checked once per victim x proposal source
-    with a cell computed by this run; cells the run did not compute keep the flags that need what it lacks."""
-    fresh = {(o.key.victim, o.key.proposals) for o in report.outcomes if not o.reused and o.cell["status"] == "ok"}
+    flags changed (atomically) and log every flag. The determinism verdict of a victim x proposal source is the
+    one its computed cells brought back (:attr:`~robustbench3d.runner.grid.CellOutcome.probe`; flagged if any
+    check found a difference, the first such message in grid order); cells the run did not compute keep the
+    flags that need what it lacks."""
     checked: dict[tuple[str, str], list[Flag]] = {}
-    for victim, proposals in sorted(fresh):
-        try:
-            checked[(victim, proposals)] = determinism(victim_of(victim), proposals, inputs)
-        except Exception as exc:  # the victim worked through the cell; a failure here is itself worth a flag
-            checked[(victim, proposals)] = [flag(VICTIM_NONDETERMINISTIC, f"the determinism re-run failed: "
-                                                                           f"{type(exc).__name__}: {exc}")]
+    for o in report.outcomes:
+        if not o.reused and o.cell["status"] == "ok" and o.probe is not None:
+            pair = (o.key.victim, o.key.proposals)
+            if not checked.get(pair):
+                checked[pair] = list(o.probe)
     computed = {o.key.dirname for o in report.outcomes if not o.reused}
     cells = report.summary
     divergent = onnx_divergence(cells)
@@ -273,4 +291,4 @@ def record_flags(report: RunReport, cells_dir: Path, inputs: CellInputs, attacks
 
 
 __all__ = ["CODES", "RAISE_TOL_AP", "attack_flags", "attack_raises_ap", "determinism", "flag", "object_out_of_bounds",
-           "onnx_divergence", "partial_split", "record_flags", "training_gradients", "twin_source"]
+           "onnx_divergence", "partial_split", "probe_flags", "record_flags", "training_gradients", "twin_source"]

@@ -60,7 +60,7 @@ from robustbench3d.runner.collect import earlier_cells
 from robustbench3d.runner.config import CellKey, RunConfig, fingerprint, grid
 from robustbench3d.runner.effect import CLEAN_ATTACK, attach_effects, with_clean_cells
 from robustbench3d.runner.executors import Executor
-from robustbench3d.runner.flags import record_flags
+from robustbench3d.runner.flags import determinism, record_flags
 from robustbench3d.runner.records import (
     attack_record,
     cell_config,
@@ -84,6 +84,10 @@ class CellOutcome:
     key: CellKey
     cell: dict[str, Any]
     reused: bool
+    #: The victim's determinism verdict (:func:`robustbench3d.runner.flags.determinism`) from the process
+    #: that computed the cell with that victim (a shard worker; this one, after the cells, with no executor);
+    #: None: not checked (reused, not ok).
+    probe: list[dict[str, str]] | None = None
 
 
 @dataclass
@@ -136,6 +140,7 @@ class _VictimSlot:
         self.name, self.kwargs = name, kwargs
         self._victim: Any = None
         self._error: CellFailure | None = None
+        self._probes: dict[str, list[dict[str, str]]] = {}
 
     def get(self) -> Any:
         if self._victim is None and self._error is None:
@@ -148,6 +153,13 @@ class _VictimSlot:
         if self._error is not None:
             raise self._error
         return self._victim
+
+    def probe(self, proposals: str, inputs: CellInputs) -> list[dict[str, str]]:
+        """The created victim's determinism verdict on the split's first frame, once per proposal source."""
+        if proposals not in self._probes:
+            self._probes[proposals] = determinism(self.get(), proposals, inputs.kitti, inputs.gt.frame_ids[0],
+                                                  inputs.gt.labels[0])
+        return [dict(f) for f in self._probes[proposals]]
 
 
 def _check_names(config: RunConfig) -> None:
@@ -232,6 +244,9 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
                                    out / "cells" / key.dirname)
                 log(f"[{i}/{len(cells)}] {key}: {_describe(outcome)}")
                 report.outcomes.append(outcome)
+            for outcome in report.outcomes:  # determinism checks, on the victims the computed cells used
+                if not outcome.reused and outcome.cell["status"] == "ok":
+                    outcome.probe = slots[outcome.key.victim].probe(outcome.key.proposals, inputs)
         found = earlier_cells(out / "cells", {key.dirname for key in cells}, identity, evaluation, config.seed,
                               gt.frame_ids, CELL_FILE)
         report.earlier, report.left_out = found.included, found.left_out
@@ -240,7 +255,7 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
         for line in report.left_out:
             log(f"left out of the summary: {line}")
         _record_effects(report, out / "cells", inputs)
-        record_flags(report, out / "cells", inputs, attacks, lambda name: slots[name].get(), log, CELL_FILE)
+        record_flags(report, out / "cells", attacks, log, CELL_FILE)
         summary = write_validated(out / SUMMARY_FILE, report.summary)
         write_long_csv(out / CSV_FILE, summary)
         write_seed_table(out / SEED_TABLE_FILE, summary)

@@ -203,7 +203,8 @@ def _assemble(run: _RunContext, cell: _Cell, executor: Executor) -> CellOutcome:
     determinism = next((r.determinism for r in computed if r.determinism), None)
     record = _record(run, cell.key, cell.want, cell.cfg, verdict, cell.started, t0, cpu0, cell_dir, extra,
                      determinism)
-    return grid.CellOutcome(cell.key, record, reused=False)
+    probe = results[0].victim_probe if verdict.status == "ok" else None  # the first shard's check
+    return grid.CellOutcome(cell.key, record, reused=False, probe=probe)
 
 
 def _record(run: _RunContext, key: CellKey, want: str, cfg: dict[str, Any], verdict: _Verdict, started: str,

@@ -9,6 +9,11 @@ attacks, detects and writes the shard's ``NNNNNN.txt`` result files into the cel
 :class:`ShardResult`: each frame's result-file text plus the worker's timings. A shard is
 idempotent: run twice (a retried task), it writes the same bytes under the same names.
 
+A cell's first shard also checks the victim it holds for determinism
+(:func:`~robustbench3d.runner.flags.determinism`: two ``detect`` calls on the split's first frame,
+clean, once per victim x proposal source in the worker process) and returns the verdict
+(``ShardResult.victim_probe``, also kept in its record), so the parent never creates the victim.
+
 Shards start at multiples of the batch size and hold whole batches, so every ``detect`` call sees
 the same frames as in the one-process path, and the attack randomness is per frame
 (:func:`~robustbench3d.runner.cell.attack_rng`): the result files are the same bytes.
@@ -44,6 +49,7 @@ from robustbench3d.runner.cell import (
     victim_failure,
 )
 from robustbench3d.runner.config import CellKey
+from robustbench3d.runner.flags import determinism, probe_flags
 
 #: Frames per shard before rounding up to whole batches: about 5 s of the shipped cascade per shard,
 #: so scheduling costs little and two workers stay busy to the end of a 100-frame cell.
@@ -127,6 +133,9 @@ class ShardResult:
     pid: int = 0
     host: str = ""
     determinism: dict[str, Any] = field(default_factory=dict)
+    #: The victim's determinism verdict (``victim-nondeterministic`` flags, empty: deterministic) from the
+    #: cell's first shard when it is ``ok``; None for the other shards.
+    victim_probe: list[dict[str, str]] | None = None
     reused: bool = False
     unexpected: bool = False  # the error's cause is not a RobustBenchError (its traceback is worth showing)
 
@@ -135,6 +144,7 @@ class ShardResult:
 
 _VICTIMS: dict[str, Any] = {}  # victim key -> victim, or the CellFailure of its creation
 _ATTACKS: dict[tuple[str, str], Attack] = {}  # (attack key, victim key) -> an attack prepared for that victim
+_PROBES: dict[tuple[str, str], list[dict[str, str]]] = {}  # (victim key, proposals) -> determinism verdict
 
 
 def worker_setup() -> None:
@@ -172,6 +182,14 @@ def _attack(job: CellJob, victim: Any) -> Attack:
     return _ATTACKS[key]
 
 
+def _probe(job: CellJob, victim: Any, first: tuple[str, Labels]) -> list[dict[str, str]]:
+    """The determinism verdict of this process's victim on the split's first frame ``first`` (memoised)."""
+    key = (job.victim_key, job.key.proposals)
+    if key not in _PROBES:
+        _PROBES[key] = determinism(victim, job.key.proposals, job.kitti, *first)
+    return [dict(f) for f in _PROBES[key]]
+
+
 def _sha256_text(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
@@ -199,8 +217,10 @@ def run_shard(shard: Shard) -> ShardResult:
             found = detect_frames(victim, job.key.victim, attack, job.key.attack, job.key.proposals, job.kitti,
                                   job.seed, job.batch_size, list(shard.frames), partial)
             result.texts = [text for text, _ in found]
-            mark = {"fingerprint": job.fingerprint, "frames": result.frame_ids,
-                    "sha256": [_sha256_text(t) for t in result.texts]}
+            mark: dict[str, Any] = {"fingerprint": job.fingerprint, "frames": result.frame_ids,
+                                    "sha256": [_sha256_text(t) for t in result.texts]}
+            if shard.index == 0:
+                result.victim_probe = mark["victim_probe"] = _probe(job, victim, shard.frames[0])
             atomic_write_text(shard.mark_path, json.dumps(mark))
     except DataFormatError as exc:
         result.status, result.reason = "bad_input", str(exc)
@@ -222,13 +242,17 @@ def run_shard(shard: Shard) -> ShardResult:
 
 def finished_shard(shard: Shard) -> ShardResult | None:
     """The shard as an earlier, interrupted run left it, if its record matches this cell's fingerprint
-    and frames and every result file is there with the recorded sha256 (else None)."""
+    and frames, every result file is there with the recorded sha256 and, for a cell's first shard, the
+    record holds the determinism verdict (else None)."""
     try:
         mark = json.loads(read_user_text(shard.mark_path))
     except (OSError, ValueError, RobustBenchError):
         return None
     if not isinstance(mark, dict) or mark.get("fingerprint") != shard.job.fingerprint \
             or mark.get("frames") != shard.frame_ids or not isinstance(mark.get("sha256"), list):
+        return None
+    probe = probe_flags(mark.get("victim_probe")) if shard.index == 0 else None
+    if shard.index == 0 and probe is None:
         return None
     texts = []
     partial = Path(shard.job.cell_dir) / PARTIAL
@@ -243,7 +267,7 @@ def finished_shard(shard: Shard) -> ShardResult | None:
     if len(texts) != len(shard.frame_ids):
         return None
     return ShardResult(cell=shard.job.key.dirname, index=shard.index, status="ok", frame_ids=shard.frame_ids,
-                       texts=texts, reused=True)
+                       texts=texts, victim_probe=probe, reused=True)
 
 
 def settle_files(cell_dir: Path, frame_ids: Sequence[str], texts: Sequence[str]) -> None:

@@ -1,0 +1,92 @@
+"""The speed/accuracy trade in the leaderboard: a ``robustbench3d tradeoff`` run's Pareto table and figure.
+
+HTML: a sortable table (the leaderboard's script sorts any ``table.lb`` on ``data-v``), the figure inline,
+the run's machine and provenance one click away. Markdown: the run's own ``tradeoff.md`` tables under a
+section heading, the figure as a file beside the page.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from robustbench3d.tradeoff.output import figure, markdown, read_doc
+
+#: (title, key, kind) of the HTML table's columns; kind "num" sorts numerically.
+COLUMNS = (("sweep", "sweep", "str"), ("value", "value", "str"), ("frames", "frames", "num"),
+           ("wall s", "wall_s", "num"), ("CPU s", "cpu_s", "num"), ("clean AP", "ap_clean", "num"),
+           ("attacked AP", "ap_attacked", "num"), ("drop", "drop", "num"), ("ΔAP attacked", "d_attacked", "num"),
+           ("|ΔAP|", "error", "num"), ("CI width", "ci_width", "num"), ("Pareto", "pareto_sweep", "str"))
+
+
+@dataclass
+class TradeoffView:
+    """One tradeoff run as the report shows it."""
+
+    source: str
+    doc: dict[str, Any]
+    png: bytes
+
+    @classmethod
+    def read(cls, path: str | Path) -> TradeoffView:
+        doc = read_doc(Path(path))
+        return cls(str(path), doc, figure(doc))
+
+    @property
+    def title(self) -> str:
+        c = self.doc["config"]
+        return f"Speed/accuracy trade: {c['victim']} / {c['attack']} ({self.doc['dataset']['frames']} frames)"
+
+    @property
+    def figure_name(self) -> str:
+        return "tradeoff_" + "".join(ch if ch.isalnum() else "_" for ch in Path(self.source).name) + ".png"
+
+
+def _td(row: dict[str, Any], key: str, kind: str) -> str:
+    v = row.get(key)
+    if key == "pareto_sweep":
+        text = "★" if v else ""
+        return f'<td data-v="{text}">{text}</td>'
+    if key == "value":
+        text = f"{v} (ref)" if row["reference"] else str(v)
+        return f'<td data-v="{html.escape(str(v))}">{html.escape(text)}</td>'
+    if kind == "num":
+        if v is None:
+            return '<td class="num" data-v="">–</td>'
+        text = f"{v:+.2f}" if key == "d_attacked" else (str(v) if key == "frames" else f"{v:.2f}")
+        return f'<td class="num" data-v="{float(v)!r}">{text}</td>'
+    return f'<td data-v="{html.escape(str(v))}">{html.escape(str(v))}</td>'
+
+
+def tradeoff_html(view: TradeoffView, k: int, img: str) -> str:
+    """The section of one tradeoff run (``img``: the figure's ``<figure>`` markup)."""
+    doc = view.doc
+    m = doc["machine"]
+    c, metric, r, d = doc["ap"]
+    out = [f'<section id="tradeoff-{k}"><h2>{html.escape(view.title)}</h2>',
+           f'<p class="note">From {html.escape(view.source)}. Machine: {html.escape(str(m.get("cpu")))} '
+           f'({m.get("cpu_count")} cores), measured {html.escape(doc["measured_at"])}, every point in one run. '
+           f"AP: {html.escape(f'{c} {metric.upper()} {r} {d}')}; ΔAP against each sweep's reference (ref), "
+           "|ΔAP| the larger of clean and attacked; time: the clean and the attacked cell together. ★: on the "
+           "sweep's Pareto front.</p>", img,
+           f'<div class="wrap"><table class="lb" id="tradeoff-table-{k}"><thead><tr>']
+    out += [f'<th data-type="{kind}" data-key="{key}">{html.escape(title)}</th>' for title, key, kind in COLUMNS]
+    out.append("</tr></thead><tbody>")
+    for i, row in enumerate(doc["points"]):
+        out.append(f'<tr data-i="{i}">' + "".join(_td(row, key, kind) for _, key, kind in COLUMNS) + "</tr>")
+    out.append("</tbody></table></div>")
+    prov = {k2: doc[k2] for k2 in ("config", "dataset", "machine", "provenance", "sweeps") if k2 in doc}
+    out.append(f'<details id="tradeoff-prov-{k}"><summary>provenance of the tradeoff run</summary><pre>'
+               f"{html.escape(json.dumps(prov, indent=1, ensure_ascii=False))}</pre></details></section>")
+    return "\n".join(out)
+
+
+def tradeoff_markdown(view: TradeoffView, figure_dir: str) -> str:
+    """The run's ``tradeoff.md`` (headings one level down) and its figure."""
+    body = markdown(view.doc).split("\n", 1)[1]  # drop the run's own title
+    body = "\n".join("#" + line if line.startswith("## ") else line for line in body.split("\n"))
+    return (f"## {view.title}\n\nFrom `{view.source}`.\n\n![{view.title}]({figure_dir}/{view.figure_name})\n"
+            + body.rstrip() + "\n")

@@ -1,0 +1,219 @@
+"""Timing and scoring the cells of a tradeoff run, all in this process, on the same frames.
+
+Each :class:`~robustbench3d.tradeoff.sweeps.CellSpec` is measured once per run (settings that share a
+cell share its measurement): the victim is created and the attack prepared untimed, then every batch of
+frames is attacked, (decimated,) detected and written as KITTI result files, timed per batch in wall
+and CPU seconds (:func:`time.perf_counter`, :func:`time.process_time`) with ``threads`` torch threads.
+The dataset-level caches the attacked cells read (the clean scans' beam patterns, the scene depth of
+each camera sampling) are filled before any cell is timed (:func:`warm_caches`), so every cell is
+timed in the same steady state whatever its place in the run. Results go to ``OUT/cells/<id>/``
+(``data/`` and ``cell.json``, written last): a rerun with the same fingerprint reuses a finished cell,
+timings included (``reused`` says so), so an interrupted run resumes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robustbench3d import __version__
+from robustbench3d.attacks import create_attack
+from robustbench3d.attacks.base import Attack, target_cars
+from robustbench3d.datasets import GroundTruth
+from robustbench3d.fileio import atomic_write_text
+from robustbench3d.kitti.dataset import Frame, KittiDataset
+from robustbench3d.kitti.labels import Labels, parse_labels
+from robustbench3d.runner.cell import (
+    PARTIAL,
+    attack_rng,
+    detect_frames,
+    prepare_attack,
+    promote,
+    remove_results,
+    results_complete,
+)
+from robustbench3d.runner.records import victim_kwargs, victim_record
+from robustbench3d.tradeoff.sweeps import CLEAN, CellSpec
+from robustbench3d.victims import create_victim
+
+CELL_FILE = "cell.json"
+
+
+class DecimatedScan(Attack):
+    """``inner``'s attacked frame with every ``k``-th azimuth column of each laser kept
+    (:func:`robustbench3d.sensors.scan_density.decimate_azimuth`): a sensor of k x coarser horizontal
+    resolution seeing the same scene and object."""
+
+    def __init__(self, inner: Attack, k: int):
+        self.inner, self.k = inner, int(k)
+
+    def bind_dataset(self, kitti: KittiDataset) -> None:
+        self.inner.bind_dataset(kitti)
+
+    def prepare(self, victim: Any) -> None:
+        self.inner.prepare(victim)
+
+    def apply(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> Frame:
+        from robustbench3d.sensors.scan_density import decimate_azimuth
+
+        out = self.inner.apply(frame, targets, rng)
+        return dataclasses.replace(out, scan=decimate_azimuth(out.scan, self.k))
+
+    def describe(self) -> dict[str, Any]:
+        return {**self.inner.describe(), "scan_decimation": self.k}
+
+
+@dataclass(frozen=True)
+class Context:
+    """What every cell of a tradeoff run shares."""
+
+    kitti: KittiDataset
+    gt: GroundTruth
+    dataset: dict[str, Any]
+    proposals: str
+    seed: int
+    batch_size: int
+    threads: int
+    out: Path
+
+
+@dataclass
+class CellMeasure:
+    """A measured cell: detections per frame and the time of each batch."""
+
+    spec: CellSpec
+    detections: list[Labels]
+    batch_frames: list[int]
+    wall_s: list[float]
+    cpu_s: list[float]
+    reused: bool
+    record: dict[str, Any]
+
+    def time_of(self, frames: int, clock: str = "wall") -> float:
+        """Seconds the first ``frames`` frames took (whole batches; a partial batch pro rata)."""
+        times = self.wall_s if clock == "wall" else self.cpu_s
+        total, left = 0.0, frames
+        for n, t in zip(self.batch_frames, times, strict=True):
+            take = min(n, left)
+            total += t * take / n
+            left -= take
+            if left <= 0:
+                break
+        return total
+
+
+def make_attack(spec: CellSpec, kitti: KittiDataset) -> Attack:
+    """The cell's attack, bound to the dataset (wrapped in :class:`DecimatedScan` when decimating)."""
+    attack = create_attack(spec.attack, **dict(spec.attack_args))
+    attack.bind_dataset(kitti)
+    return attack if spec.decimation == 1 else DecimatedScan(attack, spec.decimation)
+
+
+def _fingerprint(spec: CellSpec, ctx: Context, victim: dict[str, Any], attack: dict[str, Any]) -> str:
+    cfg = {"package_version": __version__, "cell": json.loads(spec.key), "victim": victim, "attack": attack,
+           "dataset": {k: ctx.dataset[k] for k in ("root", "split", "frames", "sha256", "embedded")},
+           "proposals": ctx.proposals, "seed": ctx.seed, "batch_size": ctx.batch_size, "threads": ctx.threads}
+    text = json.dumps(cfg, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def cell_dir(ctx: Context, spec: CellSpec) -> Path:
+    """``OUT/cells/<victim>+<attack>+<12 hex of the spec>``."""
+    return ctx.out / "cells" / f"{spec.victim}+{spec.attack}+{hashlib.sha256(spec.key.encode()).hexdigest()[:12]}"
+
+
+def _read_detections(data: Path, frame_ids: Sequence[str]) -> list[Labels]:
+    out = []
+    for fid in frame_ids:
+        path = data / f"{fid}.txt"
+        out.append(parse_labels(path.read_text(encoding="utf-8"), path, scored=True))
+    return out
+
+
+def measure_cell(spec: CellSpec, ctx: Context, log: Callable[[str], None] = print) -> CellMeasure:
+    """Run (or reuse) one cell; see the module docstring."""
+    import torch
+
+    kwargs = victim_kwargs(spec.victim, dict(spec.victim_args), ctx.seed)
+    vrec = victim_record(spec.victim, kwargs)
+    attack = make_attack(spec, ctx.kitti)
+    arec = {"name": spec.attack, "params": dict(spec.attack_args), "object": attack.describe()}
+    fp = _fingerprint(spec, ctx, vrec, arec)
+    where = cell_dir(ctx, spec)
+    ids = ctx.gt.frame_ids[:spec.frames]
+    done = where / CELL_FILE
+    if done.is_file():
+        try:
+            rec = json.loads(done.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            rec = None
+        if rec is not None and rec.get("fingerprint") == fp and results_complete(where, ids):
+            log(f"tradeoff: reusing {where.name} (measured {rec['measured_at']})")
+            return CellMeasure(spec, _read_detections(where / "data", ids), rec["batch_frames"], rec["wall_s"],
+                               rec["cpu_s"], True, rec)
+    done.unlink(missing_ok=True)
+    remove_results(where)
+    (where / PARTIAL).mkdir(parents=True)
+    torch.set_num_threads(ctx.threads)
+    victim = create_victim(spec.victim, **kwargs)
+    prepare_attack(attack, spec.attack, victim)
+    frames: list[int] = []
+    wall: list[float] = []
+    cpu: list[float] = []
+    clock = [time.perf_counter(), time.process_time()]
+
+    def batch_done(n: int) -> None:
+        w, c = time.perf_counter(), time.process_time()
+        frames.append(n)
+        wall.append(w - clock[0])
+        cpu.append(c - clock[1])
+        clock[0], clock[1] = time.perf_counter(), time.process_time()
+
+    found = detect_frames(victim, spec.victim, attack, spec.attack, ctx.proposals, ctx.kitti, ctx.seed,
+                          ctx.batch_size, list(zip(ids, ctx.gt.labels[:len(ids)], strict=True)), where / PARTIAL,
+                          batch_done)
+    promote(where)
+    rec = {"fingerprint": fp, "spec": json.loads(spec.key), "victim": vrec, "attack": arec,
+           "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "threads": ctx.threads,
+           "batch_frames": frames, "wall_s": wall, "cpu_s": cpu}
+    atomic_write_text(done, json.dumps(rec, indent=1, default=str) + "\n")
+    log(f"tradeoff: {where.name}: {sum(wall):.1f} s wall, {sum(cpu):.1f} s CPU for {len(ids)} frames")
+    return CellMeasure(spec, [parsed for _, parsed in found], frames, wall, cpu, False, rec)
+
+
+def warm_caches(specs: Sequence[CellSpec], ctx: Context, log: Callable[[str], None] = print) -> None:
+    """Fill the caches attacked cells read (scan beam patterns; scene depth per camera sampling) for every
+    frame, so that no timed cell pays for them (module docstring)."""
+    seen: set[str] = set()
+    attacks: list[Attack] = []
+    for spec in specs:
+        if spec.attack == CLEAN:
+            continue
+        attack = create_attack(spec.attack, **dict(spec.attack_args))
+        attack.bind_dataset(ctx.kitti)
+        depth_key = json.dumps({"supersample": getattr(attack, "supersample", None),
+                                "occlusion": getattr(attack, "occlusion", None)}, sort_keys=True)
+        if depth_key not in seen:
+            seen.add(depth_key)
+            attacks.append(attack)
+    if not attacks:
+        return
+    log(f"tradeoff: warming the scan-pattern and scene-depth caches ({len(attacks)} camera sampling(s))")
+    for fid, gt in zip(ctx.gt.frame_ids, ctx.gt.labels, strict=True):
+        frame = ctx.kitti.lazy_frame(fid, gt)
+        targets = target_cars(gt)
+        if len(targets) == 0:
+            continue
+        attacks[0].apply(frame, targets, attack_rng(ctx.seed, fid))  # the clean scan's beam pattern
+        for attack in attacks:
+            scene_depth = getattr(attack, "scene_depth", None)
+            if scene_depth is not None:
+                scene_depth(frame, targets)
