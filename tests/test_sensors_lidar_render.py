@@ -571,3 +571,96 @@ def test_nearest_and_near_rays_equal_a_brute_force_over_the_lasers_rays():
             assert near[np.isin(got, index)].all()
             perm = rng.permutation(n)
             assert np.array_equal(pattern.near_rays(index, ring[perm], az[perm], max_deg), near[perm])
+
+
+def test_pattern_cache_renders_like_no_cache_and_keeps_the_pattern_under_the_scans_key():
+    """A raw scan rendered through a :class:`PatternCache` (cold: estimated and stored; warm: from memory) gives
+    the scan of the render without one, bit for bit, and the cache then holds the estimate under the key of the
+    scan and the ring ids given."""
+    from robustbench3d.sensors.pattern_cache import PatternCache
+
+    scan = _pattern_scan()
+    ring = scan_ring_ids(scan)
+    meshes = [(*_object(x, y), None) for x, y in ((12.0, 3.0), (-9.0, 1.0))]
+    ref = render_lidar(scan, meshes, ring_ids=ring)
+    cache = PatternCache(None)
+    assert cache.lookup(scan, ring)[1] is None
+    for _ in ("cold", "warm"):
+        got = render_lidar(scan, meshes, ring_ids=ring, patterns=cache)
+        assert got.scan.tobytes() == ref.scan.tobytes() and len(got.added) > 20
+        np.testing.assert_array_equal(got.removed_index, ref.removed_index)
+        kept = cache.lookup(scan, ring)[1]
+        assert kept is not None and kept.phases_deg.tobytes() == estimate_pattern(scan, ring).phases_deg.tobytes()
+    assert cache.lookup(scan, None)[1] is None  # the derived-ring key is another scan's
+
+
+def test_no_meshes_leave_a_raw_scan_unchanged():
+    scan = _pattern_scan()[::7]
+    res = render_lidar(scan, [])
+    assert res.scan.tobytes() == scan.tobytes() and len(res.added) == 0 and len(res.removed_index) == 0
+
+
+def test_dropout_keeps_a_return_whose_draw_equals_the_probability_and_noise_adds_the_clipped_draws():
+    """Dropout keeps a return iff its uniform draw is >= ``dropout`` (P(drop) = dropout for draws in [0, 1)):
+    a probability equal to one of the draws keeps that return. Range noise adds the clipped N(0, sd) draws to
+    each return's range along its ray."""
+    pattern = BeamPattern.generator(0.0)
+    v, f = _object(10.0)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    clean = render_lidar(prep, [(v, f, None)])
+    n = len(clean.added)
+    draws = np.random.default_rng(5).random(n)
+    p = float(draws[n // 2])
+    drop = render_lidar(prep, [(v, f, None)], rng=np.random.default_rng(5), dropout=p)
+    np.testing.assert_array_equal(drop.ray_index, clean.ray_index[draws >= p])
+    assert n // 2 in np.flatnonzero(draws >= p)
+    sd = 0.05
+    noisy = render_lidar(prep, [(v, f, None)], rng=np.random.default_rng(6), range_noise_m=sd)
+    noise = np.clip(np.random.default_rng(6).normal(0.0, sd, n), -3 * sd, 3 * sd)
+    assert np.abs(noise).max() == 3 * sd  # some draws are clipped
+    o, d = pattern.rays.origins[clean.ray_index], pattern.rays.directions[clean.ray_index]
+    t_clean = ((clean.added_torch.detach().numpy() - o) * d).sum(1)
+    t_noisy = ((noisy.added_torch.detach().numpy() - o) * d).sum(1)
+    np.testing.assert_allclose(t_noisy - t_clean, noise, atol=1e-9)
+
+
+def test_meshes_of_different_vertex_counts_reflect_like_each_alone():
+    """Two meshes with different vertex counts (stacked: the second's vertex indices are offset) give each
+    return the reflectance it has when its mesh is rendered alone (normals and colours of its own face), with
+    colours as numpy or as a torch tensor that requires grad."""
+    pattern = BeamPattern.generator(0.0)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    small = _object(12.0, 3.0, level=1)
+    big = _object(12.0, 0.3, level=2)
+    assert len(small[0]) != len(big[0])
+    rng = np.random.default_rng(8)
+    colour = rng.uniform(0.0, 1.0, big[0].shape)
+    for col in (colour, torch.tensor(colour, requires_grad=True)):
+        both = render_lidar(prep, [(*small, None), (*big, col)])
+        for i, alone in enumerate((render_lidar(prep, [(*small, None)]), render_lidar(prep, [(*big, colour)]))):
+            own = both.object_index == i
+            assert own.sum() > 20
+            np.testing.assert_array_equal(both.ray_index[own], alone.ray_index)
+            assert both.added[own].tobytes() == alone.added.tobytes()
+
+
+def test_given_ring_ids_are_used_for_a_scan_out_of_laser_order():
+    """Laser ids given with the scan are used, not recovered: the rows of a scan shuffled out of KITTI's laser
+    order (where recovery cannot work), with their true ids, render like the ordered scan: the same returns and
+    the same removed points (through the shuffle), also through a pattern cache and in the torch fast path."""
+    from robustbench3d.sensors.pattern_cache import PatternCache
+
+    scan = _pattern_scan()
+    ring = scan_ring_ids(scan)
+    perm = np.random.default_rng(9).permutation(len(scan))
+    meshes = [(*_object(x, y), None) for x, y in ((12.0, 3.0), (-9.0, 1.0))]
+    ref = render_lidar(scan, meshes, ring_ids=ring)
+    assert len(ref.removed_index) > 5
+    assert not np.array_equal(scan_ring_ids(scan[perm]), ring[perm])
+    for patterns in (None, PatternCache(None)):
+        got = render_lidar(scan[perm], meshes, ring_ids=ring[perm], patterns=patterns)
+        assert got.added.tobytes() == ref.added.tobytes()
+        np.testing.assert_array_equal(np.sort(perm[got.removed_index]), ref.removed_index)
+    pts, mesh = render_lidar_torch(scan[perm], meshes, ring[perm])
+    ref_pts, ref_mesh = render_lidar_torch(scan, meshes, ring)
+    assert torch.equal(pts, ref_pts) and np.array_equal(mesh, ref_mesh)

@@ -271,6 +271,31 @@ def test_pair_chunks_give_the_hits_of_one_call():
     with pytest.raises(ValueError, match="field 'face_index'"):
         cast_ray_pair_chunks(vt, torch.as_tensor(f), _t(d), _t(np.zeros(3)), [(ray_all[:3], face_all[:2])])
 
+@pytest.mark.parametrize("every", [1, 2])
+def test_hits_reduced_between_chunks_keep_the_nearest_and_the_smallest_face_of_a_tie(monkeypatch, every):
+    """A long search reduces its hits to each ray's nearest every few chunks (memory of a full-scene cast): the
+    same winners bit for bit, also when a face's exact duplicate (equal t, higher index) is tested first."""
+    import robustbench3d.sensors.raycast as rc
+
+    rng = np.random.default_rng(11)
+    v, f = _blob()
+    f2 = np.concatenate([f, f])  # faces F..2F-1 duplicate 0..F-1: every hit is a tie the lower index must win
+    d = _rays_at(np.array([8.0, 0.5, 0.2]), 200, 0.06, rng)
+    vt = torch.tensor(v, requires_grad=True)
+    ray_all, face_all = _every_pair(len(d), len(f2))
+    one = cast_ray_pairs(vt, torch.as_tensor(f2), _t(d), _t(np.zeros(3)), ray_all, face_all)
+    order = torch.argsort(-face_all, stable=True)  # duplicates (high indices) first
+    r, fa = ray_all[order], face_all[order]
+    cuts = [*range(0, len(r), 997), len(r)]
+    monkeypatch.setattr(rc, "_COMPACT_EVERY", every)
+    many = cast_ray_pair_chunks(vt, torch.as_tensor(f2), _t(d), _t(np.zeros(3)),
+                                ((r[a:b], fa[a:b]) for a, b in itertools.pairwise(cuts)))
+    assert one.hit.sum() > 50 and int(one.face[one.hit].max()) < len(f)
+    assert torch.equal(many.hit, one.hit) and torch.equal(many.face, one.face)
+    for a, b in ((many.t, one.t), (many.u, one.u), (many.v, one.v)):
+        assert torch.equal(a.detach(), b.detach())
+
+
 def test_pair_caster_searches_then_recomputes_like_cast_ray_pairs():
     """PairCaster (one table, several searches, one recompute of their winners): the hits, t, u, v and
     gradients of cast_ray_pairs bit for bit, with the search's t equal to the recomputed t and misses absent."""
@@ -461,3 +486,85 @@ def test_later_ray_chunks_are_searched_and_open_spheres_are_not_culled():
     v2, f2 = icosphere(2, 0.4)
     assert back_faces(v2, f2, np.array([3.0, 0.0, 0.0])) is not None
     assert back_faces(v2, f2[1:], np.array([3.0, 0.0, 0.0])) is None
+
+
+def test_cluster_sphere_tests_exactly_the_rays_within_its_inflated_radius():
+    """The cull's definition, counted in ``RayHits.tests``: the 3-4-5 triangle (-3, -4), (3, -4), (-3, 4) in a
+    plane x = const has its box centre at (x, 0, 0) and every vertex at 5 from it, so its cluster sphere has
+    radius R = 5 (1 + 1e-3) + 1e-9. A ray is tested iff it passes within R of the centre and its closest
+    approach is more than R behind its origin: with laser offsets (h along z) too."""
+    tri = np.array([[0.0, -3.0, -4.0], [0.0, 3.0, -4.0], [0.0, -3.0, 4.0]])
+    f = torch.tensor([[0, 1, 2]])
+    x = _t([[1.0, 0.0, 0.0]])
+    radius = 5.0 * (1 + 1e-3) + 1e-9
+    far = _t(tri + np.array([10.0, 0.0, 0.0]))
+    for z, tested in ((6.0, 0), (5.006, 0), (4.9, 1), (-3.9, 1)):
+        # the same ray from (0, 0, z) with no offset and as (0, 0, z - 3) + 3 along z
+        assert cast_rays(far, f, x, _t([0.0, 0.0, z])).tests == tested
+        assert cast_rays(far, f, x, _t([0.0, 0.0, z - 3.0]), origin_offset=_t([3.0])).tests == tested
+    hit = cast_rays(far, f, x, _t([0.0, -2.0, -3.0]), origin_offset=_t([2.0]))  # from (0, -2, -1)
+    assert hit.tests == 1 and hit.face.tolist() == [0] and hit.t.tolist() == [10.0]
+    # the triangle in x = 0, rays along +x from (R, 0, 0): the closest approach is exactly R behind the origin
+    # (not tested), from just inside the sphere it is less (tested; both miss: the triangle is behind them)
+    at = _t(tri)
+    assert cast_rays(at, f, x, _t([radius, 0.0, 0.0])).tests == 0
+    inside = cast_rays(at, f, x, _t([np.nextafter(radius, 0.0), 0.0, 0.0]))
+    assert inside.tests == 1 and inside.face.tolist() == [-1]
+
+
+def test_cull_keeps_the_hits_of_tiny_faces_and_of_a_needle_in_a_cluster():
+    """Two clusters whose bounding spheres must hold every corner exactly: a 1e-7 m triangle hit through its
+    vertex from 1e-5 m (the sphere's absolute inflation exceeds the rounding there), and a cluster of a long
+    triangle through the box centre plus three tiny ones near it, hit 0.78 from the centre (inside the true
+    radius 0.866, outside a radius measured per axis), equal to the textbook reference."""
+    s = 1e-7
+    tiny = np.array([[2.0, 0.0, 0.0], [2.0, s, 0.0], [2.0, 0.0, s]])
+    o = np.array([2.0 - 1e-5, s, 0.0])
+    d = np.array([[1.0, 0.0, 0.0]])
+    hits = cast_rays(_t(tiny), torch.tensor([[0, 1, 2]]), _t(d), _t(o))
+    assert hits.face.tolist() == [0] and hits.tests == 1
+    np.testing.assert_allclose(hits.t.numpy(), [1e-5], rtol=1e-9)  # by hand (the reference's det floor is absolute)
+    np.testing.assert_allclose(hits.u.numpy(), [1.0], atol=1e-6)
+    a, b, c = np.array([0.5, 0.5, 0.5]), np.array([-0.5, -0.5, -0.5]), np.array([0.1, -0.1, 0.0])
+    small = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0]])
+    v = np.concatenate([[a, b, c], small, small + 0.01, small - 0.01])
+    f = np.arange(12).reshape(4, 3)
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n)
+    p = 0.95 * a + 0.05 * b  # on face 0, |p| = 0.779; its plane holds the centre, so the ray passes at |p|
+    for sign in (1.0, -1.0):
+        origin = p + 2.0 * sign * n
+        dirs = -sign * n[None]
+        hits = cast_rays(_t(v), torch.from_numpy(f), _t(dirs), _t(origin))
+        assert hits.face.tolist() == [0]
+        np.testing.assert_allclose(hits.t.numpy(), _reference(v, f, origin[None], dirs), rtol=1e-12)
+
+
+def test_grouped_casts_accept_int32_rays_and_an_empty_group_first():
+    """Group rays given as int32 (numpy or torch) and a group without rays before the others give the hits of
+    the plain cast."""
+    v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]])
+    f = torch.tensor([[0, 1, 2]])
+    d = _t([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    o = _t([0.0, 0.25, 0.25])
+    for groups in ([(np.array([0, 1], dtype=np.int32), 0, 1)], [(torch.tensor([1, 0], dtype=torch.int32), 0, 1)],
+                   [(np.zeros(0, dtype=np.int64), 0, 1), (np.array([0, 1]), 0, 1)],
+                   [(np.array([0]), 0, 0), (np.array([1, 0]), 0, 1)]):
+        hits = cast_rays(v, f, d, o, groups=groups)
+        assert hits.face.tolist() == [0, 0] and hits.t.tolist() == [2.0, 2.0] and hits.tests == 2
+
+
+def test_pair_caster_search_without_check_trusts_the_pairs():
+    """``check=False`` skips the range check: in-range pairs give the checked result, and a ray index out of
+    range reaches torch's own indexing error instead of the check's ValueError."""
+    v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]])
+    caster = PairCaster(v, torch.tensor([[0, 1, 2]]), _t([0.0, 0.25, 0.25]))
+    x = _t([[1.0, 0.0, 0.0]])
+    one = [(torch.tensor([0]), torch.tensor([0]))]
+    checked, unchecked = caster.search(x, one), caster.search(x, one, check=False)
+    assert [r.tolist() for r in checked[:3]] == [r.tolist() for r in unchecked[:3]] == [[0], [0], [2.0]]
+    with pytest.raises(ValueError, match="pairs must index"):
+        caster.search(x, [(torch.tensor([1]), torch.tensor([0]))])
+    with pytest.raises((IndexError, RuntimeError)) as err:
+        caster.search(x, [(torch.tensor([1]), torch.tensor([0]))], check=False)
+    assert not isinstance(err.value, ValueError)

@@ -137,6 +137,8 @@ def test_scores_equal_the_evaluator_on_the_same_detections():
     diff = FrameBootstrap(gt, shifted).resampled(w)[key] - FrameBootstrap(gt, worse).resampled(w)[key]
     assert [p256["d_attacked_lo"], p256["d_attacked_hi"]] == pytest.approx(list(np.percentile(diff, [2.5, 97.5])))
     assert p256["wall_s"] == 3.0 and p512["wall_s"] == 12.0
+    assert p256["time_vs_default"] == 0.25 and p512["time_vs_default"] == 1.0
+    assert f3["time_vs_default"] == pytest.approx(4.0 / 12.0)  # the frames sweep: over all frames
     assert p256["pareto_sweep"] and p512["pareto_sweep"]  # 256 faster but wrong, 512 exact but slow: both
     assert p256["pareto_all"] and p512["pareto_all"] and f3["pareto_all"] is None
 
@@ -257,3 +259,4 @@ def test_a_sweep_on_fewer_frames_scores_only_those():
     assert ap(found[:3]) > ap(miss1) > 0
     assert culled["d_attacked"] == pytest.approx(ap(found[:3]) - ap(miss1)) and ref["error"] == 0.0
     assert culled["wall_s"] == pytest.approx(2 * (1.0 + 2.0 / 2)) and ref["wall_s"] == 30.0
+    assert culled["time_vs_default"] == 1.0 and ref["time_vs_default"] == pytest.approx(30.0 / 4.0)  # same frames

@@ -115,9 +115,9 @@ def run(args: argparse.Namespace) -> int:
     html_extra, md_extra = [], []
     for k, trade in enumerate(trades):
         atomic_write_bytes(out / FIGURES / trade.figure_name, trade.png)
-        fig = Figure(trade.figure_name, trade.png, "Wall time of the clean + attacked cell against |ΔAP| from each "
-                     "sweep's reference (left, Pareto front dashed); frames evaluated against the interval width "
-                     "(right).", trade.title)
+        fig = Figure(trade.figure_name, trade.png, "Wall time of the clean + attacked cell relative to the "
+                     "default setting's on the same frames against |ΔAP| from each sweep's reference (left, Pareto "
+                     "front dashed); frames evaluated against the interval width (right).", trade.title)
         html_extra.append(tradeoff_html(trade, k, img_html(fig)))
         md_extra.append(tradeoff_markdown(trade, FIGURES))
     runs = [str(Path(r)) for r in [*args.runs, *args.tradeoff]]

@@ -17,7 +17,8 @@ from robustbench3d.tradeoff.output import figure, markdown, read_doc
 
 #: (title, key, kind) of the HTML table's columns; kind "num" sorts numerically.
 COLUMNS = (("sweep", "sweep", "str"), ("value", "value", "str"), ("frames", "frames", "num"),
-           ("wall s", "wall_s", "num"), ("CPU s", "cpu_s", "num"), ("clean AP", "ap_clean", "num"),
+           ("wall s", "wall_s", "num"), ("× default", "time_vs_default", "num"),
+           ("CPU s", "cpu_s", "num"), ("clean AP", "ap_clean", "num"),
            ("attacked AP", "ap_attacked", "num"), ("drop", "drop", "num"), ("ΔAP attacked", "d_attacked", "num"),
            ("|ΔAP|", "error", "num"), ("CI width", "ci_width", "num"), ("Pareto", "pareto_sweep", "str"))
 

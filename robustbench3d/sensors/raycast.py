@@ -577,6 +577,22 @@ class PairCaster:
         return _recompute(p.vertices, p.faces, d, p.origin, None, p.axis, torch.arange(len(face)), face, slots)
 
 
+#: Chunks of :func:`_pair_search` after which the hits so far are reduced to each ray's nearest.
+_COMPACT_EVERY = 512
+
+
+def _compact(rays: list[torch.Tensor], faces: list[torch.Tensor], ts: list[torch.Tensor], n_rays: int, n_faces: int
+             ) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
+    """The hits of several chunks reduced to each hit ray's nearest (face, t) (:func:`_nearest_t`: the nearest t,
+    equal t the smallest face), so that the final reduction over all chunks gives the same winners."""
+    ray, face, t = torch.cat(rays), torch.cat(faces), torch.cat(ts)
+    if len(t) == 0:
+        return [ray], [face], [t]
+    nearest, best = _nearest_t(ray, face, t, n_rays, n_faces)
+    keep = torch.nonzero(nearest >= 0).reshape(-1)
+    return [keep], [nearest.index_select(0, keep)], [best.index_select(0, keep)]
+
+
 def _pair_search(p: _Prepared, table: torch.Tensor | None, chunks: Iterable[tuple[torch.Tensor, torch.Tensor]],
                  t_min: float, name: str, check: bool = True) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The no-grad search of the pair casts: (nearest face per ray (R,) or -1, its t (R,) or +inf, pairs
@@ -604,6 +620,8 @@ def _pair_search(p: _Prepared, table: torch.Tensor | None, chunks: Iterable[tupl
             rays.append(ray.index_select(0, ok))
             faces_hit.append(fc.index_select(0, ok))
             ts.append(t)
+            if len(ts) >= _COMPACT_EVERY:  # many chunks (e.g. a full-scene cast): keep each ray's nearest so far
+                rays, faces_hit, ts = _compact(rays, faces_hit, ts, n_rays, n_faces)
         face = torch.full((n_rays,), -1, dtype=torch.int64, device=dev)
         best = torch.full((n_rays,), float("inf"), dtype=p.d.dtype, device=dev)
         if ts and sum(len(t) for t in ts):
