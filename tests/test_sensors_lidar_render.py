@@ -644,23 +644,27 @@ def test_meshes_of_different_vertex_counts_reflect_like_each_alone():
             assert both.added[own].tobytes() == alone.added.tobytes()
 
 
-def test_given_ring_ids_are_used_for_a_scan_out_of_laser_order():
-    """Laser ids given with the scan are used, not recovered: the rows of a scan shuffled out of KITTI's laser
-    order (where recovery cannot work), with their true ids, render like the ordered scan: the same returns and
-    the same removed points (through the shuffle), also through a pattern cache and in the torch fast path."""
-    from robustbench3d.sensors.pattern_cache import PatternCache
-
-    scan = _pattern_scan()
-    ring = scan_ring_ids(scan)
-    perm = np.random.default_rng(9).permutation(len(scan))
-    meshes = [(*_object(x, y), None) for x, y in ((12.0, 3.0), (-9.0, 1.0))]
-    ref = render_lidar(scan, meshes, ring_ids=ring)
-    assert len(ref.removed_index) > 5
-    assert not np.array_equal(scan_ring_ids(scan[perm]), ring[perm])
-    for patterns in (None, PatternCache(None)):
-        got = render_lidar(scan[perm], meshes, ring_ids=ring[perm], patterns=patterns)
-        assert got.added.tobytes() == ref.added.tobytes()
-        np.testing.assert_array_equal(np.sort(perm[got.removed_index]), ref.removed_index)
-    pts, mesh = render_lidar_torch(scan[perm], meshes, ring[perm])
-    ref_pts, ref_mesh = render_lidar_torch(scan, meshes, ring)
-    assert torch.equal(pts, ref_pts) and np.array_equal(mesh, ref_mesh)
+def test_a_ray_through_a_face_near_its_farthest_corner_is_a_candidate():
+    """The per-face cull's sphere holds the whole face: a laser ray crossing a 0.3 m triangle in a plane
+    x = const 1e-5 of the way from its corner farthest from the box centre towards the centroid passes within
+    (1/1.001, 1) of the radius from the centre (checked here), and must still hit there."""
+    pattern = BeamPattern.generator(0.0)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    rays = pattern.rays
+    near_x = np.flatnonzero(np.abs(rays.azimuth_deg - 1.0) < 0.1)
+    k = int(near_x[np.argmin(np.abs(rays.directions[near_x, 2]))])
+    o, d = rays.origins[k], rays.directions[k]
+    hit = o + (10.0 - o[0]) / d[0] * d
+    tri = np.array([[0.0, 0.0, 0.0], [0.0, 0.3, 0.0], [0.0, 0.15, 0.27]])
+    centre = 0.5 * (tri.min(0) + tri.max(0))
+    dist = np.linalg.norm(tri - centre, axis=1)
+    far = int(dist.argmax())
+    target = tri[far] + 1e-5 * (tri.mean(0) - tri[far])
+    v = hit + (tri - target)  # the ray meets the face at target, at x = 10
+    w = hit - target + centre - o
+    closest = np.linalg.norm(w - (w @ d) * d)
+    assert 1 / 1.001 < closest / dist.max() < 1
+    res = render_lidar(prep, [(v, np.array([[0, 1, 2]]), None)])
+    assert k in res.ray_index
+    at = list(res.ray_index).index(k)
+    np.testing.assert_allclose(res.added_torch.detach().numpy()[at], hit, atol=1e-9)
