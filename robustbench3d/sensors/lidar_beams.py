@@ -299,6 +299,17 @@ def scan_ring_ids(scan: np.ndarray, sensor: HDL64E | None = None) -> np.ndarray:
     return np.argmin(np.abs(pts[:, 2:3] - cone), axis=1).astype(np.int64)
 
 
+def ring_ids_of(pts: np.ndarray, ring_ids: np.ndarray | None, where: str) -> np.ndarray:
+    """(N,) int64 laser of each point of ``pts``: ``ring_ids`` checked for length (error naming ``where``), else
+    recovered from the points (:func:`scan_ring_ids`)."""
+    if ring_ids is None:
+        return scan_ring_ids(pts)
+    ring = np.asarray(ring_ids, dtype=np.int64).reshape(-1)
+    if len(ring) != len(pts):
+        raise ValueError(f"{where}: field 'ring_ids': {len(ring)} ids for {len(pts)} points")
+    return ring
+
+
 def _circular_mean(x: np.ndarray, period: float) -> float:
     """Circular mean of ``x`` modulo ``period``, in [-period / 2, period / 2), then again over the values within
     a quarter period of it (robust to a few stray points). A phase just below a multiple of the azimuth quantum

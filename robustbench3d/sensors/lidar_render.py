@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from robustbench3d.sensors import lidar_model as lm
-from robustbench3d.sensors.lidar_beams import BeamPattern, estimate_pattern, scan_ring_ids
+from robustbench3d.sensors.lidar_beams import BeamPattern, estimate_pattern, ring_ids_of
 from robustbench3d.sensors.materials import Mat
 from robustbench3d.sensors.mesh import face_normals
 from robustbench3d.sensors.pattern_cache import PatternCache
@@ -155,13 +155,7 @@ def _checked_points(scan: np.ndarray, ring_ids: np.ndarray | None) -> tuple[np.n
     if pts.ndim != 2 or pts.shape[1] != 4:
         raise ValueError(f"render_lidar: field 'scan': expected shape (N, 4), got {pts.shape}")
     pts = pts.astype(np.float32, copy=False)
-    if ring_ids is None:
-        ring = scan_ring_ids(pts)
-    else:
-        ring = np.asarray(ring_ids, dtype=np.int64).reshape(-1)
-        if len(ring) != len(pts):
-            raise ValueError(f"render_lidar: field 'ring_ids': {len(ring)} ids for {len(pts)} points")
-    return pts, ring
+    return pts, ring_ids_of(pts, ring_ids, "render_lidar")
 
 
 def _scan_pattern(scan: np.ndarray, ring_ids: np.ndarray | None, pattern: BeamPattern | None

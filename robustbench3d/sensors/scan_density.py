@@ -24,7 +24,7 @@ import numbers
 
 import numpy as np
 
-from robustbench3d.sensors.lidar_beams import BeamPattern, estimate_pattern, scan_ring_ids
+from robustbench3d.sensors.lidar_beams import BeamPattern, estimate_pattern, ring_ids_of
 from robustbench3d.sensors.pattern_cache import PatternCache
 
 __all__ = ["decimate_azimuth", "firing_columns", "point_columns"]
@@ -72,12 +72,7 @@ def point_columns(scan: np.ndarray, *, ring_ids: np.ndarray | None = None, patte
         patterns: where the estimated pattern is looked up and kept (without ``pattern``); default: estimated.
     """
     pts = _checked_scan(scan, "point_columns").astype(np.float32, copy=False)  # as the renderer reads it
-    if ring_ids is None:
-        ring = scan_ring_ids(pts)
-    else:
-        ring = np.asarray(ring_ids, dtype=np.int64).reshape(-1)
-        if len(ring) != len(pts):
-            raise ValueError(f"point_columns: field 'ring_ids': {len(ring)} ids for {len(pts)} points")
+    ring = ring_ids_of(pts, ring_ids, "point_columns")
     az = np.degrees(np.arctan2(pts[:, 1].astype(np.float64), pts[:, 0].astype(np.float64)))
     if pattern is None:
         key = None
