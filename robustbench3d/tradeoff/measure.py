@@ -31,7 +31,8 @@ from robustbench3d.attacks.base import Attack, target_cars
 from robustbench3d.datasets import GroundTruth
 from robustbench3d.fileio import atomic_write_text
 from robustbench3d.kitti.dataset import Frame, KittiDataset
-from robustbench3d.kitti.labels import Labels, parse_labels
+from robustbench3d.kitti.labels import Labels
+from robustbench3d.provenance import utc_now
 from robustbench3d.runner.cell import (
     PARTIAL,
     attack_rng,
@@ -41,6 +42,8 @@ from robustbench3d.runner.cell import (
     remove_results,
     results_complete,
 )
+from robustbench3d.runner.config import fingerprint
+from robustbench3d.runner.effect import read_results
 from robustbench3d.runner.records import victim_kwargs, victim_record
 from robustbench3d.tradeoff.sweeps import CLEAN, CellSpec
 from robustbench3d.victims import create_victim
@@ -135,21 +138,12 @@ def _fingerprint(spec: CellSpec, ctx: Context, victim: dict[str, Any], attack: d
     cfg = {"package_version": __version__, "cell": json.loads(spec.key), "victim": victim, "attack": attack,
            "dataset": {k: ctx.dataset[k] for k in ("root", "split", "frames", "sha256", "embedded")},
            "proposals": ctx.proposals, "seed": ctx.seed, "batch_size": ctx.batch_size, "threads": ctx.threads}
-    text = json.dumps(cfg, sort_keys=True, separators=(",", ":"), default=str)
-    return hashlib.sha256(text.encode()).hexdigest()
+    return fingerprint(cfg)
 
 
 def cell_dir(ctx: Context, spec: CellSpec) -> Path:
     """``OUT/cells/<victim>+<attack>+<12 hex of the spec>``."""
     return ctx.out / "cells" / f"{spec.victim}+{spec.attack}+{hashlib.sha256(spec.key.encode()).hexdigest()[:12]}"
-
-
-def _read_detections(data: Path, frame_ids: Sequence[str]) -> list[Labels]:
-    out = []
-    for fid in frame_ids:
-        path = data / f"{fid}.txt"
-        out.append(parse_labels(path.read_text(encoding="utf-8"), path, scored=True))
-    return out
 
 
 def measure_cell(spec: CellSpec, ctx: Context, log: Callable[[str], None] = print) -> CellMeasure:
@@ -171,7 +165,7 @@ def measure_cell(spec: CellSpec, ctx: Context, log: Callable[[str], None] = prin
             rec = None
         if rec is not None and rec.get("fingerprint") == fp and results_complete(where, ids):
             log(f"tradeoff: reusing {where.name} (measured {rec['measured_at']})")
-            return CellMeasure(spec, _read_detections(where / "data", ids), rec["batch_frames"], rec["wall_s"],
+            return CellMeasure(spec, read_results(where / "data", ids), rec["batch_frames"], rec["wall_s"],
                                rec["cpu_s"], True, rec)
     done.unlink(missing_ok=True)
     remove_results(where)
@@ -197,7 +191,7 @@ def measure_cell(spec: CellSpec, ctx: Context, log: Callable[[str], None] = prin
                           batch_done)
     promote(where)
     rec = {"fingerprint": fp, "spec": json.loads(spec.key), "victim": vrec, "attack": arec,
-           "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "threads": ctx.threads,
+           "measured_at": utc_now(), "threads": ctx.threads,
            "batch_frames": frames, "wall_s": wall, "cpu_s": cpu}
     atomic_write_text(done, json.dumps(rec, indent=1, default=str) + "\n")
     log(f"tradeoff: {where.name}: {sum(wall):.1f} s wall, {sum(cpu):.1f} s CPU for {len(ids)} frames")

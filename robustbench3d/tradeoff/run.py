@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -10,7 +9,7 @@ from typing import Any
 
 from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
 from robustbench3d.errors import RobustBenchError
-from robustbench3d.provenance import host_provenance, library_versions
+from robustbench3d.provenance import host_provenance, library_versions, utc_now
 from robustbench3d.tradeoff.analysis import Scorer, score
 from robustbench3d.tradeoff.measure import CellMeasure, Context, measure_cell, warm_caches
 from robustbench3d.tradeoff.output import write_all
@@ -75,7 +74,7 @@ def run_tradeoff(cfg: TradeoffConfig, out: Path, log: Callable[[str], None] = pr
     specs = cells_of(sweeps, default, cfg.attack)
     ctx = Context(kitti=dataset.kitti(), gt=gt, dataset=identity, proposals=cfg.proposals, seed=cfg.seed,
                   batch_size=cfg.batch_size, threads=cfg.threads, out=out)
-    started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    started = utc_now()
     warm_caches(specs, ctx, log)
     measures: dict[str, CellMeasure] = {}
     for i, spec in enumerate(specs, start=1):
