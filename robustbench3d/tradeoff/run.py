@@ -50,8 +50,9 @@ def victim_defaults(cfg: TradeoffConfig) -> VictimDefaults:
 
     params = inspect.signature(VICTIMS.get(cfg.victim).factory).parameters
     victim = create_victim(cfg.victim, **victim_kwargs(cfg.victim, {}, cfg.seed))
-    size = getattr(getattr(getattr(victim, "yolo", None), "cfg", None), "input_size", None)
-    return VictimDefaults(num_points=getattr(victim, "num_points", None) if "num_points" in params else None,
+    fidelity = victim.fidelity() if callable(getattr(victim, "fidelity", None)) else {}  # FPointNetCascade's
+    size = fidelity.get("input_size")
+    return VictimDefaults(num_points=fidelity.get("num_points") if "num_points" in params else None,
                           input_size=tuple(size) if size is not None and "input_size" in params else None,
                           precision="precision" in params)
 
