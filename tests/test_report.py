@@ -13,6 +13,7 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 import pytest
+from browser import chromium_page
 
 from robustbench3d.cli import main
 from robustbench3d.errors import RobustBenchError
@@ -267,18 +268,7 @@ def test_transfer_matrix_on_hand_made_cells():
 
 @needs_plugin
 def test_page_in_headless_chromium(tiny_run, tiny_report, tmp_path):
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-    if chromium is None:
-        pytest.skip("no chromium on PATH (Debian: apt-get install chromium); the page is not browser-tested")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed (pip install playwright)")
-    errors: list[str] = []
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.route("**/*", lambda route: route.abort() if not route.request.url.startswith(("file:", "data:"))
-                   else route.continue_())
+    with chromium_page() as (page, errors):
         page.goto((tiny_report / "leaderboard.html").as_uri())
         page.wait_for_load_state("load")
 
@@ -319,7 +309,6 @@ def test_page_in_headless_chromium(tiny_run, tiny_report, tmp_path):
         shot = tmp_path / "report.png"
         page.evaluate("window.scrollTo(0, 0); document.querySelectorAll('.wrap').forEach(w => { w.scrollLeft = 0; })")
         page.screenshot(path=str(shot), full_page=True)
-        browser.close()
     assert errors == []
     assert shot.read_bytes()[:4] == b"\x89PNG"
     ARTIFACTS.mkdir(exist_ok=True)

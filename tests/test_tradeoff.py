@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from browser import chromium_page
 
 from robustbench3d.cli import main
 from robustbench3d.errors import DataFormatError, RobustBenchError
@@ -212,17 +213,8 @@ def test_report_section_in_headless_chromium(tiny_tradeoff, tmp_path):
     md = (rep / "leaderboard.md").read_text(encoding="utf-8")
     assert "## Speed/accuracy trade: fpointnet-v1-lite / random-shape (3 frames)" in md
     assert (rep / "figures" / "tradeoff_out.png").read_bytes()[:4] == b"\x89PNG"
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-    if chromium is None:
-        pytest.skip("no chromium on PATH (Debian: apt-get install chromium); the page is not browser-tested")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed (pip install playwright)")
     doc = json.loads((out / "tradeoff.json").read_text(encoding="utf-8"))
-    errors: list[str] = []
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.on("pageerror", lambda e: errors.append(str(e)))
+    with chromium_page() as (page, errors):
         page.goto((rep / "leaderboard.html").as_uri())
         img = page.locator("#tradeoff-0 img")
         img.scroll_into_view_if_needed()
@@ -235,7 +227,6 @@ def test_report_section_in_headless_chromium(tiny_tradeoff, tmp_path):
         assert got == want
         page.locator("#tradeoff-prov-0 summary").click()
         assert page.locator("#tradeoff-prov-0").evaluate("d => d.open") is True
-        browser.close()
     assert errors == []
 
 
