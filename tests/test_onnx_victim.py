@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from robustbench3d.cli import main
-from robustbench3d.errors import DataFormatError
+from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import sha256_file
 from robustbench3d.kitti.dataset import KittiDataset
 from robustbench3d.victims import create_victim
@@ -245,6 +245,44 @@ def test_bad_directories_get_clear_errors_naming_the_file(base_dir, tmp_path):
     _rewrite_manifest(d, lambda m: m["config"]["fpointnet"].update(num_points=1024))
     with pytest.raises(DataFormatError, match=r"manifest\.json: stage 'instance_segmentation': inputs"):
         OnnxCascade(d)
+
+
+def test_stage_file_names_are_bare_or_a_sibling_directorys():
+    from robustbench3d.victims.onnx.manifest import is_stage_file_name
+
+    for ok in ("a.onnx", "../lite-onnx/detector_2d.onnx"):
+        assert is_stage_file_name(ok), ok
+    for bad in ("a.pt", "sub/a.onnx", "../a.onnx", "../../x/a.onnx", "../x/../a.onnx", "../../a.onnx",
+                "/abs/a.onnx", "../x/y/a.onnx", "./a.onnx", "../x/", "..\\x\\a.onnx", ".onnx/../a.onnx"):
+        assert not is_stage_file_name(bad), bad
+
+
+def test_export_shares_identical_graphs_with_a_sibling_directory(base_dir, weights, synth, tmp_path):
+    """``--share``: stages byte-identical to the sibling's are referenced (``../SIBLING/NAME.onnx``),
+    not written; the victim loads and detects as the sibling does; a changed shared file or a
+    directory elsewhere is refused, naming it."""
+    shutil.copytree(base_dir, tmp_path / "base")
+    out = tmp_path / "twin"
+    exporter = read_manifest(base_dir).exporter["name"]
+    export_cascade(load_victim(weights), out, ExportOptions(exporter),
+                   source={"victim": "fpointnet-v1-lite", "kwargs": {}}, reproduce_command="x",
+                   share=tmp_path / "base")
+    manifest = read_manifest(out)
+    assert [s.file for s in manifest.stages] == [f"../base/{s.name}.onnx" for s in manifest.stages]
+    assert sorted(p.name for p in out.iterdir()) == ["manifest.json"]
+    ds = KittiDataset(synth, split=None)
+    frames = [ds.frame(f) for f in ds.frame_ids[:2]]
+    want = OnnxCascade(tmp_path / "base", seed=SEED).detect(frames, "gt")
+    got = OnnxCascade(out, seed=SEED).detect(frames, "gt")
+    assert [a.to_text() for a in want] == [b.to_text() for b in got] and any(len(a) for a in want)
+    with pytest.raises(RobustBenchError, match="must be another ONNX victim directory beside"):
+        export_cascade(load_victim(weights), tmp_path / "elsewhere" / "twin", ExportOptions(exporter),
+                       source={}, reproduce_command="x", share=tmp_path / "base")
+    data = bytearray((tmp_path / "base" / "box_estimation.onnx").read_bytes())
+    data[-1] ^= 0xFF
+    (tmp_path / "base" / "box_estimation.onnx").write_bytes(bytes(data))
+    with pytest.raises(DataFormatError, match=r"base/box_estimation\.onnx: sha256 [0-9a-f]{64} does not match"):
+        OnnxCascade(out)
 
 
 # ---- parity ------------------------------------------------------------------------------

@@ -33,7 +33,7 @@ def test_pack_sets_inference_options_of_the_detector(tmp_path: Path) -> None:
     import pytest
 
     from robustbench3d.errors import RobustBenchError
-    from robustbench3d.victims.pack_command import network_sha256
+    from robustbench3d.victims.torchfile import network_sha256
 
     torch.set_num_threads(1)
     state = FPointNetCascade.untrained("lite", "mini", seed=3).state()
@@ -160,3 +160,57 @@ def test_pack_records_the_run_a_fine_tuned_network_started_from(tmp_path: Path) 
     before = shipped("a", manifest).record["training"]["yolo"]
     assert main([*pack, "--yolo", str(packed), "--out", str(tmp_path / "a2.pt"), "--victim", "a"]) == 0
     assert shipped("a", manifest).record["training"]["yolo"] == before and "recorded_in" not in before
+
+
+def test_pack_shares_the_2d_stage_with_a_file_of_the_same_directory(tmp_path: Path, capsys) -> None:
+    """``--yolo-shared``: the file refers to the --yolo file for the 2D weights (no copy), loads to the
+    same networks, and refuses a shared file whose weights changed, a path and another directory."""
+    import pytest
+
+    from robustbench3d.errors import DataFormatError, RobustBenchError
+    from robustbench3d.victims.torchfile import load_network_part, load_torch_data, network_sha256
+
+    torch.set_num_threads(1)
+    lite, full = FPointNetCascade.untrained("lite", "mini", seed=3), FPointNetCascade.untrained("lite", "mini", seed=5)
+    lite.save(tmp_path / "lite.pt")
+    torch.save(full.state()["fpointnet"], tmp_path / "fpn.pt")
+    out = tmp_path / "full.pt"
+    assert main(["victims", "pack", "--yolo", str(tmp_path / "lite.pt"), "--fpointnet", str(tmp_path / "fpn.pt"),
+                 "--out", str(out), "--yolo-shared"]) == 0
+    stored = load_torch_data(out, "cascade")
+    assert "state_dict" not in stored["yolo"] and stored["yolo"]["shared"]["file"] == "lite.pt"
+    copy = tmp_path / "copy.pt"
+    assert main(["victims", "pack", "--yolo", str(tmp_path / "lite.pt"), "--fpointnet", str(tmp_path / "fpn.pt"),
+                 "--out", str(copy)]) == 0
+    yolo_bytes = sum(t.numel() * t.element_size() for t in lite.state()["yolo"]["state_dict"].values())
+    assert copy.stat().st_size - out.stat().st_size > 0.95 * yolo_bytes  # no copy of the 2D weights
+    loaded = FPointNetCascade.load(out).state()
+    for part, want in (("yolo", lite.state()["yolo"]), ("fpointnet", full.state()["fpointnet"])):
+        assert network_sha256(loaded[part]["state_dict"]) == network_sha256(want["state_dict"])
+        assert loaded[part]["config"] == want["config"]
+    assert network_sha256(load_network_part(out, "yolo")["state_dict"]) == network_sha256(
+        lite.state()["yolo"]["state_dict"])  # also when the file is given as one part
+
+    FPointNetCascade.untrained("lite", "mini", seed=4).save(tmp_path / "lite.pt")  # the shared weights change
+    moved = r"full\.pt: field 'yolo\.shared\.state_sha256': the yolo weights in .*lite\.pt hash to "
+    with pytest.raises(DataFormatError, match=moved):
+        FPointNetCascade.load(out)
+    (tmp_path / "lite.pt").unlink()
+    with pytest.raises(DataFormatError, match=r"lite\.pt.*no such yolo"):
+        FPointNetCascade.load(out)
+    for bad in ("../lite.pt", "sub/lite.pt", ".."):
+        state = {**stored, "yolo": {**stored["yolo"], "shared": {**stored["yolo"]["shared"], "file": bad}}}
+        torch.save(state, tmp_path / "bad.pt")
+        with pytest.raises(DataFormatError, match="bare name in the same directory"):
+            FPointNetCascade.load(tmp_path / "bad.pt")
+    torch.save({**stored, "yolo": {"config": {}, "shared": "lite.pt"}}, tmp_path / "bad.pt")
+    with pytest.raises(DataFormatError, match="needs a 'config' dict"):
+        FPointNetCascade.load(tmp_path / "bad.pt")
+    (tmp_path / "other").mkdir()
+    lite.save(tmp_path / "lite.pt")
+    with pytest.raises(RobustBenchError, match="must be in the directory"):
+        lite.save(tmp_path / "other" / "x.pt", share_yolo=tmp_path / "lite.pt")
+    with pytest.raises(RobustBenchError, match="not this cascade's"):
+        full.save(tmp_path / "x.pt", share_yolo=tmp_path / "lite.pt")
+    assert not (tmp_path / "x.pt").exists()
+    capsys.readouterr()

@@ -76,7 +76,7 @@ def test_victims_list_cli(capsys):
     rows = json.loads(capsys.readouterr().out)
     by_name = {r["name"]: r for r in rows}
     assert {"fpointnet-v1", "fpointnet-v1-lite"} <= set(by_name) <= {"fpointnet-v1", "fpointnet-v1-lite",
-                                                                     "fpointnet-v1-lite-onnx"}
+                                                                     "fpointnet-v1-lite-onnx", "fpointnet-v1-onnx"}
     assert by_name["fpointnet-v1"]["capabilities"]["modalities"] == ["camera", "lidar"]
     assert by_name["fpointnet-v1"]["weights_sha256"] == shipped("fpointnet-v1").sha256
     assert by_name["fpointnet-v1"]["origin"] == "in-tree"

@@ -68,9 +68,12 @@ from robustbench3d.victims.fpointnet.pipeline import (
 from robustbench3d.victims.torchfile import (
     CASCADE_FORMAT,
     build_network,
+    cascade_part,
     load_network_part,
     load_torch_data,
-    network_part,
+    network_sha256,
+    shared_reference,
+    stored_part,
 )
 from robustbench3d.victims.yolo.config import YoloConfig
 from robustbench3d.victims.yolo.detector import YoloDetector, candidates_for_targets
@@ -205,10 +208,21 @@ class FPointNetCascade:
                 "yolo": {"config": self.yolo.cfg.to_dict(), "state_dict": self.yolo.net.state_dict()},
                 "fpointnet": {"config": self.fpn.cfg.to_dict(), "state_dict": self.fpn.state_dict()}}
 
-    def save(self, path: str | Path) -> None:
-        """Write both networks to one weights file (atomically)."""
+    def save(self, path: str | Path, share_yolo: str | Path | None = None) -> None:
+        """Write both networks to one weights file (atomically). With ``share_yolo`` (a weights file in
+        the same directory that stores this cascade's 2D-stage weights) the file refers to it for them
+        instead of holding a copy (:func:`~robustbench3d.victims.torchfile.cascade_part`)."""
+        state = self.state()
+        if share_yolo is not None:
+            share, own = Path(share_yolo), state["yolo"]["state_dict"]
+            if share.resolve().parent != Path(path).resolve().parent:
+                raise RobustBenchError(f"{share}: a shared 2D stage must be in the directory of {path}")
+            ref = shared_reference(share, own)
+            if network_sha256(stored_part(share, "yolo")["state_dict"]) != ref["state_sha256"]:
+                raise RobustBenchError(f"{share}: its yolo weights are not this cascade's; cannot share them")
+            state["yolo"] = {"config": state["yolo"]["config"], "shared": ref}
         with atomic_open(path, "wb") as f:
-            torch.save(self.state(), f)
+            torch.save(state, f)
 
     @classmethod
     def load(cls, path: str | Path, settings: CascadeSettings | None = None,
@@ -222,7 +236,7 @@ class FPointNetCascade:
         if not isinstance(data, dict) or data.get("format") != CASCADE_FORMAT:
             raise DataFormatError(path, f"not a {what}: expected format {CASCADE_FORMAT!r} (written by "
                                         "`robustbench3d victims pack`)", field="format")
-        yolo, fpn = (network_part(data.get(name), path, what) for name in ("yolo", "fpointnet"))
+        yolo, fpn = (cascade_part(data.get(name), path, name, what) for name in ("yolo", "fpointnet"))
         return cls.from_parts(yolo, fpn, settings, origins=(path, path))
 
     @classmethod

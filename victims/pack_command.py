@@ -25,6 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fpointnet", required=True, metavar="FILE",
                         help="model.pt of `robustbench3d train fpointnet` (or a cascade weights file: its F-PN)")
     parser.add_argument("--out", required=True, metavar="FILE", help="cascade weights file to write")
+    parser.add_argument("--yolo-shared", action="store_true",
+                        help="refer to the --yolo file (in --out's directory) for the 2D-stage weights instead of "
+                             "copying them, as fpointnet-v1.pt does with fpointnet-v1-lite.pt")
     parser.add_argument("--manifest", metavar="FILE", type=Path,
                         help="shipped-weights manifest to update (victims/weights/manifest.json)")
     parser.add_argument("--victim", help="victim name of the manifest entry (with --manifest)")
@@ -63,32 +66,17 @@ def yolo_options(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def network_sha256(state_dict: dict[str, Any]) -> str:
-    """sha256 of a network's weights: every tensor's name, dtype, shape and bytes, in name order
-    (the same for a trainer's ``model.pt``, a cascade file or a checkpoint holding that state)."""
-    import hashlib
-
-    import torch
-
-    h = hashlib.sha256()
-    for name in sorted(state_dict):
-        t = torch.as_tensor(state_dict[name]).detach().cpu().contiguous()
-        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
-        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
-    return h.hexdigest()
-
-
 def _known_record(earlier: list[dict[str, Any]], network: str, *, state_sha: str | None = None,
                   file_sha: str | None = None, victim: str | None = None) -> dict[str, Any] | None:
     """The training record of ``network`` in the earlier manifest entry holding these weights
     (by network hash, or — for entries written before network hashes — by file hash), with the
-    entry it came from as ``recorded_in`` unless that is ``victim``'s own entry for this very file."""
+    entry it came from as ``recorded_in`` unless that is ``victim``'s own (earlier) entry."""
     for e in earlier:
         net = e.get("networks", {}).get(network, {})
         same_file = bool(file_sha) and e.get("sha256") == file_sha
         if (state_sha and net.get("state_sha256") == state_sha) or same_file:
             record = dict(e.get("training", {}).get(network, {}))
-            if not (same_file and e.get("victim") == victim) and "recorded_in" not in record:
+            if e.get("victim") != victim and "recorded_in" not in record:
                 record["recorded_in"] = {"victim": e["victim"], "file": e["file"], "sha256": e["sha256"]}
             return record
     return None
@@ -103,7 +91,7 @@ def _training_record(model_file: Path, network: str, state_sha: str, earlier: li
     import json
 
     from robustbench3d.fileio import sha256_file
-    from robustbench3d.victims.torchfile import load_network_part
+    from robustbench3d.victims.torchfile import load_network_part, network_sha256
     from robustbench3d.victims.training import CHECKPOINT, LOG, read_checkpoint
 
     known = _known_record(earlier, network, state_sha=state_sha, file_sha=sha256_file(model_file), victim=victim)
@@ -161,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
     from robustbench3d.errors import RobustBenchError
     from robustbench3d.fileio import check_output_file, sha256_file
     from robustbench3d.victims.cascade import FPointNetCascade
-    from robustbench3d.victims.torchfile import load_network_part
+    from robustbench3d.victims.torchfile import load_network_part, network_sha256
 
     if args.manifest is not None and not args.victim:
         raise RobustBenchError("--manifest needs --victim NAME")
@@ -183,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
         earlier = read_manifest(args.manifest)["weights"]
         training = {name: _training_record(path, name, networks[name]["state_sha256"], earlier, args.victim)
                     for name, path in sources.items()}
-    cascade.save(args.out)
+    cascade.save(args.out, share_yolo=sources["yolo"] if args.yolo_shared else None)
     sha = sha256_file(args.out)
     print(f"{sha}  {args.out}")
     if args.manifest is None:
@@ -198,6 +186,8 @@ def run(args: argparse.Namespace) -> int:
         "victim": args.victim, "file": out.name, "sha256": sha, "size_bytes": out.stat().st_size,
         "networks": networks, "training": training, "environment": host_provenance(),
     }
+    if args.yolo_shared:
+        entry["shared"] = {"yolo": {"file": sources["yolo"].name, "sha256": sha256_file(sources["yolo"])}}
     if args.reproduce is not None:
         lines = args.reproduce.read_text(encoding="utf-8").splitlines()
         entry["reproduce"] = {"script": args.reproduce.name,

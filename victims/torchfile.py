@@ -9,6 +9,7 @@ runs. A raw pickle is never handed to an unpickler. Every problem is a
 
 from __future__ import annotations
 
+import hashlib
 import pickle
 import warnings
 import zipfile
@@ -97,13 +98,66 @@ def network_part(data: Any, path: str | Path, what: str) -> dict[str, Any]:
     return data
 
 
-def load_network_part(path: str | Path, network: str) -> dict[str, Any]:
-    """``{"config", "state_dict"}`` of ``network`` ("yolo" or "fpointnet") from a trainer
-    ``model.pt`` or a cascade weights file, read as data only and checked."""
-    what = f"{network} model.pt or cascade weights file"
+def network_sha256(state_dict: dict[str, Any]) -> str:
+    """sha256 of a network's weights: every tensor's name, dtype, shape and bytes, in name order
+    (the same for a trainer's ``model.pt``, a cascade file or a checkpoint holding that state)."""
+    h = hashlib.sha256()
+    for name in sorted(state_dict):
+        t = torch.as_tensor(state_dict[name]).detach().cpu().contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
+def shared_reference(file: str | Path, state_dict: dict[str, Any]) -> dict[str, str]:
+    """The ``shared`` entry of a cascade part whose weights are ``state_dict`` as stored in ``file``
+    (a weights file of the same directory, named without a path)."""
+    return {"file": Path(file).name, "state_sha256": network_sha256(state_dict)}
+
+
+def cascade_part(data: Any, path: str | Path, network: str, what: str) -> dict[str, Any]:
+    """One network of a cascade weights file, checked: ``{"config", "state_dict"}`` stored in the
+    file, or ``{"config", "shared": {"file", "state_sha256"}}`` — the weights of ``network`` in
+    another weights file of the same directory (so two shipped cascades carry one copy of a stage
+    they share), which must hold them itself and hash to ``state_sha256`` (:func:`network_sha256`)."""
+    path = Path(path)
+    if not (isinstance(data, dict) and "shared" in data and "state_dict" not in data):
+        return network_part(data, path, what)
+    ref = data["shared"]
+    if not isinstance(data.get("config"), dict) or not isinstance(ref, dict) \
+            or not all(isinstance(ref.get(k), str) for k in ("file", "state_sha256")):
+        raise DataFormatError(path, f"not a {what}: a shared {network} part needs a 'config' dict and "
+                                    "'shared': {'file', 'state_sha256'}", field=network)
+    if Path(ref["file"]).name != ref["file"] or ref["file"] in ("", ".", ".."):
+        raise DataFormatError(path, f"shared {network} file must be a bare name in the same directory, "
+                                    f"got {ref['file']!r}", field=f"{network}.shared.file")
+    source = path.parent / ref["file"]
+    state = stored_part(source, network)
+    got = network_sha256(state["state_dict"])
+    if got != ref["state_sha256"]:
+        raise DataFormatError(path, f"the {network} weights in {source} hash to {got}, not the "
+                                    f"state_sha256 {ref['state_sha256']} this file was packed with",
+                              field=f"{network}.shared.state_sha256")
+    return {"config": data["config"], "state_dict": state["state_dict"]}
+
+
+def stored_part(path: str | Path, network: str) -> dict[str, Any]:
+    """``network``'s part as stored in ``path`` itself (a trainer ``model.pt`` or a cascade file that
+    holds these weights, not a reference to another file): what a shared part may point at."""
+    what = f"{network} model.pt or cascade weights file holding its weights"
     data = load_torch_data(path, what)
     if isinstance(data, dict) and data.get("format") == CASCADE_FORMAT:
         data = data.get(network)
+    return network_part(data, path, what)
+
+
+def load_network_part(path: str | Path, network: str) -> dict[str, Any]:
+    """``{"config", "state_dict"}`` of ``network`` ("yolo" or "fpointnet") from a trainer
+    ``model.pt`` or a cascade weights file (a shared part resolved), read as data only and checked."""
+    what = f"{network} model.pt or cascade weights file"
+    data = load_torch_data(path, what)
+    if isinstance(data, dict) and data.get("format") == CASCADE_FORMAT:
+        return cascade_part(data.get(network), path, network, what)
     return network_part(data, path, what)
 
 

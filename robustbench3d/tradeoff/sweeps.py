@@ -122,7 +122,7 @@ class FrameSweep:
 #: Sweep names in table order (``--sweeps``).
 SWEEP_NAMES = ("frames", "points", "azimuth", "input", "supersample", "precision", "backend", "render")
 #: The ONNX twin of each victim with one (torch vs onnxruntime).
-ONNX_TWINS = {"fpointnet-v1-lite": "fpointnet-v1-lite-onnx"}
+ONNX_TWINS = {"fpointnet-v1-lite": "fpointnet-v1-lite-onnx", "fpointnet-v1": "fpointnet-v1-onnx"}
 #: Frame counts of the ``frames`` sweep (those below the run's frame count, then the run's).
 FRAME_COUNTS = (10, 25, 50, 100, 200, 500)
 #: Frames of the ``render`` sweep: the full-scene reference casts every ray of the scan at every face (about

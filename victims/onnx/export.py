@@ -56,6 +56,8 @@ from robustbench3d.victims.onnx.manifest import (
     TensorSpec,
     check_layout,
     head_name,
+    read_manifest,
+    verify_files,
 )
 
 EXPORTERS: tuple[str, ...] = ("dynamo", "legacy")
@@ -214,25 +216,45 @@ def exporter_record(options: ExportOptions) -> dict[str, Any]:
             "onnx": onnx.__version__, "onnxscript": version("onnxscript") if options.exporter == "dynamo" else None}
 
 
+def shared_stage_files(out: Path, share: str | Path | None) -> dict[str, str]:
+    """sha256 -> ``../SIBLING/NAME.onnx`` of the verified stage files of ``share``, an ONNX victim
+    directory beside ``out`` (empty without ``share``)."""
+    if share is None:
+        return {}
+    share = Path(share)
+    if share.resolve().parent != out.resolve().parent or share.resolve() == out.resolve():
+        raise RobustBenchError(f"--share {share}: must be another ONNX victim directory beside {out}")
+    manifest = read_manifest(share)
+    verify_files(share, manifest)
+    return {st.sha256: f"../{share.resolve().name}/{st.file}" for st in manifest.stages if "/" not in st.file}
+
+
 def export_cascade(cascade: FPointNetCascade, out: str | Path, options: ExportOptions, *,
-                   source: dict[str, Any], reproduce_command: str) -> Manifest:
+                   source: dict[str, Any], reproduce_command: str, share: str | Path | None = None) -> Manifest:
     """Write the four stage graphs and ``manifest.json`` (last) into ``out``.
 
     An old manifest is removed first, so an interrupted export never leaves a directory that
     passes as complete. ``source`` describes what was exported (victim name and arguments);
-    ``reproduce_command`` is the command line that rebuilds this directory.
+    ``reproduce_command`` is the command line that rebuilds this directory. A stage whose graph is
+    byte-identical to a stage file of ``share`` (an ONNX victim directory beside ``out``) is not
+    written: the manifest names that file (``../SIBLING/NAME.onnx``, pinned by its sha256).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / MANIFEST_FILE).unlink(missing_ok=True)
+    shared = shared_stage_files(out, share)
     stages: list[StageSpec] = []
     for stage in stage_modules(cascade, options):
         proto = export_proto(stage, options.exporter, options.opset)
         inputs, outputs = graph_io(proto, stage.name)
         data = canonical_bytes(proto, stage.name)
-        file = f"{stage.name}.onnx"
-        atomic_write_bytes(out / file, data)
-        stages.append(StageSpec(stage.name, file, hashlib.sha256(data).hexdigest(), inputs, outputs))
+        sha, file = hashlib.sha256(data).hexdigest(), f"{stage.name}.onnx"
+        if sha in shared:
+            (out / file).unlink(missing_ok=True)
+            file = shared[sha]
+        else:
+            atomic_write_bytes(out / file, data)
+        stages.append(StageSpec(stage.name, file, sha, inputs, outputs))
     manifest = Manifest(
         stages=tuple(stages), exporter=exporter_record(options),
         config={"yolo": _jsonable(cascade.yolo.cfg.to_dict()), "fpointnet": _jsonable(cascade.fpn.cfg.to_dict()),

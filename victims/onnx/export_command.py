@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--exporter", required=True, choices=("dynamo", "legacy"),
                         help="torch.onnx.export(dynamo=True) (needs onnxscript) or the deprecated TorchScript "
                              "exporter (dynamo=False)")
+    parser.add_argument("--share", metavar="DIR",
+                        help="an ONNX victim directory beside --out: stages byte-identical to one of its stage files "
+                             "are not written, the manifest names that file (two cascades with one 2D stage)")
     parser.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
     parser.add_argument("--batch-2d", type=int, default=DEFAULT_BATCH_2D, metavar="B",
                         help=f"fixed batch of the 2D detector graph (default {DEFAULT_BATCH_2D})")
@@ -60,6 +63,8 @@ def reproduce_command(args: argparse.Namespace, kwargs: dict[str, Any]) -> str:
 
     parts = ["robustbench3d", "export-onnx", args.victim, "--out", "DIR", "--exporter", args.exporter,
              "--opset", str(args.opset), "--batch-2d", str(args.batch_2d), "--batch-seg", str(args.batch_seg)]
+    if getattr(args, "share", None):
+        parts += ["--share", f"DIR/../{Path(args.share).resolve().name}"]
     for key, value in sorted(kwargs.items()):
         shown = Path(value).name if isinstance(value, str) and Path(value).is_file() else json.dumps(value)
         parts += ["--victim-arg", f"{key}={shown}"]
@@ -110,10 +115,10 @@ def run(args: argparse.Namespace) -> int:
         # no weights given: the victim loaded its shipped file
         source["weights_sha256"] = VICTIMS.get(args.victim).info.weights_sha256
     manifest = export_cascade(cascade, args.out, options, source=source,
-                              reproduce_command=reproduce_command(args, kwargs))
+                              reproduce_command=reproduce_command(args, kwargs), share=args.share)
     for st in manifest.stages:
         shapes = ", ".join(f"{t.name} {'x'.join(map(str, t.shape))}" for t in st.inputs)
-        print(f"{st.name:<22} {st.file:<28} sha256 {st.sha256[:16]}…  {shapes}")
+        print(f"{st.name:<22} {st.file:<44} sha256 {st.sha256[:16]}…  {shapes}")
     ex = manifest.exporter
     print(f"{args.out}: exporter {ex['name']} opset {ex['opset']}, torch {ex['torch']}, onnx {ex['onnx']}"
           f"{', onnxscript ' + ex['onnxscript'] if ex['onnxscript'] else ''}")

@@ -5,7 +5,9 @@ Layout (JSON object; keys in this order)::
     format          "robustbench3d.onnx_cascade/1"
     stages          list, in pipeline order, of
                       {name, file, sha256, inputs: [{name, shape, dtype}], outputs: [...]}
-                    names: detector_2d, instance_segmentation, center_regression, box_estimation
+                    names: detector_2d, instance_segmentation, center_regression, box_estimation;
+                    file: NAME.onnx in the directory, or ../SIBLING/NAME.onnx for a graph shared
+                    with a sibling victim directory (``export-onnx --share``), pinned by its sha256
     exporter        {name: "dynamo" | "legacy", opset, torch, onnx, onnxscript}
     config          {yolo: YoloConfig dict, fpointnet: FPointNetConfig dict, settings: CascadeSettings dict}
     source          {victim, kwargs} — what was exported (weight files by name and sha256)
@@ -84,7 +86,8 @@ class TensorSpec:
 
 @dataclass(frozen=True)
 class StageSpec:
-    """One stage graph: its file (relative to the directory), sha256, inputs and outputs."""
+    """One stage graph: its file (relative to the directory; see :func:`is_stage_file_name`), sha256,
+    inputs and outputs."""
 
     name: str
     file: str
@@ -138,14 +141,26 @@ def _require(data: dict[str, Any], key: str, kind: type, path: Path, where: str 
     return data[key]
 
 
+def is_stage_file_name(file: str) -> bool:
+    """A stage ``file`` is a bare ``NAME.onnx`` in the victim directory, or ``../SIBLING/NAME.onnx``: a
+    stage graph shared with the victim directory SIBLING beside it (both bare names)."""
+    parts = file.split("/")
+    if len(parts) == 3 and parts[0] == "..":
+        parts = parts[1:]
+    elif len(parts) != 1:
+        return False
+    return file.endswith(".onnx") and all(p not in ("", ".", "..") and "\\" not in p for p in parts)
+
+
 def _stage(data: Any, index: int, path: Path) -> StageSpec:
     if not isinstance(data, dict):
         raise DataFormatError(path, f"stages[{index}] must be an object")
     where = f"stage {data.get('name', index)!r}"
     name = _require(data, "name", str, path, where)
     file = _require(data, "file", str, path, where)
-    if Path(file).name != file or not file.endswith(".onnx"):
-        raise DataFormatError(path, f"{where}: file must be a bare '*.onnx' name in the directory, got {file!r}")
+    if not is_stage_file_name(file):
+        raise DataFormatError(path, f"{where}: file must be a bare '*.onnx' name in the directory, or "
+                                    f"'../SIBLING/NAME.onnx' for a stage shared with a sibling directory, got {file!r}")
     sha = _require(data, "sha256", str, path, where)
     if not _SHA256.match(sha):
         raise DataFormatError(path, f"{where}: sha256 must be 64 lowercase hex digits, got {sha!r}")

@@ -226,7 +226,8 @@ def _write_user_registry(path: Path, entries: dict[str, str]) -> None:
 
 
 #: shipped ONNX victim name -> its directory under :func:`robustbench3d.victims.shipped.weights_dir`
-SHIPPED: dict[str, str] = {"fpointnet-v1-lite-onnx": "fpointnet-v1-lite-onnx"}
+SHIPPED: dict[str, str] = {"fpointnet-v1-lite-onnx": "fpointnet-v1-lite-onnx",
+                           "fpointnet-v1-onnx": "fpointnet-v1-onnx"}
 
 
 def register_shipped_victims() -> None:
