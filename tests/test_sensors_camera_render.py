@@ -12,6 +12,7 @@ from robustbench3d.sensors.camera_depth import DepthMap
 from robustbench3d.sensors.camera_model import Lighting
 from robustbench3d.sensors.camera_render import (
     _rect_lighting,
+    camera_ray_tests,
     mesh_box,
     render_camera,
     render_camera_torch,
@@ -171,7 +172,12 @@ def test_gradients_match_finite_differences():
     # the photo shows through by 1 - alpha: 1 outside, 0 inside, in between on the anti-aliased edge pixels
     alpha = 1.0 - photo.grad[..., 0]
     assert (alpha == 0).any() and (alpha == 1).any() and ((alpha > 0) & (alpha < 1)).any()
-    assert torch.autograd.gradcheck(fn, (verts, colors, photo), eps=1e-6, atol=1e-7, rtol=1e-5)
+    # every vertex and colour coordinate by central differences; the photo (360 inputs, on which the image
+    # depends linearly) by random projections (gradcheck's fast mode)
+    still = photo.detach()
+    assert torch.autograd.gradcheck(lambda v, c: fn(v, c, still), (verts, colors), eps=1e-6, atol=1e-7, rtol=1e-5)
+    assert torch.autograd.gradcheck(lambda p: fn(verts.detach(), colors.detach(), p), (photo,), eps=1e-6,
+                                    atol=1e-7, rtol=1e-5, fast_mode=True)
 
 
 def test_scene_depth_hides_exactly_where_nearer():
@@ -394,3 +400,39 @@ def test_cached_rays_and_edge_pixels_equal_their_references():
                         want[r, c] |= other != grid[r, c]
         got = _edge_pixels(_Region((0, 0, int(mw), int(mh)), mask, np.flatnonzero(mask)), shows)
         assert np.array_equal(got, want[mask])
+
+
+def test_ray_test_counts_by_hand():
+    """``camera_ray_tests`` (the benchmark's counts) on the hand triangle: one sample per pixel of its box,
+    plus s x s on each silhouette pixel (a pixel centre inside the triangle with a neighbour's outside, or the
+    other way round; s > 1); a (sample, face) pair for each sample in the triangle, up to the cull's margin."""
+    calib = small_calib()
+    mesh = (TRI, TRI_FACES, np.eye(3))
+    a, b, c = np.array([10.0, 3.0]), np.array([10.0, 27.0]), np.array([32.0, 15.0])
+
+    def inside(px: np.ndarray, tol: float) -> np.ndarray:
+        lam = np.linalg.solve(np.column_stack([b - a, c - a]), (px - a).T).T
+        return (lam >= -tol).all(axis=1) & (lam.sum(axis=1) <= 1 + tol)
+
+    assert mesh_box(calib, TRI, (40, 30))[0] == (10, 3, 33, 28)
+    uu, vv = np.meshgrid(np.arange(10, 33), np.arange(3, 28))
+    centres = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(np.float64)
+    shows = inside(centres, 0.0).reshape(uu.shape)
+    padded = np.pad(shows, 1)
+    edge = np.zeros_like(shows)
+    for dv in (-1, 0, 1):
+        for du in (-1, 0, 1):
+            edge |= padded[1 + dv:1 + dv + shows.shape[0], 1 + du:1 + du + shows.shape[1]] != shows
+    assert (shows.size, edge.sum(), shows.sum()) == (575, 154, 279)
+    assert camera_ray_tests(calib, [mesh], (40, 30), 1) == (575, 279)
+    for s in (2, 3, 4):
+        offsets = (np.arange(s) + 0.5) / s - 0.5
+        grid = np.array([[du, dv] for dv in offsets for du in offsets])
+        subs = (centres[edge.ravel()][:, None, :] + grid[None]).reshape(-1, 2)
+        samples, pairs = camera_ray_tests(calib, [mesh], (40, 30), s)
+        assert samples == shows.size + s * s * edge.sum()
+        assert shows.sum() + inside(subs, 0.0).sum() <= pairs <= shows.sum() + inside(subs, 0.02).sum()
+    assert camera_ray_tests(calib, [], (40, 30), 3) == (0, 0)
+    assert camera_ray_tests(calib, [(TRI * [1, 1, -1], TRI_FACES, np.eye(3))], (40, 30), 3) == (0, 0)  # behind
+    with pytest.raises(ValueError, match="field 'supersample': must be an integer >= 1, got 0"):
+        camera_ray_tests(calib, [mesh], (40, 30), 0)

@@ -11,6 +11,7 @@ from embreex import rtcore, rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from robustbench3d.sensors import lidar_model as lm
+from robustbench3d.sensors import lidar_render as lr
 from robustbench3d.sensors.lidar_beams import AZIMUTH_STEP_DEG, BeamPattern, estimate_pattern, scan_ring_ids
 from robustbench3d.sensors.lidar_render import prepare_scan, render_lidar, render_lidar_torch, trace_meshes
 from robustbench3d.sensors.materials import REFLECTIVITY, Mat
@@ -668,3 +669,64 @@ def test_a_ray_through_a_face_near_its_farthest_corner_is_a_candidate():
     assert k in res.ray_index
     at = list(res.ray_index).index(k)
     np.testing.assert_allclose(res.added_torch.detach().numpy()[at], hit, atol=1e-9)
+
+
+def test_all_pairs_by_hand():
+    """The full-scene pairs: every (ray, face), ray-major, in chunks of whole rays (at least one)."""
+    def chunks(n_rays: int, n_faces: int, chunk: int) -> list[tuple[list[int], list[int]]]:
+        return [(r.tolist(), f.tolist()) for r, f in lr._all_pairs(n_rays, n_faces, chunk)]
+
+    assert chunks(5, 3, 7) == [([0, 0, 0, 1, 1, 1], [0, 1, 2, 0, 1, 2]), ([2, 2, 2, 3, 3, 3], [0, 1, 2, 0, 1, 2]),
+                               ([4, 4, 4], [0, 1, 2])]
+    assert chunks(2, 3, 2) == [([0, 0, 0], [0, 1, 2]), ([1, 1, 1], [0, 1, 2])]  # a chunk below one ray: one ray
+    assert chunks(3, 1, 3) == [([0, 1, 2], [0, 0, 0])]
+    assert chunks(0, 3, 7) == []
+    assert chunks(2, 0, 1) == [([], []), ([], [])]  # no faces: one empty chunk per ray
+    assert all(r.dtype == f.dtype == torch.int64 for r, f in lr._all_pairs(5, 3, 7))
+
+
+def test_full_scene_cast_tests_every_pair_and_finds_the_culled_hits(monkeypatch):
+    """``cull=False`` on an empty prepared scan: every ray of the pattern at every face of two meshes, in
+    chunks that do not divide the rays; the same hits as the culled render and as Embree."""
+    pattern = BeamPattern.generator(0.0231)
+    quad = np.array([[0, 1, 2], [0, 2, 3]])
+
+    def plate(x: float, y: float) -> np.ndarray:  # a 0.4 m square facing the sensor along x
+        return np.array([[x, y - 0.2, -0.5], [x, y + 0.2, -0.5], [x, y + 0.2, -0.1], [x, y - 0.2, -0.1]])
+
+    meshes = [(plate(6.0, 0.0), quad), (plate(-9.0, -1.0), quad)]
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    n_rays, n_faces = len(pattern.rays), 4
+    monkeypatch.setattr(lr, "FULL_SCENE_CHUNK_PAIRS", 7777 * n_faces + 3)
+    assert n_rays % 7777 != 0
+    full = render_lidar(prep, [(v, f, None) for v, f in meshes], cull=False)
+    culled = render_lidar(prep, [(v, f, None) for v, f in meshes])
+    assert full.tests == n_rays * n_faces > 100 * culled.tests
+    assert len(culled.ray_index) > 100 and full.scan.tobytes() == culled.scan.tobytes()
+    assert np.array_equal(full.ray_index, culled.ray_index) and np.array_equal(full.face_index, culled.face_index)
+    v = np.concatenate([plate(6.0, 0.0), plate(-9.0, -1.0)])
+    prim, tfar = _embree(v, np.concatenate([quad, quad + 4]), pattern.rays.origins, pattern.rays.directions)
+    hit = np.flatnonzero(prim >= 0)
+    np.testing.assert_array_equal(np.sort(full.ray_index), hit[lm.in_range(tfar[hit])])
+
+
+def test_given_ring_ids_are_used_not_recovered_from_the_scan():
+    """The caller's laser ids decide the pattern of a raw scan (each laser's elevation comes from its id): ids
+    shifted by one laser give other rays than the ids recovered from the geometry, in every render path
+    (numpy, torch, through a pattern cache), while the recovered ids given explicitly change nothing."""
+    from robustbench3d.sensors.pattern_cache import PatternCache
+
+    scan = _pattern_scan()
+    ring = scan_ring_ids(scan)
+    shifted = (ring + 1) % 64
+    meshes = [(*_object(x, y), None) for x, y in ((12.0, 3.0), (-9.0, 1.0))]
+    derived = render_lidar(scan, meshes)
+    assert render_lidar(scan, meshes, ring_ids=ring).scan.tobytes() == derived.scan.tobytes()
+    moved = render_lidar(scan, meshes, ring_ids=shifted)
+    assert len(derived.added) > 20 and moved.added.tobytes() != derived.added.tobytes()
+    cached = render_lidar(scan, meshes, ring_ids=shifted, patterns=PatternCache(None))
+    assert cached.scan.tobytes() == moved.scan.tobytes()
+    pts, _ = render_lidar_torch(scan, meshes, ring_ids=shifted)
+    np.testing.assert_array_equal(pts.detach().numpy().astype(np.float32), moved.added[:, :3])
+    assert not np.array_equal(render_lidar_torch(scan, meshes)[0].detach().numpy().astype(np.float32),
+                              moved.added[:, :3])

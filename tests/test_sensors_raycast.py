@@ -568,3 +568,22 @@ def test_pair_caster_search_without_check_trusts_the_pairs():
     with pytest.raises((IndexError, RuntimeError)) as err:
         caster.search(x, [(torch.tensor([1]), torch.tensor([0]))], check=False)
     assert not isinstance(err.value, ValueError)
+
+
+def test_skip_faces_and_groups_are_checked_also_without_rays_or_faces():
+    """A wrong ``skip_faces`` length or a group outside the rays / faces is an error whatever the counts: also
+    with no rays or no faces, where nothing is cast (all misses, 0 tests, on valid input)."""
+    v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]])
+    f = torch.tensor([[0, 1, 2]])
+    o = _t([0.0, 0.25, 0.25])
+    no_rays, no_faces = _t(np.zeros((0, 3))), torch.zeros((0, 3), dtype=torch.int64)
+    for faces, rays in ((f, no_rays), (no_faces, _t([[1.0, 0.0, 0.0]])), (no_faces, no_rays)):
+        with pytest.raises(ValueError, match=f"cast_rays: field 'skip_faces': 2 flags for {len(faces)} faces"):
+            cast_rays(v, faces, rays, o, skip_faces=torch.zeros(2, dtype=torch.bool))
+        ok = cast_rays(v, faces, rays, o, skip_faces=torch.zeros(len(faces), dtype=torch.bool),
+                       groups=[(np.zeros(0, dtype=np.int64), 0, len(faces))])
+        assert ok.face.tolist() == [-1] * len(rays) and ok.tests == 0
+    with pytest.raises(ValueError, match=r"field 'groups\[0\]': rays must index 0 rays"):
+        cast_rays(v, f, no_rays, o, groups=[(np.array([0]), 0, 1)])
+    with pytest.raises(ValueError, match=r"field 'groups\[1\]': .* faces \[0, 1\) lie in \[0, 0\]"):
+        cast_rays(v, no_faces, _t([[1.0, 0.0, 0.0]]), o, groups=[(np.array([0]), 0, 0), (np.array([0]), 0, 1)])

@@ -462,17 +462,17 @@ def cast_rays(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Ten
     """
     p = _prepare(vertices, faces, directions, origin, origin_offset, offset_axis, "cast_rays")
     n_rays = len(p.d)
+    skip = None if skip_faces is None else _as_tensor(skip_faces, torch.bool, p.d.device).reshape(-1)
+    if skip is not None and len(skip) != len(p.faces):
+        raise ValueError(f"cast_rays: field 'skip_faces': {len(skip)} flags for {len(p.faces)} faces")
+    checked = None if groups is None else _check_groups(groups, n_rays, len(p.faces), p.d.device)
     with torch.no_grad():
         if n_rays and len(p.faces):
-            skip = None if skip_faces is None else _as_tensor(skip_faces, torch.bool, p.d.device).reshape(-1)
-            if skip is not None and len(skip) != len(p.faces):
-                raise ValueError(f"cast_rays: field 'skip_faces': {len(skip)} flags for {len(p.faces)} faces")
             v0, e1, e2, table = _face_geometry(p, cos_min, skip)
-            if groups is None:
+            if checked is None:
                 face, tests = _search(v0, e1, e2, table, p.d, p.origin, p.h, p.axis, t_min, p.tol)
             else:
-                face, tests = _search_groups(v0, e1, e2, table, p.d, p.origin, p.h, p.axis, t_min, p.tol,
-                                             _check_groups(groups, n_rays, len(p.faces), p.d.device))
+                face, tests = _search_groups(v0, e1, e2, table, p.d, p.origin, p.h, p.axis, t_min, p.tol, checked)
         else:
             face, tests = torch.full((n_rays,), -1, dtype=torch.int64, device=p.d.device), 0
     return _hits(p, face, tests)
