@@ -30,6 +30,15 @@ def _object(x: float, y: float = 0.3, level: int = 2) -> tuple[np.ndarray, np.nd
     return v + np.array([x, y, ROOF_Z - v[:, 2].min()]), f
 
 
+#: The two faces of a quadrilateral (vertices in order around it).
+QUAD = np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def _plate(x: float, y: float) -> np.ndarray:
+    """A 0.4 m square at (x, y), z from -0.5 to -0.1 m, facing the sensor along x (velodyne frame)."""
+    return np.array([[x, y - 0.2, -0.5], [x, y + 0.2, -0.5], [x, y + 0.2, -0.1], [x, y - 0.2, -0.1]])
+
+
 def _embree(v: np.ndarray, f: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     scene = rtcore_scene.EmbreeScene(rtcore.EmbreeDevice())
     TriangleMesh(scene, np.ascontiguousarray(v, dtype=np.float32), np.ascontiguousarray(f, dtype=np.int32))
@@ -453,6 +462,7 @@ def test_mesh_checks_exactly_float32_vertices_and_returns_within_the_range_gate(
     res = render_lidar(prep, [(torch.from_numpy(v32), f, None)])
     same = render_lidar(prep, [(v32.astype(np.float64), f, None)])
     assert len(res.added) > 50 and np.array_equal(res.added, same.added)
+    assert np.array_equal(render_lidar(prep, [(v32, f, None)]).added, same.added)  # a float32 numpy array too
     assert res.pattern is pattern and res.added_torch.dtype == torch.float64
     np.testing.assert_allclose(res.added_torch.numpy(), res.added[:, :3], atol=1e-5)
     vs, fs = icosphere(2, 0.5)
@@ -689,12 +699,8 @@ def test_full_scene_cast_tests_every_pair_and_finds_the_culled_hits(monkeypatch)
     """``cull=False`` on an empty prepared scan: every ray of the pattern at every face of two meshes, in
     chunks that do not divide the rays; the same hits as the culled render and as Embree."""
     pattern = BeamPattern.generator(0.0231)
-    quad = np.array([[0, 1, 2], [0, 2, 3]])
-
-    def plate(x: float, y: float) -> np.ndarray:  # a 0.4 m square facing the sensor along x
-        return np.array([[x, y - 0.2, -0.5], [x, y + 0.2, -0.5], [x, y + 0.2, -0.1], [x, y - 0.2, -0.1]])
-
-    meshes = [(plate(6.0, 0.0), quad), (plate(-9.0, -1.0), quad)]
+    quad = QUAD
+    meshes = [(_plate(6.0, 0.0), quad), (_plate(-9.0, -1.0), quad)]
     prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
     n_rays, n_faces = len(pattern.rays), 4
     monkeypatch.setattr(lr, "FULL_SCENE_CHUNK_PAIRS", 7777 * n_faces + 3)
@@ -704,7 +710,7 @@ def test_full_scene_cast_tests_every_pair_and_finds_the_culled_hits(monkeypatch)
     assert full.tests == n_rays * n_faces > 100 * culled.tests
     assert len(culled.ray_index) > 100 and full.scan.tobytes() == culled.scan.tobytes()
     assert np.array_equal(full.ray_index, culled.ray_index) and np.array_equal(full.face_index, culled.face_index)
-    v = np.concatenate([plate(6.0, 0.0), plate(-9.0, -1.0)])
+    v = np.concatenate([_plate(6.0, 0.0), _plate(-9.0, -1.0)])
     prim, tfar = _embree(v, np.concatenate([quad, quad + 4]), pattern.rays.origins, pattern.rays.directions)
     hit = np.flatnonzero(prim >= 0)
     np.testing.assert_array_equal(np.sort(full.ray_index), hit[lm.in_range(tfar[hit])])
@@ -730,3 +736,19 @@ def test_given_ring_ids_are_used_not_recovered_from_the_scan():
     np.testing.assert_array_equal(pts.detach().numpy().astype(np.float32), moved.added[:, :3])
     assert not np.array_equal(render_lidar_torch(scan, meshes)[0].detach().numpy().astype(np.float32),
                               moved.added[:, :3])
+
+
+def test_full_scene_render_of_a_raw_scan_equals_the_culled_one():
+    """``cull=False`` on a raw scan (pattern estimated from it, every point matched to its ray, every ray at
+    every face): the culled render's scan bit for bit, with noise and dropout, with the ring ids derived or
+    given, and through a pattern cache."""
+    from robustbench3d.sensors.pattern_cache import PatternCache
+
+    scan = _pattern_scan()
+    meshes = [(_plate(12.0, 3.0), QUAD, None), (_plate(-9.0, 1.0), QUAD, None)]
+    for ring_ids, patterns in ((None, None), (scan_ring_ids(scan), None), (None, PatternCache(None))):
+        culled, full = (render_lidar(scan, meshes, rng=np.random.default_rng(3), range_noise_m=0.02, dropout=0.05,
+                                     ring_ids=ring_ids, patterns=patterns, cull=cull) for cull in (True, False))
+        assert len(culled.added) > 20 and len(culled.removed_index) > 5
+        assert full.scan.tobytes() == culled.scan.tobytes() and full.tests == len(full.pattern.rays) * 4
+        np.testing.assert_array_equal(full.removed_index, culled.removed_index)

@@ -279,8 +279,10 @@ def test_hits_reduced_between_chunks_keep_the_nearest_and_the_smallest_face_of_a
 
     rng = np.random.default_rng(11)
     v, f = _blob()
-    f2 = np.concatenate([f, f])  # faces F..2F-1 duplicate 0..F-1: every hit is a tie the lower index must win
     d = _rays_at(np.array([8.0, 0.5, 0.2]), 200, 0.06, rng)
+    first = cast_rays(_t(v), torch.as_tensor(f), _t(d), _t(np.zeros(3)))
+    f = np.roll(f, -int(first.face[first.hit][0]), axis=0)  # face 0 is some ray's nearest (a face id of 0 is kept)
+    f2 = np.concatenate([f, f])  # faces F..2F-1 duplicate 0..F-1: every hit is a tie the lower index must win
     vt = torch.tensor(v, requires_grad=True)
     ray_all, face_all = _every_pair(len(d), len(f2))
     one = cast_ray_pairs(vt, torch.as_tensor(f2), _t(d), _t(np.zeros(3)), ray_all, face_all)
@@ -290,7 +292,7 @@ def test_hits_reduced_between_chunks_keep_the_nearest_and_the_smallest_face_of_a
     monkeypatch.setattr(rc, "_COMPACT_EVERY", every)
     many = cast_ray_pair_chunks(vt, torch.as_tensor(f2), _t(d), _t(np.zeros(3)),
                                 ((r[a:b], fa[a:b]) for a, b in itertools.pairwise(cuts)))
-    assert one.hit.sum() > 50 and int(one.face[one.hit].max()) < len(f)
+    assert one.hit.sum() > 50 and int(one.face[one.hit].max()) < len(f) and (one.face == 0).any()
     assert torch.equal(many.hit, one.hit) and torch.equal(many.face, one.face)
     for a, b in ((many.t, one.t), (many.u, one.u), (many.v, one.v)):
         assert torch.equal(a.detach(), b.detach())

@@ -69,12 +69,13 @@ def report(dest: Path = STAGE, only: set[str] | None = None) -> dict[str, Counte
     return out
 
 
-def sample(module: str, size: int, seed: int, dest: Path = STAGE) -> list[str]:
+def sample(module: str, size: int, seed: int, dest: Path = STAGE, unchecked: bool = False) -> list[str]:
     """``size`` mutant names of ``module`` drawn uniformly without replacement (``numpy.random.default_rng(seed)``
-    over the sorted names), sorted: a module too large to run whole is estimated from them."""
+    over the sorted names), sorted: a module too large to run whole is estimated from them. ``unchecked``: only
+    from the mutants not run yet (a stratum beside those already run, whose verdicts are exact)."""
     import numpy as np
 
-    names = sorted(_verdicts(dest).get(module, {}))
+    names = sorted(n for n, code in _verdicts(dest).get(module, {}).items() if code is None or not unchecked)
     if not names:
         raise SystemExit(f"{module}: no mutants in {dest / 'mutants'} (stage, then `mutmut run` once generates them)")
     pick = np.random.default_rng(seed).choice(len(names), size=min(size, len(names)), replace=False)
@@ -98,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--module", help="sample: the module (e.g. robustbench3d.sensors.camera_render)")
     parser.add_argument("--size", type=int, default=300, help="sample: how many mutants (default 300)")
     parser.add_argument("--seed", type=int, default=0, help="sample: seed of the draw (default 0)")
+    parser.add_argument("--unchecked", action="store_true", help="sample: only from the mutants not run yet")
     parser.add_argument("--only", type=Path, metavar="FILE",
                         help="report: count only the mutants named in FILE (one per line, e.g. a sample), with the "
                              "kill rate's 95 %% Wilson interval")
@@ -108,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "sample":
         if not args.module:
             parser.error("sample needs --module")
-        print("\n".join(sample(args.module, args.size, args.seed, args.dest)))
+        print("\n".join(sample(args.module, args.size, args.seed, args.dest, args.unchecked)))
         return 0
     only = set(args.only.read_text(encoding="utf-8").split()) if args.only else None
     for module, counts in report(args.dest, only).items():
