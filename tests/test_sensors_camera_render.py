@@ -15,6 +15,7 @@ from robustbench3d.sensors.camera_render import (
     camera_ray_tests,
     mesh_box,
     render_camera,
+    render_camera_crop_torch,
     render_camera_torch,
     shade,
 )
@@ -245,6 +246,45 @@ def test_bad_input_names_the_field():
         render_camera(black, calib, [(TRI, TRI_FACES, np.ones((3, 3)))], supersample=0)
     with pytest.raises(ValueError, match="field 'image'"):
         render_camera(black.astype(np.float32), calib, [])
+    ok = (TRI, TRI_FACES, np.ones((3, 3)))
+    exact = [([(TRI, TRI_FACES)], "field 'meshes[0]': expected (vertices, faces, colors)"),
+             ([ok, (TRI, np.array([[0, 1, 2, 0]]), np.ones((3, 3)))],
+              "field 'meshes[1]': faces must be (F, 3) indices into 3 vertices"),
+             ([(TRI, TRI_FACES, np.ones((2, 3)))], "field 'meshes[0]': vertices (3, 3) and colors (2, 3) must both "
+                                                   "be (V, 3)")]
+    for meshes, message in exact:
+        with pytest.raises(ValueError) as err:
+            render_camera(black, calib, meshes)
+        assert str(err.value) == f"render_camera: {message}"
+    for bad in (True, 2.0, "3", -1):
+        with pytest.raises(ValueError) as err:
+            render_camera(black, calib, [ok], supersample=bad)
+        assert str(err.value) == f"render_camera: field 'supersample': must be an integer >= 1, got {bad!r}"
+    assert render_camera(black, calib, [ok], supersample=np.int64(2)).boxes == [(10, 3, 33, 28)]
+    with pytest.raises(ValueError) as err:
+        mesh_box(calib, TRI * np.nan, (40, 30))
+    assert str(err.value) == "render_camera: field 'vertices': empty, NaN or inf"
+
+
+def test_mesh_box_outside_above_and_exactly_at_the_camera_plane():
+    """A mesh wholly above or left of the image is 'outside' (no box); one with a vertex exactly at the near
+    plane (depth 1e-6 m) straddles it: the whole image."""
+    calib = small_calib()
+    assert mesh_box(calib, TRI + np.array([0.0, -7.5, 0.0]), (40, 30)) == (None, "outside")  # v in [-27, -3]
+    assert mesh_box(calib, TRI + np.array([-9.0, 0.0, 0.0]), (40, 30)) == (None, "outside")  # u in [-26, -4]
+    near = TRI.copy()
+    near[2, 2] = 1e-6
+    assert mesh_box(calib, near, (40, 30)) == ((0, 0, 40, 30), "rendered")
+
+
+def test_colours_of_another_dtype_render_in_the_vertices_dtype():
+    """Colour tensors in float32 beside float64 vertices are taken in float64 (as numpy colours are)."""
+    calib = small_calib()
+    grey = torch.full((30, 40, 3), 0.4, dtype=torch.float64)
+    cols = np.array([[0.9, 0.2, 0.1], [0.1, 0.8, 0.3], [0.2, 0.3, 0.9]], np.float32)
+    ref = render_camera_torch(grey, calib, [(TRI, TRI_FACES, cols.astype(np.float64))], supersample=2)
+    got = render_camera_torch(grey, calib, [(torch.tensor(TRI), TRI_FACES, torch.from_numpy(cols))], supersample=2)
+    assert got.dtype == torch.float64 and torch.equal(got, ref)
 
 
 def test_candidate_pair_chunks_equal_one_pass_and_lie_in_the_face_spans():
@@ -436,3 +476,53 @@ def test_ray_test_counts_by_hand():
     assert camera_ray_tests(calib, [(TRI * [1, 1, -1], TRI_FACES, np.eye(3))], (40, 30), 3) == (0, 0)  # behind
     with pytest.raises(ValueError, match="field 'supersample': must be an integer >= 1, got 0"):
         camera_ray_tests(calib, [mesh], (40, 30), 0)
+
+
+#: Lighting with a sun and sky shading (normals matter), without haze (distance does not).
+SUNNY = Lighting(sun_direction=np.array([-0.6, 0.3, 0.74]) / np.linalg.norm([-0.6, 0.3, 0.74]),
+                 sun_color=np.array([1.5, 1.4, 1.2]), sky_zenith=np.array([0.2, 0.3, 0.7]),
+                 sky_horizon=np.array([0.6, 0.7, 0.8]), ambient=0.5, haze_distance=1e30, exposure=0.8)
+
+
+def test_a_scene_scaled_about_the_camera_renders_the_same_and_winding_does_not_shade():
+    """Without haze the image depends on directions only: the hand triangle tilted and scaled by 0.05 about the
+    camera centre (0.3 m faces, 0.25 m away) renders as at full size; and shading is two-sided per face: two
+    triangles of one mesh, wound the same way or opposite ways, render the same."""
+    calib = small_calib()
+    grey = torch.full((30, 40, 3), 0.4, dtype=torch.float64)
+    tilt = TRI * [1.0, 1.0, 1.0] + np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.5], [0.0, 0.0, -1.0]])
+    cols = np.array([[0.9, 0.2, 0.1], [0.1, 0.8, 0.3], [0.2, 0.3, 0.9]])
+    big = render_camera_torch(grey, calib, [(tilt, TRI_FACES, cols)], supersample=2, lighting=SUNNY)
+    small = render_camera_torch(grey, calib, [(0.05 * tilt, TRI_FACES, cols)], supersample=2, lighting=SUNNY)
+    assert (big != grey).any()
+    torch.testing.assert_close(small, big, rtol=0, atol=1e-12)
+    # a second, smaller triangle beside it in the same mesh, wound one way or the other
+    quad = np.concatenate([tilt, tilt[:, :] * [0.3, 0.3, 1.0] + np.array([-1.2, 0.0, 0.0])])
+    cols2 = np.concatenate([cols, cols[::-1]])
+    same = render_camera_torch(grey, calib, [(quad, np.array([[0, 1, 2], [3, 4, 5]]), cols2)], supersample=2,
+                               lighting=SUNNY)
+    flipped = render_camera_torch(grey, calib, [(quad, np.array([[0, 1, 2], [3, 5, 4]]), cols2)], supersample=2,
+                                  lighting=SUNNY)
+    assert (same != big).any()
+    torch.testing.assert_close(flipped, same, rtol=0, atol=1e-12)
+
+
+def test_defaults_and_nothing_to_render():
+    """``render_camera``'s default sampling is 3 x 3; no meshes, or meshes out of view, leave the image bit for
+    bit with zero coverage, and give an empty crop (composited: the image)."""
+    calib = small_calib()
+    rng = np.random.default_rng(2)
+    photo = rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)
+    mesh = (TRI, TRI_FACES, np.eye(3))
+    default = render_camera(photo, calib, [mesh], lighting=FLAT)
+    assert np.array_equal(default.image, render_camera(photo, calib, [mesh], supersample=3, lighting=FLAT).image)
+    assert not np.array_equal(default.image, render_camera(photo, calib, [mesh], supersample=4, lighting=FLAT).image)
+    behind = (TRI * [1, 1, -1], TRI_FACES, np.eye(3))
+    for meshes in ([], [behind]):
+        res = render_camera(photo, calib, meshes)
+        assert np.array_equal(res.image, photo) and res.alpha.shape == (30, 40) and not res.alpha.any()
+        assert res.alpha.dtype == np.float32
+        image = torch.tensor(photo, dtype=torch.float64) / 255
+        crop = render_camera_crop_torch(image, calib, meshes)
+        assert crop.pixels.shape == (0,) and crop.values.shape == (0, 3) and crop.rect is None
+        assert crop.values.dtype == image.dtype and torch.equal(crop.composite(image), image)

@@ -752,3 +752,36 @@ def test_full_scene_render_of_a_raw_scan_equals_the_culled_one():
         assert len(culled.added) > 20 and len(culled.removed_index) > 5
         assert full.scan.tobytes() == culled.scan.tobytes() and full.tests == len(full.pattern.rays) * 4
         np.testing.assert_array_equal(full.removed_index, culled.removed_index)
+
+
+def test_raw_scan_through_a_warm_pattern_cache_with_a_mesh_out_of_sight_and_one_laser():
+    """A raw laser-ordered scan rendered through a warm pattern cache (azimuths computed only for the lasers the
+    meshes can reach): a mesh no ray reaches leaves the scan unchanged with no test made, and a strip only one
+    laser crosses renders (hits and the returns it removes) as without the cache."""
+    from robustbench3d.sensors.pattern_cache import PatternCache
+
+    scan = _pattern_scan()
+    pattern = estimate_pattern(scan, scan_ring_ids(scan))
+    above = [(_plate(0.0, 0.0) + np.array([0.0, 0.0, 80.0]), QUAD, None)]  # straight up: beyond every laser
+    elevation = float(pattern.sensor.elevation_deg[40])
+    z = 10.0 * np.tan(np.radians(elevation)) + pattern.sensor.origin_z[40]
+    strip = [(np.array([[10.0, -1.0, z - 0.004], [10.0, 1.0, z - 0.004], [10.0, 1.0, z + 0.004],
+                        [10.0, -1.0, z + 0.004]]), QUAD, None)]
+    cache = PatternCache(None)
+    render_lidar(scan, above, patterns=cache)  # cold: estimates and keeps the pattern
+    for meshes in (above, strip):
+        plain, warm = render_lidar(scan, meshes), render_lidar(scan, meshes, patterns=cache)
+        assert warm.scan.tobytes() == plain.scan.tobytes() and warm.tests == plain.tests
+        np.testing.assert_array_equal(warm.removed_index, plain.removed_index)
+    assert len(plain.added) > 5 and len(plain.removed_index) > 0  # the strip's
+    assert set(pattern.ray_rings(plain.ray_index)) == {40}
+    gone = render_lidar(scan, above, patterns=cache)
+    assert gone.scan.tobytes() == scan.tobytes() and gone.tests == 0 and len(gone.added) == 0
+
+
+def test_a_scan_of_the_wrong_shape_is_refused_naming_the_field():
+    mesh = [(_plate(10.0, 0.0), QUAD, None)]
+    for bad in (np.zeros((5, 3), np.float32), np.zeros(8, np.float32)):
+        with pytest.raises(ValueError) as err:
+            render_lidar(bad, mesh)
+        assert str(err.value) == f"render_lidar: field 'scan': expected shape (N, 4), got {bad.shape}"

@@ -429,6 +429,10 @@ def test_entry_points_pass_their_options_and_name_their_errors():
     assert beside.tests == 1 and beside.face.tolist() == [-1] and beside.t.tolist() == [0.0]
     centred = _t([[2.0, 1.0, 0.0], [2.0, -1.0, 1.0], [-4.0, 0.0, -1.0]]).requires_grad_()  # vertices sum to 0
     assert cast_rays(centred, f, x, _t([0.0, 5.0, 5.0])).t.tolist() == [0.0]
+    none = PairCaster(centred, f, _t([0.0, 5.0, 5.0])).recompute(x[:0], torch.zeros(0, dtype=torch.int64))
+    assert all(z.shape == (0,) and z.dtype == torch.float64 and z.requires_grad for z in none)  # connected
+    sum(z.sum() for z in none).backward()
+    assert torch.equal(centred.grad, torch.zeros(3, 3, dtype=torch.float64))  # a zero gradient, not 0 / 0
     errors = [
         (lambda: cast_rays(v, f + 1, x, o), "cast_rays: field 'faces': indices must lie in [0, 3)"),
         (lambda: cast_ray_pairs(v, f, x, o, torch.tensor([0, 0]), torch.tensor([0])),
@@ -440,6 +444,8 @@ def test_entry_points_pass_their_options_and_name_their_errors():
         (lambda: PairCaster(v * np.nan, f, o), "PairCaster: field 'vertices': contains NaN or inf"),
         (lambda: PairCaster(v, f, o).search(x, [(torch.tensor([0]), torch.tensor([1]))]),
          "PairCaster: field 'ray_index': pairs must index 1 rays and 1 faces"),
+        (lambda: cast_rays(v.to(torch.float16), f, x, o),
+         "cast_rays: field 'vertices': dtype must be float32 or float64, got torch.float16"),
     ]
     for call, message in errors:
         with pytest.raises(ValueError) as err:
