@@ -174,11 +174,12 @@ def test_grazing_and_in_plane_rays_are_rejected_with_finite_gradients():
 
 def test_zero_area_faces_inside_rays_and_all_miss():
     v, f = icosphere(2, 0.4)
-    # add a collapsed face (three equal vertices) and a collinear sliver in front of the sphere
+    # add a collapsed face (three equal vertices), a collinear sliver and a near-collinear one (|e1 x e2| = 2e-14,
+    # below 1e-10 of its longest squared edge, 0.04; a ray crosses its edge z = 0) in front of the sphere
     extra = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, -0.1, 0.0], [1.0, 0.0, 0.0],
-                      [1.0, 0.1, 0.0]])
+                      [1.0, 0.1, 0.0], [1.2, -0.1, 0.0], [1.2, 0.1, 0.0], [1.2, 0.0, 1e-13]])
     vv = np.concatenate([v, extra])
-    ff = np.concatenate([f, [[162, 163, 164], [165, 166, 167]]])
+    ff = np.concatenate([f, [[162, 163, 164], [165, 166, 167], [168, 169, 170]]])
     vert = _t(vv).requires_grad_()
     origin = _t([3.0, 0.0, 0.0])
     d = _t([[-1.0, 0.0, 0.0], [-1.0, 1e-9, 0.0]])
