@@ -278,6 +278,11 @@ def test_export_shares_identical_graphs_with_a_sibling_directory(base_dir, weigh
     with pytest.raises(RobustBenchError, match="must be another ONNX victim directory beside"):
         export_cascade(load_victim(weights), tmp_path / "elsewhere" / "twin", ExportOptions(exporter),
                        source={}, reproduce_command="x", share=tmp_path / "base")
+    assert not (tmp_path / "elsewhere").exists()
+    with pytest.raises(RobustBenchError, match="must be another ONNX victim directory beside"):  # itself
+        export_cascade(load_victim(weights), out, ExportOptions(exporter), source={}, reproduce_command="x",
+                       share=out)
+    assert read_manifest(out).stages == manifest.stages  # the refused export left the directory as it was
     data = bytearray((tmp_path / "base" / "box_estimation.onnx").read_bytes())
     data[-1] ^= 0xFF
     (tmp_path / "base" / "box_estimation.onnx").write_bytes(bytes(data))

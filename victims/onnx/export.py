@@ -240,9 +240,9 @@ def export_cascade(cascade: FPointNetCascade, out: str | Path, options: ExportOp
     written: the manifest names that file (``../SIBLING/NAME.onnx``, pinned by its sha256).
     """
     out = Path(out)
+    shared = shared_stage_files(out, share)  # a refused --share leaves ``out`` untouched
     out.mkdir(parents=True, exist_ok=True)
     (out / MANIFEST_FILE).unlink(missing_ok=True)
-    shared = shared_stage_files(out, share)
     stages: list[StageSpec] = []
     for stage in stage_modules(cascade, options):
         proto = export_proto(stage, options.exporter, options.opset)

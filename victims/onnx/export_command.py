@@ -63,7 +63,7 @@ def reproduce_command(args: argparse.Namespace, kwargs: dict[str, Any]) -> str:
 
     parts = ["robustbench3d", "export-onnx", args.victim, "--out", "DIR", "--exporter", args.exporter,
              "--opset", str(args.opset), "--batch-2d", str(args.batch_2d), "--batch-seg", str(args.batch_seg)]
-    if getattr(args, "share", None):
+    if args.share:
         parts += ["--share", f"DIR/../{Path(args.share).resolve().name}"]
     for key, value in sorted(kwargs.items()):
         shown = Path(value).name if isinstance(value, str) and Path(value).is_file() else json.dumps(value)
