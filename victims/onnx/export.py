@@ -221,12 +221,12 @@ def shared_stage_files(out: Path, share: str | Path | None) -> dict[str, str]:
     directory beside ``out`` (empty without ``share``)."""
     if share is None:
         return {}
-    share = Path(share)
-    if share.resolve().parent != out.resolve().parent or share.resolve() == out.resolve():
+    share = Path(share).resolve()  # also DIR/../SIBLING before DIR exists (the recorded reproduce command)
+    if share.parent != out.resolve().parent or share == out.resolve():
         raise RobustBenchError(f"--share {share}: must be another ONNX victim directory beside {out}")
     manifest = read_manifest(share)
     verify_files(share, manifest)
-    return {st.sha256: f"../{share.resolve().name}/{st.file}" for st in manifest.stages if "/" not in st.file}
+    return {st.sha256: f"../{share.name}/{st.file}" for st in manifest.stages if "/" not in st.file}
 
 
 def export_cascade(cascade: FPointNetCascade, out: str | Path, options: ExportOptions, *,
