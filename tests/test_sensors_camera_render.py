@@ -413,6 +413,57 @@ def test_numpy_pair_search_equals_the_pair_casters_bit_for_bit(dtype):
                 assert face.max() < len(obj.faces)  # every doubled face ties with its copy: the first wins
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_visible_hits_search_in_the_geometry_dtype_like_a_brute_force_cast(dtype):
+    """_visible_hits (no scene depth, s = 2) against the PairCaster's search of every sample x every face: the
+    same hit samples and nearest faces, and hit directions in the geometry's dtype (a float32 render searches
+    in float32, as the PairCaster it must agree with)."""
+    from robustbench3d.attacks.object import random_shape
+    from robustbench3d.sensors.camera_depth import camera_centre_rect, pixel_rays_rect
+    from robustbench3d.sensors.camera_render import _check_meshes, _Geometry, _pixel_set, _visible_hits
+    from robustbench3d.sensors.raycast import PairCaster
+
+    calib = DAY_0926.calib
+    obj = random_shape(seed=3, amplitude=0.45)
+    verts = obj.vertices() + np.array([-0.4, 0.2, 25.0])
+    meshes = _check_meshes([(torch.as_tensor(verts, dtype=dtype), obj.faces, np.full_like(verts, 0.5))])
+    w = DAY_0926.image_size[0]
+    region = _pixel_set(calib, meshes, DAY_0926.image_size, False)[0]
+    g = _Geometry.of(meshes, calib)
+    caster = PairCaster(g.verts, g.faces_t, torch.as_tensor(camera_centre_rect(calib), dtype=dtype))
+    hits = _visible_hits(calib, g, caster, region, w, 2, None, False)
+    pv, pu = np.divmod(region.pixels, w)
+    off = np.array([-0.25, 0.25])
+    dirs = pixel_rays_rect(calib, (pu[:, None] + np.tile(off, 2)).reshape(-1),
+                           (pv[:, None] + np.repeat(off, 2)).reshape(-1))
+    n, f = len(dirs), len(obj.faces)
+    ray, face, _, _ = caster.search(torch.from_numpy(dirs), [(torch.arange(n).repeat_interleave(f),
+                                                              torch.arange(f).repeat(n))])
+    assert hits.cast == n and len(hits.sample) > 500
+    assert np.array_equal(hits.sample, ray.numpy()) and np.array_equal(hits.face, face.numpy())
+    assert hits.dirs.dtype == g.np_dtype == (np.float32 if dtype == torch.float32 else np.float64)
+    np.testing.assert_array_equal(hits.dirs, dirs[hits.sample].astype(g.np_dtype))
+
+
+def test_scanline_edge_functions_are_barycentrics_plus_the_hand_computed_margin():
+    """_FaceCull's edge functions of one face by hand: a x + b y + c over twice the projected area is the 2D
+    barycentric of the opposite vertex plus delta_f = SPAN_MARGIN + 64 eps cond, cond = |ray| / (min edge * cos),
+    for v0 (0, 0, 10), v1 (1, 0, 10), v2 (0, 1, 11) seen from the origin (float32 ray test): normal (0, -1, 1),
+    ray to the centroid (1, 1, 31) / 3, cos = 10 / sqrt(2 * 107), shortest edge 1: cond = sqrt(22898) / 10."""
+    from robustbench3d.sensors.camera_render import SPAN_MARGIN, _FaceCull
+
+    calib = DAY_0926.calib
+    verts = np.array([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0], [0.0, 1.0, 11.0]])
+    fc = _FaceCull.of(calib, verts, np.array([[0, 1, 2]]), None, torch.float32, centre=np.zeros(3))
+    delta = SPAN_MARGIN + 64 * float(np.finfo(np.float32).eps) * np.sqrt(22898.0) / 10
+    uv, _ = calib.rect_to_image(verts)
+    (x1, y1), (x2, y2) = uv[1] - uv[0], uv[2] - uv[0]
+    area2 = abs(x1 * y2 - y1 * x2)
+    assert fc.tight[0] and not fc.crossing[0] and not fc.unreachable[0]
+    values = fc.edge[0] @ np.column_stack([uv, np.ones(3)]).T / area2  # (edge k, at vertex j)
+    np.testing.assert_allclose(values, np.eye(3) + delta, rtol=0, atol=1e-9)
+
+
 def test_cached_rays_and_edge_pixels_equal_their_references():
     """The crop's helpers against plain references: rays through image positions with a cached K^-1 equal
     pixel_rays_rect bit for bit, and the edge pixels (3 x 3 min != max) equal a loop over each pixel's 8

@@ -655,10 +655,12 @@ def test_meshes_of_different_vertex_counts_reflect_like_each_alone():
             assert both.added[own].tobytes() == alone.added.tobytes()
 
 
-def test_a_ray_through_a_face_near_its_farthest_corner_is_a_candidate():
-    """The per-face cull's sphere holds the whole face: a laser ray crossing a 0.3 m triangle in a plane
-    x = const 1e-5 of the way from its corner farthest from the box centre towards the centroid passes within
-    (1/1.001, 1) of the radius from the centre (checked here), and must still hit there."""
+@pytest.mark.parametrize(("size", "frac"), [(1.0, 1e-5), (3e-8, 0.05)])
+def test_a_ray_through_a_face_near_its_farthest_corner_is_a_candidate(size, frac):
+    """The per-face cull's sphere holds the whole face: a laser ray crossing a triangle in a plane x = const
+    ``frac`` of the way from its corner farthest from the box centre towards the centroid passes just inside
+    the radius from the centre (checked here), and must still hit there: a 0.3 m face (within 1/1.001 of the
+    radius), and a face of 9e-9 m, whose ray only the sphere's absolute 1e-9 m keeps (1e-3 of its radius is less)."""
     pattern = BeamPattern.generator(0.0)
     prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
     rays = pattern.rays
@@ -666,15 +668,16 @@ def test_a_ray_through_a_face_near_its_farthest_corner_is_a_candidate():
     k = int(near_x[np.argmin(np.abs(rays.directions[near_x, 2]))])
     o, d = rays.origins[k], rays.directions[k]
     hit = o + (10.0 - o[0]) / d[0] * d
-    tri = np.array([[0.0, 0.0, 0.0], [0.0, 0.3, 0.0], [0.0, 0.15, 0.27]])
+    tri = size * np.array([[0.0, 0.0, 0.0], [0.0, 0.3, 0.0], [0.0, 0.15, 0.27]])
     centre = 0.5 * (tri.min(0) + tri.max(0))
     dist = np.linalg.norm(tri - centre, axis=1)
     far = int(dist.argmax())
-    target = tri[far] + 1e-5 * (tri.mean(0) - tri[far])
+    target = tri[far] + frac * (tri.mean(0) - tri[far])
     v = hit + (tri - target)  # the ray meets the face at target, at x = 10
     w = hit - target + centre - o
     closest = np.linalg.norm(w - (w @ d) * d)
-    assert 1 / 1.001 < closest / dist.max() < 1
+    # within the radius, but beyond it shrunk by 1e-3 (0.3 m) or beyond it inflated by 1e-3 less 1e-9 m (tiny)
+    assert (dist.max() * (1 + 1e-3) - 1e-9 if size < 1e-6 else dist.max() / 1.001) < closest < dist.max()
     res = render_lidar(prep, [(v, np.array([[0, 1, 2]]), None)])
     assert k in res.ray_index
     at = list(res.ray_index).index(k)
@@ -785,3 +788,25 @@ def test_a_scan_of_the_wrong_shape_is_refused_naming_the_field():
         with pytest.raises(ValueError) as err:
             render_lidar(bad, mesh)
         assert str(err.value) == f"render_lidar: field 'scan': expected shape (N, 4), got {bad.shape}"
+
+
+def test_cull_and_sphere_rays_hold_every_ray_within_the_radius_down_to_nanometre_spheres():
+    """Brute force over every ray of the pattern: each ray passing within a sphere (distance from the centre to
+    the half-line, float64) is in :meth:`BeamPattern.cull` and :meth:`BeamPattern.sphere_rays`, for spheres of
+    1e-9 m to 1 m centred 0.999 r beside a ray 1-80 m out (a sphere seen under 1e-11 rad: the cone test's cos
+    rounds to 1)."""
+    pattern = BeamPattern.generator(0.013)
+    rays = pattern.rays
+    rng = np.random.default_rng(7)
+    for k in rng.choice(len(rays.origins), 40, replace=False):
+        o, d = rays.origins[k], rays.directions[k]
+        r = 10.0 ** rng.uniform(-9, 0)
+        side = np.cross(d, rng.normal(size=3))
+        c = o + rng.uniform(1.0, 80.0) * d + 0.999 * r * side / np.linalg.norm(side)
+        w = c - rays.origins
+        t = np.maximum((w * rays.directions).sum(1), 0.0)
+        within = np.flatnonzero(np.linalg.norm(w - t[:, None] * rays.directions, axis=1) <= r * (1 - 1e-6))
+        assert k in within
+        assert np.isin(within, pattern.cull(c, r)).all()
+        _, near = pattern.sphere_rays(c[None], np.array([r]), np.array([0]), np.array([pattern.sensor.num_lasers - 1]))
+        assert np.isin(within, near).all()

@@ -113,7 +113,9 @@ class BeamPattern:
         inside = dist2 <= r2
         with np.errstate(divide="ignore", invalid="ignore"):
             kappa = (np.sqrt(np.maximum(dist2 - r2, 0.0)) - np.sin(phi) * cz) / (np.cos(phi) * rho)
-        kappa = np.where(inside, -np.inf, np.nan_to_num(kappa, nan=np.inf, posinf=np.inf, neginf=-np.inf))
+        # lowered by 1e-9 as in sphere_rays: kappa's rounding (~1e-15) would otherwise decide a sphere seen under
+        # less than ~1e-7 rad, whose cos is 1 - 5e-15 or closer
+        kappa = np.where(inside, -np.inf, np.nan_to_num(kappa, nan=np.inf, posinf=np.inf, neginf=-np.inf)) - 1e-9
         sphere, active = np.nonzero(kappa <= 1.0)  # (sphere, laser) pairs whose cone reaches the sphere
         half = np.degrees(np.arccos(np.clip(kappa[sphere, active], -1.0, 1.0))) + margin_deg
         theta = (np.degrees(np.arctan2(c[:, 1], c[:, 0])) % 360.0)[sphere]
