@@ -810,3 +810,234 @@ def test_cull_and_sphere_rays_hold_every_ray_within_the_radius_down_to_nanometre
         assert np.isin(within, pattern.cull(c, r)).all()
         _, near = pattern.sphere_rays(c[None], np.array([r]), np.array([0]), np.array([pattern.sensor.num_lasers - 1]))
         assert np.isin(within, near).all()
+
+
+def test_prepare_scan_keeps_the_given_ring_ids_refuses_a_wrong_count_and_does_not_copy_a_float32_scan():
+    """``prepare_scan`` uses the caller's laser ids (not the recovered ones), a wrong number of ids gets the exact
+    error naming the render (through ``prepare_scan`` and ``render_lidar``), and a float32 scan is used as it is
+    (no copy of the ~2 MB array), a float64 one converted to float32."""
+    scan = _pattern_scan()
+    ring = scan_ring_ids(scan)
+    shifted = (ring + 1) % 64
+    np.testing.assert_array_equal(prepare_scan(scan, shifted).ring, shifted)
+    message = f"render_lidar: field 'ring_ids': {len(scan) - 1} ids for {len(scan)} points"
+    for call in (lambda: prepare_scan(scan, ring[1:]),
+                 lambda: render_lidar(scan, [(_plate(10.0, 0.0), QUAD, None)], ring_ids=ring[1:])):
+        with pytest.raises(ValueError) as err:
+            call()
+        assert str(err.value) == message
+    prep = prepare_scan(scan, ring)
+    assert prep.scan is scan or np.shares_memory(prep.scan, scan)
+    wide = prepare_scan(scan.astype(np.float64), ring)
+    assert wide.scan.dtype == np.float32 and wide.scan.tobytes() == scan.tobytes()
+
+
+def test_prepared_scan_ranges_ray_order_and_points_on_by_hand():
+    """Per point (scan order shuffled, three returns on each of 12 rays, lasers 0 and 63 among them): its ray and
+    its range sqrt(x^2 + y^2 + (z - h0)^2) from its own laser's origin (0, 0, h0); a laser id the sensor does
+    not have (ids are not checked: -100, -1, 64, 200) gets no ray and the range from the velodyne origin
+    (h0 = 0). ``by_ray`` is np.argsort(point_ray, kind="stable") (no ray first, each ray's points in scan
+    order), ``sorted_ray`` = point_ray[by_ray], and ``points_on`` gives the brute-force (ray, point) pairs;
+    also when the matching is restricted to a few rays (most points then have no ray) or to none. The sensor's
+    lasers all sit at different heights here (the HDL-64E's first two and last two share theirs)."""
+    from robustbench3d.sensors.hdl64e import HDL64E
+
+    pattern = BeamPattern(BeamPattern.generator(0.0).phases_deg, 0.0, HDL64E(origin_z=np.linspace(0.25, 0.1, 64)))
+    rays = pattern.rays
+    rng = np.random.default_rng(2)
+    on = np.concatenate([pattern.ring_start[[0, 63]] + [5, 9], rng.choice(len(rays), 10, replace=False)])
+    ray_of = np.repeat(on, 3)
+    t = np.tile([5.0, 12.0, 30.0], len(on))
+    pts = rays.origins[ray_of] + t[:, None] * rays.directions[ray_of]
+    unknown = np.array([-100, -1, 64, 200])
+    pts = np.concatenate([pts, rng.uniform(-20.0, 20.0, (len(unknown), 3))])
+    ring = np.concatenate([rays.ring[ray_of], unknown])
+    want_ray = np.concatenate([ray_of, np.full(len(unknown), -1)])
+    perm = rng.permutation(len(pts))
+    pts, ring, want_ray = pts[perm], ring[perm], want_ray[perm]
+    scan = np.concatenate([pts, np.full((len(pts), 1), 0.3)], 1).astype(np.float32)
+    x, y, z = scan[:, :3].astype(np.float64).T
+    known = (ring >= 0) & (ring < 64)
+    h0 = np.where(known, pattern.sensor.origin_z[np.where(known, ring, 0)], 0.0)
+    want_range = np.sqrt(x ** 2 + y ** 2 + (z - h0) ** 2)
+    assert {0, 63} <= set(ring[known].tolist())
+    for rays_given in (None, on[[0, 1, 4]]):
+        prep = prepare_scan(scan, ring, pattern, rays_given)
+        matched = want_ray >= 0 if rays_given is None else np.isin(want_ray, rays_given)
+        np.testing.assert_array_equal(prep.point_ray[matched], want_ray[matched])
+        assert (prep.point_ray[~known] == -1).all() and (prep.point_ray[~matched] == -1).all()
+        ranged = matched | ~known if rays_given is None else matched  # the others: NaN (not near the rays)
+        np.testing.assert_allclose(prep.range_m[ranged], want_range[ranged], rtol=1e-15, atol=0)
+        assert prep.by_ray.dtype == prep.sorted_ray.dtype == prep.point_ray.dtype == np.int64
+        np.testing.assert_array_equal(prep.by_ray, np.argsort(prep.point_ray, kind="stable"))
+        np.testing.assert_array_equal(prep.sorted_ray, prep.point_ray[prep.by_ray])
+        query = np.concatenate([on, [on[0], len(rays) - 1]])  # a ray asked twice, one without points
+        owner, point = prep.points_on(query)
+        want = sorted((i, p) for i, r in enumerate(query) for p in np.flatnonzero(prep.point_ray == r))
+        assert sorted(zip(owner.tolist(), point.tolist(), strict=True)) == want
+        assert len(want) == 3 * (len(on) if rays_given is None else 3) + 3
+    none = prepare_scan(scan, ring, pattern, [])  # no rays (a plain empty list): no point matched
+    assert (none.point_ray == -1).all() and np.isnan(none.range_m).all() and (none.sorted_ray == -1).all()
+
+
+def test_a_mesh_no_ray_reaches_traces_to_empty_fields_of_the_documented_dtypes_and_renders_nothing():
+    """A mesh straight above the sensor (no laser's cone reaches it): :func:`trace_meshes` gives K = 0 hits in the
+    documented dtypes (int64 rays, meshes, faces and removed points, torch float64 t, u, v, bool hidden), and
+    listed with a visible mesh (first or second) it changes nothing of that mesh's render."""
+    pattern = BeamPattern.generator(0.0)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    above = (_plate(0.0, 0.0) + np.array([0.0, 0.0, 80.0]), QUAD, None)
+    tr = trace_meshes(prep, [above])
+    for a in (tr.ray, tr.mesh, tr.face, tr.removed_index):
+        assert a.shape == (0,) and a.dtype == np.int64
+    for a in (tr.t, tr.u, tr.v):
+        assert isinstance(a, torch.Tensor) and a.shape == (0,) and a.dtype == torch.float64
+    assert tr.hidden.shape == (0,) and tr.hidden.dtype == bool and tr.tests == 0
+    seen = (_plate(10.0, 0.0), QUAD, None)
+    alone = render_lidar(prep, [seen])
+    assert len(alone.added) > 20
+    for meshes, index in (([seen, above], 0), ([above, seen], 1)):
+        res = render_lidar(prep, meshes)
+        assert res.added.tobytes() == alone.added.tobytes() and res.tests == alone.tests
+        assert (res.object_index == index).all()
+
+
+def test_a_scan_return_exactly_at_the_mesh_hit_is_kept_and_the_mesh_shown():
+    """The occlusion rules at their boundary (module docstring): a scan point on a hit ray is removed only when
+    farther than the hit and hides the mesh only when nearer, so at exactly the hit's range (a plate moved by
+    ulps until the cast's t equals the point's float64 range bit for bit) the point is kept and the mesh's
+    return added; the nearest plate positions on either side give the other two cases."""
+    pattern = BeamPattern.generator(0.0)
+    rays = pattern.rays
+    k = int(pattern.ring_start[20] + 3)
+    o, d = rays.origins[k], rays.directions[k]
+    point = (o + 10.0 * d).astype(np.float32)
+    scan = np.append(point, np.float32(0.3))[None]
+    prep = prepare_scan(scan, ring_ids=rays.ring[[k]], pattern=pattern)
+    px, py, pz = point.astype(np.float64)
+    rp = float(np.sqrt(px ** 2 + py ** 2 + (pz - o[2]) ** 2))
+    assert prep.point_ray[0] == k and prep.range_m[0] == rp
+
+    def plate_at(x):
+        return np.array([[x, -1.0, -2.0], [x, 1.0, -2.0], [x, 1.0, 2.0], [x, -1.0, 2.0]])
+
+    def t_of(x):
+        tr = trace_meshes(prep, [(plate_at(x), QUAD, None)])
+        return float(tr.t.numpy()[list(tr.ray).index(k)])
+
+    x = o[0] + rp * d[0]  # the plate x = const through the point, up to rounding
+    for _ in range(50):
+        t = t_of(x)
+        if t == rp:
+            break
+        x = np.nextafter(x, np.inf if t < rp else -np.inf)
+    assert t == rp
+    found = {0.0: x}
+    for side, towards in ((-1.0, -np.inf), (1.0, np.inf)):
+        y = np.nextafter(x, towards)
+        for _ in range(50):
+            if t_of(y) != rp:
+                break
+            y = np.nextafter(y, towards)
+        found[side] = y
+        assert np.sign(t_of(y) - rp) == side
+    for side, removed, shown in ((-1.0, [0], True), (0.0, [], True), (1.0, [], False)):
+        res = render_lidar(prep, [(plate_at(found[side]), QUAD, None)])
+        assert list(res.removed_index) == removed and (k in res.ray_index) == shown
+
+
+def test_mesh_arrays_of_other_dtypes_and_list_colours_render_as_their_float64_int64_values():
+    """Mesh inputs are converted, not trusted: numpy vertices of any real dtype (float16, longdouble; here
+    exactly representable values) render as the same float64 vertices, reflectance included; faces of another
+    integer dtype (int32, uint64) as int64 faces; colours given as nested lists as the same numpy colours. A
+    colour table of the wrong length is refused with its shape as a plain tuple, for a torch table too."""
+    pattern = BeamPattern.generator(0.0)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    v, f = _object(12.0)
+    v = v.astype(np.float16).astype(np.float64)  # values every dtype below holds exactly
+    colour = np.random.default_rng(4).uniform(0.0, 1.0, v.shape)
+    ref = render_lidar(prep, [(v, f, colour)])
+    assert len(ref.added) > 100
+    for vv, ff, cc in ((v.astype(np.float16), f, colour), (v.astype(np.longdouble), f, colour),
+                       (v, f.astype(np.int32), colour), (v, f.astype(np.uint64), colour), (v, f, colour.tolist())):
+        res = render_lidar(prep, [(vv, ff, cc)])
+        assert res.added.tobytes() == ref.added.tobytes()
+        np.testing.assert_array_equal(res.face_index, ref.face_index)
+    for bad in (colour[:-1], torch.tensor(colour[:-1]), colour[:-1].tolist()):
+        with pytest.raises(ValueError) as err:
+            render_lidar(prep, [(v, f, bad)])
+        assert str(err.value) == (f"render_lidar: field 'meshes[0]': albedo must be (V, 3) = ({len(v)}, 3) "
+                                  f"(one colour per vertex), got ({len(v) - 1}, 3)")
+
+
+def test_albedo_interpolates_each_hits_vertex_colours_in_float32_by_hand():
+    """:func:`_albedo` by hand for two hits on a coloured triangle and one on a grey mesh: (1 - u - v) c0 + u c1
+    + v c2, clipped to [0, 1], as the documented (K, 3) float32."""
+    from robustbench3d.sensors.lidar_render import _albedo
+
+    col = np.array([[0.2, 0.4, 0.6], [1.0, 0.0, 0.5], [0.0, 1.0, 2.0]])
+    meshes = [(np.zeros((3, 3)), np.array([[0, 1, 2]]), None), (np.zeros((3, 3)), np.array([[0, 1, 2]]), col)]
+    got = _albedo(meshes, np.array([1, 0, 1]), np.array([0.25, 0.5, 0.0]), np.array([0.5, 0.5, 1.0]),
+                  np.array([[3, 4, 5], [0, 1, 2], [3, 4, 5]]), [3, 3])
+    want = np.array([[0.25 * 0.2 + 0.25 * 1.0, 0.25 * 0.4 + 0.5, 0.25 * 0.6 + 0.25 * 0.5 + 0.5 * 2.0],
+                     [0.5, 0.5, 0.5], [0.0, 1.0, 2.0]]).clip(0.0, 1.0)
+    assert got.dtype == np.float32 and got.shape == (3, 3)
+    np.testing.assert_array_equal(got, want.astype(np.float32))
+
+
+def test_warm_pattern_cache_renders_like_no_cache_on_an_unordered_scan_and_one_starting_with_another_laser():
+    """Through a warm pattern cache the azimuths are computed only over the span of the lasers the meshes reach,
+    which needs a laser-ordered scan: a shuffled scan whose first point has the lowest laser id (ordered-looking
+    from its first row) and a laser-ordered scan of one point of laser 54 then all of lasers 55-63, with a strip
+    (at azimuth 90 deg, where the lowest lasers fire) only lasers 55-63 reach (the span then starts at row 1 and
+    runs to the end), render as without the cache."""
+    from robustbench3d.sensors.pattern_cache import PatternCache
+
+    full = _pattern_scan()
+    full_ring = scan_ring_ids(full)
+    pattern = estimate_pattern(full, full_ring)
+    top = 10.0 * np.tan(np.radians(pattern.sensor.elevation_deg[55])) + pattern.sensor.origin_z[55] + 0.02
+    strip = [(np.array([[-0.2, 10.0, -4.7], [0.2, 10.0, -4.7], [0.2, 10.0, top], [-0.2, 10.0, top]]), QUAD, None)]
+    rng = np.random.default_rng(6)
+    perm = np.concatenate([[0], 1 + rng.permutation(len(full) - 1)])  # row 0 is laser 0's
+    last = np.concatenate([np.flatnonzero(full_ring == 54)[:1], np.flatnonzero(full_ring >= 55)])
+    for scan, ring in ((full[perm], full_ring[perm]), (full[last], full_ring[last])):
+        cache = PatternCache(None)
+        render_lidar(scan, strip, ring_ids=ring, patterns=cache)  # cold: estimates and keeps the pattern
+        plain, warm = render_lidar(scan, strip, ring_ids=ring), render_lidar(scan, strip, ring_ids=ring, patterns=cache)
+        assert len(plain.added) > 20 and len(plain.removed_index) > 5
+        assert set(plain.pattern.ray_rings(plain.ray_index)) == set(range(55, 64))
+        assert warm.scan.tobytes() == plain.scan.tobytes()
+        np.testing.assert_array_equal(warm.removed_index, plain.removed_index)
+    assert ring[0] == 54 and ring[1] == 55 and (np.diff(ring) >= 0).all()
+    corners = strip[0][0]
+    cull = pattern.cull(0.5 * (corners.min(0) + corners.max(0)), np.linalg.norm(corners[0] - corners[2]) / 2)
+    assert set(pattern.ray_rings(cull)) <= set(range(55, 64))  # the lasers of the cull: 55 is the lowest id
+
+
+def test_face_pairs_are_the_face_sphere_rays_within_the_mesh_cull():
+    """The cast tests exactly the pairs of :func:`_face_pairs`' definition: each face with the rays of its mesh's
+    cull that can pass through the face's sphere (box centre, corner radius inflated by 1e-3, +1e-9 m;
+    :meth:`BeamPattern.sphere_rays` over the cull's lasers). A single 2 m triangle, whose sphere is the mesh's
+    own inflated, placed so that laser 20's cone barely enters the mesh's sphere: the face's sphere then reaches
+    rays of that laser beyond the cull's azimuth margin, which are not cast; the hits are Embree's."""
+    pattern = BeamPattern.generator(0.0)
+    prep = prepare_scan(EMPTY, pattern=pattern, ring_ids=np.zeros(0, dtype=np.int64))
+    rho, a = 6.0, 1.0
+    r = a * np.sqrt(2.0)
+    phi, h = np.radians(pattern.sensor.elevation_deg[20]), pattern.sensor.origin_z[20]
+    zc = h + (r * (1 - 1e-4) + rho * np.sin(phi)) / np.cos(phi)  # laser 20 passes 1e-4 r inside the sphere
+    v = np.array([[rho, -a, zc - a], [rho, a, zc - a], [rho, 0.0, zc + a]])
+    f = np.array([[0, 1, 2]])
+    centre = 0.5 * (v.min(0) + v.max(0))
+    assert np.linalg.norm(v - centre, axis=1).max() == pytest.approx(r, rel=1e-12)
+    cull = pattern.cull(centre, r)
+    rings = pattern.ray_rings(cull)
+    assert rings.max() == 20
+    _, near = pattern.sphere_rays(centre[None], np.array([r * (1 + 1e-3) + 1e-9]), np.array([rings.min()]),
+                                  np.array([rings.max()]))
+    assert len(np.setdiff1d(near, cull)) >= 2  # face-sphere rays outside the cull
+    tr = trace_meshes(prep, [(v, f, None)])
+    assert tr.tests == np.isin(near, cull).sum()
+    prim, _ = _embree(v, f, pattern.rays.origins, pattern.rays.directions)
+    np.testing.assert_array_equal(tr.ray, np.flatnonzero(prim >= 0))

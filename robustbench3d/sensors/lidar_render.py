@@ -57,12 +57,15 @@ class PreparedScan:
     """A scan with its beam pattern and each point's ray (reuse it to render the same frame many times).
 
     Attributes:
-        scan: (N, 4) float32 x, y, z, reflectance.
+        scan: (N, 4) float32 x, y, z, reflectance (a float32 input is used as is, not copied).
         pattern: the scan's :class:`~robustbench3d.sensors.lidar_beams.BeamPattern`.
-        ring: (N,) int64 laser of each point.
+        ring: (N,) int64 laser of each point (an id the sensor lacks gets no ray and the range from the
+            velodyne origin).
         point_ray: (N,) int64 index into ``pattern.rays`` of the ray each point lies on, -1 if none.
-        range_m: (N,) distance of each point from its laser's origin, m.
-        by_ray: (N,) point indices sorted by ``point_ray`` (the points without a ray, -1, first).
+        range_m: (N,) distance of each point from its laser's origin, m (NaN for the points away from the rays
+            when the matching is restricted to some of them).
+        by_ray: (N,) point indices stably sorted by ``point_ray`` (the points without a ray, -1, first; each
+            ray's points in scan order).
         sorted_ray: (N,) ``point_ray[by_ray]``.
     """
 

@@ -72,9 +72,10 @@ def icosphere(level: int, radius: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(F, 3) float64 unit normals (b - a) x (c - a) / |...| of the faces (a, b, c); (0, 0, 0) for a
-    degenerate face. ``vertices`` (V, 3) in any frame, ``faces`` (F, 3) indices. The sensor models are
-    two-sided (they use |n . d| or flip n towards the viewer), so only the direction of the plane matters."""
+    """(F, 3) unit normals (b - a) x (c - a) / |...| of the faces (a, b, c), in the vertices' dtype (the
+    renderers pass float64); (0, 0, 0) for a degenerate face. ``vertices`` (V, 3) in any frame, ``faces``
+    (F, 3) indices. The sensor models are two-sided (they use |n . d| or flip n towards the viewer), so
+    only the direction of the plane matters."""
     v0, v1, v2 = (np.take(vertices, faces[:, k], axis=0) for k in range(3))
     a, b = v1 - v0, v2 - v0
     n = np.empty_like(a)  # the cross product a x b, computed like np.cross
