@@ -5,6 +5,7 @@ from inside, all-miss)."""
 from __future__ import annotations
 
 import itertools
+import warnings
 
 import numpy as np
 import pytest
@@ -596,3 +597,277 @@ def test_skip_faces_and_groups_are_checked_also_without_rays_or_faces():
         cast_rays(v, f, no_rays, o, groups=[(np.array([0]), 0, 1)])
     with pytest.raises(ValueError, match=r"field 'groups\[1\]': .* faces \[0, 1\) lie in \[0, 0\]"):
         cast_rays(v, no_faces, _t([[1.0, 0.0, 0.0]]), o, groups=[(np.array([0]), 0, 0), (np.array([0]), 0, 1)])
+
+
+def test_offset_axis_other_than_z_matches_the_textbook_reference():
+    """Laser offsets along a slanted axis (0.6, 0, 0.8), rays mostly along z (their z component weighs the axis'
+    cross terms that vanish for the default z axis): hits, t and the barycentric points equal the textbook
+    reference from the per-ray origins origin + h a."""
+    rng = np.random.default_rng(21)
+    centre = np.array([0.5, 0.3, 6.0])
+    v, f = _blob(centre=tuple(centre))
+    d = _rays_at(centre, 1500, 0.07, rng)
+    h = rng.uniform(0.1, 0.21, len(d))
+    axis = np.array([0.6, 0.0, 0.8])
+    hits = cast_rays(_t(v), torch.from_numpy(f), _t(d), _t(np.zeros(3)), _t(h), offset_axis=tuple(axis))
+    o = h[:, None] * axis
+    ref = _reference(v, f, o, d)
+    assert 300 < np.isfinite(ref).sum() < 1400
+    np.testing.assert_array_equal(hits.hit.numpy(), np.isfinite(ref))
+    k = hits.hit.numpy()
+    np.testing.assert_allclose(hits.t.numpy()[k], ref[k], rtol=0, atol=1e-11)
+    fa = f[hits.face.numpy()[k]]
+    u, w = hits.u.numpy()[k], hits.v.numpy()[k]
+    p = (1 - u - w)[:, None] * v[fa[:, 0]] + u[:, None] * v[fa[:, 1]] + w[:, None] * v[fa[:, 2]]
+    np.testing.assert_allclose(p, o[k] + hits.t.numpy()[k, None] * d[k], atol=1e-10)
+
+
+def test_hit_test_boundaries_at_their_exact_values():
+    """The triangle in the plane x = 2 seen along +x from (0, y, z): det = 1, u = y, v = z, t = 2, all exact. Rays
+    exactly at the barycentric tolerance 1e-6 outside an edge (u = -1e-6, v = -1e-6, u + v = 1 + 1e-6) still hit
+    (the float64 tolerance of the module docstring); twice as far out they miss. A hit at exactly t = t_min or at
+    exactly |cos(incidence)| = cos_min is ignored (documented: t <= t_min, |cos| <= cos_min); just inside, it is not."""
+    v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]])
+    f = torch.tensor([[0, 1, 2]])
+    x = _t([[1.0, 0.0, 0.0]])
+    tol = 1e-6
+    edge = 1.0 + tol  # det + tol * det as the test rounds it
+    for y, z in ((-tol, 0.5), (0.5, -tol), (edge, 0.0), (0.5, edge - 0.5)):
+        hits = cast_rays(v, f, x, _t([0.0, y, z]))
+        assert hits.face.tolist() == [0] and hits.t.tolist() == [2.0]
+        assert hits.u.tolist() == [y] and hits.v.tolist() == [z]
+    for y, z in ((-2 * tol, 0.5), (0.5, -2 * tol), (1.0 + 2 * tol, 0.0)):
+        assert cast_rays(v, f, x, _t([0.0, y, z])).face.tolist() == [-1]
+    o = _t([0.0, 0.25, 0.25])
+    assert not cast_rays(v, f, x, o, t_min=2.0).hit.any()
+    assert cast_rays(v, f, x, o, t_min=np.nextafter(2.0, 0.0)).t.tolist() == [2.0]
+    # |cos| = 0.5 exactly: det = 0.5 d_x = 0.5 and the floor cos_min |n| = 0.5; the ray from (1.5, -0.7, 0.25)
+    # meets the plane at t = 1 inside the triangle
+    slant = _t([[0.5, np.sqrt(0.75), 0.0]])
+    assert not cast_rays(v, f, slant, _t([1.5, -0.7, 0.25]), cos_min=0.5).hit.any()
+    kept = cast_rays(v, f, slant, _t([1.5, -0.7, 0.25]), cos_min=np.nextafter(0.5, 0.0))
+    assert kept.face.tolist() == [0] and kept.t.tolist() == [1.0]
+
+
+def test_a_ray_starting_in_a_face_plane_never_hits_that_face():
+    """t > 0 always (the test folds in the sign that makes t positive): rays starting inside a triangle, in its
+    plane z = 1, do not hit it at t = 0 whichever way they point, whatever t_min (also t_min <= 0), from a shared
+    origin or raised onto the plane by a laser offset; from below the same rays hit it at t = 1 and 1.25."""
+    v = _t([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])
+    f = torch.tensor([[0, 1, 2]])
+    d = _t([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.6, 0.0, 0.8]])
+    below = _t([0.1, 0.1, 0.0])
+    for t_min in (1e-6, 0.0, -1.0):
+        assert not cast_rays(v, f, d, _t([0.1, 0.1, 1.0]), t_min=t_min).hit.any()
+        assert not cast_rays(v, f, d, below, _t([1.0, 1.0, 1.0]), t_min=t_min).hit.any()
+        pairs = cast_ray_pairs(v, f, d, below, torch.arange(3), torch.zeros(3, dtype=torch.int64), _t([1.0] * 3),
+                               t_min=t_min)
+        assert not pairs.hit.any()
+        hits = cast_rays(v, f, d, below, t_min=t_min)
+        assert hits.hit.tolist() == [True, False, True]
+        np.testing.assert_allclose(hits.t.numpy(), [1.0, 0.0, 1.25], atol=1e-15)
+
+
+def test_cull_tests_a_ray_passing_exactly_at_the_inflated_radius():
+    """The 3-4-5 triangle (-3, -4, 0), (3, -4, 0), (-3, 4, 0): its cluster sphere has centre 0 and radius
+    R = 5 (1 + 1e-3) + 1e-9. A ray along x from (0, 0, R) passes exactly R from the centre (its closest approach
+    is its origin): it is tested (within R includes R, exact here: |(0, 0, R)|^2 is R^2 rounded as R ** 2); from
+    the next float above R it is not. Plain and grouped casts."""
+    tri = _t([[-3.0, -4.0, 0.0], [3.0, -4.0, 0.0], [-3.0, 4.0, 0.0]])
+    f = torch.tensor([[0, 1, 2]])
+    x = _t([[1.0, 0.0, 0.0]])
+    radius = 5.0 * (1 + 1e-3) + 1e-9
+    for z, tested in ((radius, 1), (np.nextafter(radius, np.inf), 0)):
+        for groups in (None, [(np.array([0]), 0, 1)]):
+            hits = cast_rays(tri, f, x, _t([0.0, 0.0, z]), groups=groups)
+            assert hits.tests == tested and hits.face.tolist() == [-1]
+
+
+def test_degenerate_faces_are_judged_by_their_own_longest_edge():
+    """The sliver rule (|e1 x e2| <= 1e-10 x the face's longest squared edge: never hit) per face: a 1 mm triangle
+    beside a 1 km one is hit. 20 m slivers whose longest edge is v1 -> v2 (apex v0 at height h, |e1 x e2| = 20 h
+    against 1e-10 x 400): h = 1e-8 is hit, h = 1e-9 is degenerate; a face exactly at the threshold (|e1 x e2| =
+    1e-10 = 1e-10 x 1, exact) is degenerate. A skip_faces mask that skips nothing changes none of this."""
+    x = _t([[1.0, 0.0, 0.0]])
+    small = [[2.0, 0.0, 0.0], [2.0, 1e-3, 0.0], [2.0, 0.0, 1e-3]]
+    big = [[-500.0, -500.0, -1.0], [500.0, -500.0, -1.0], [-500.0, 500.0, -1.0]]  # below the ray, parallel to it
+    cases = [(small + big, x, [0.0, 2.5e-4, 2.5e-4], True)]
+    for h, hit in ((1e-8, True), (1e-9, False)):
+        cases.append(([[2.0, 0.0, h], [2.0, -10.0, 0.0], [2.0, 10.0, 0.0]], x, [0.0, 0.0, h / 2], hit))
+    at = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, 1e-10, 0.0]]  # e1 x e2 = (0, 0, 1e-10), longest squared edge 1
+    cases.append((at, _t([[0.0, 0.0, -1.0]]), [0.5, 0.25e-10, 1.0], False))
+    for verts, d, o, hit in cases:
+        f = torch.arange(len(verts)).reshape(-1, 3)
+        for skip in (None, torch.zeros(len(f), dtype=torch.bool)):
+            hits = cast_rays(_t(verts), f, d, _t(o), skip_faces=skip)
+            assert hits.face.tolist() == ([0] if hit else [-1])
+
+
+def test_single_pair_recompute_and_its_gradient_where_det_is_one():
+    """PairCaster.recompute of one pair, by hand: the triangle in the plane x = 2 seen along -x from (3, .25, .5),
+    where det = d . (e2 x e1) = 1 exactly: t = 1, u = .25, v = .5, and gradients w.r.t. the vertices equal float64
+    finite differences."""
+    f = torch.tensor([[0, 1, 2]])
+    d = _t([[-1.0, 0.0, 0.0]])
+    o = _t([3.0, 0.25, 0.5])
+    v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]]).requires_grad_()
+    t, u, w = PairCaster(v, f, o).recompute(d, torch.tensor([0]))
+    assert t.tolist() == [1.0] and u.tolist() == [0.25] and w.tolist() == [0.5]
+    assert torch.autograd.gradcheck(lambda vert: PairCaster(vert, f, o).recompute(d, torch.tensor([0])), (v,),
+                                    eps=1e-6, atol=1e-8, rtol=1e-6)
+
+
+def test_pair_caster_table_of_a_face_whose_plane_holds_the_origin():
+    """PairCaster.table by hand, from the origin 0: the triangle in the plane x = 2 has the column (det vector
+    (1, 0, 0), u*det (0, 2, 0), v*det (0, 0, 2), t*det 2, grazing floor 1e-3 |n| = 1e-3) after the sign fold
+    (t*det = -2 before it); a triangle in the plane y = 0, which holds the origin, has sign 0: rows 0..9 zero
+    (finite, as camera_render's numpy kernel needs) and an infinite floor (never hit)."""
+    v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [1.0, 0.0, 1.0]])
+    table = PairCaster(v, torch.arange(6).reshape(2, 3), _t(np.zeros(3))).table
+    assert table.shape == (11, 2)
+    assert table[:, 0].tolist() == [1.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 2.0, 2.0, 1e-3]
+    assert table[:10, 1].tolist() == [0.0] * 10 and table[10, 1].item() == np.inf
+
+
+def test_inputs_are_cast_to_the_vertices_dtype_and_indices_to_int64():
+    """Vertices not given as a tensor (a list of integers, a float32 array) are cast to float64; every other input
+    follows the vertices' dtype (float32 vertices with float64 directions, origin and offsets: the all-float32
+    cast bit for bit); faces and pair indices of other integer dtypes (uint32, int16, int32) index as int64 does."""
+    tri = [[2, 0, 0], [2, 1, 0], [2, 0, 1]]
+    f = torch.tensor([[0, 1, 2]])
+    x, o = _t([[1.0, 0.0, 0.0]]), _t([0.0, 0.25, 0.5])
+    for given in (tri, np.array(tri, np.float32)):
+        hits = cast_rays(given, f, x, o)
+        assert hits.t.dtype == F64 and hits.t.tolist() == [2.0] and hits.u.tolist() == [0.25]
+    rng = np.random.default_rng(4)
+    v, fb = _blob()
+    d = _rays_at(np.array([8.0, 0.5, 0.2]), 300, 0.06, rng)
+    h = rng.uniform(0.1, 0.2, len(d))
+    v32, f64 = _t(v, torch.float32), torch.from_numpy(fb)
+    ref = cast_rays(v32, f64, _t(d, torch.float32), torch.zeros(3), _t(h, torch.float32))
+    got = cast_rays(v32, f64, d, _t(np.zeros(3)), h)
+    assert ref.hit.sum() > 50 and got.t.dtype == torch.float32
+    assert torch.equal(got.face, ref.face) and torch.equal(got.t, ref.t) and torch.equal(got.u, ref.u)
+    ref = cast_rays(_t(v), f64, _t(d), _t(np.zeros(3)))
+    for faces in (fb.astype(np.uint32), fb.astype(np.int16)):
+        assert torch.equal(cast_rays(_t(v), faces, _t(d), _t(np.zeros(3))).face, ref.face)
+    ray_all, face_all = _every_pair(len(d), len(fb))
+    for ri, fi in ((ray_all.int(), face_all.int()), (ray_all.numpy().astype(np.uint32), face_all.numpy())):
+        pairs = cast_ray_pairs(_t(v), f64, _t(d), _t(np.zeros(3)), ri, fi)
+        assert torch.equal(pairs.face, ref.face) and torch.equal(pairs.t, ref.t)
+
+
+def test_vertices_of_a_wrong_shape_are_named():
+    """Vertices of shape (3, 4) are refused with the field, the expected and the given shape."""
+    with pytest.raises(ValueError) as err:
+        cast_rays(torch.zeros(3, 4, dtype=F64), torch.tensor([[0, 1, 2]]), _t([[1.0, 0.0, 0.0]]), _t(np.zeros(3)))
+    assert str(err.value) == "cast_rays: field 'vertices': expected shape (V, 3), got (3, 4)"
+
+
+def test_read_only_numpy_inputs_are_accepted_without_warnings():
+    """Read-only numpy arrays (e.g. views of a cache) as faces, directions, origin and offsets: no warning (torch
+    warns about sharing non-writable memory, once per process unless told to warn always) and the same hits."""
+    v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]])
+    arrays = [np.array([[0, 1, 2]]), np.array([[1.0, 0.0, 0.0]]), np.array([0.0, 0.25, 0.25]), np.array([0.25])]
+    for a in arrays:
+        a.setflags(write=False)
+    always = torch.is_warn_always_enabled()
+    torch.set_warn_always(True)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            hits = cast_rays(v, *arrays)
+    finally:
+        torch.set_warn_always(always)
+    assert hits.face.tolist() == [0] and hits.t.tolist() == [2.0] and hits.v.tolist() == [0.5]
+
+
+def test_pair_casts_where_no_ray_hits():
+    """Pair casts where nothing hits: cast_ray_pairs reports faces -1 and t = 0; a PairCaster search returns empty
+    rays, faces and t, its t in the vertices' dtype (float64), with and without pairs."""
+    v = _t([[2.0, 0.0, 0.0], [2.0, 1.0, 0.0], [2.0, 0.0, 1.0]])
+    f = torch.tensor([[0, 1, 2]])
+    d = _t([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # away from the triangle, and beside it
+    o = _t([0.0, 0.25, 0.25])
+    pairs = (torch.tensor([0, 1]), torch.tensor([0, 0]))
+    miss = cast_ray_pairs(v, f, d, o, *pairs)
+    assert miss.face.tolist() == [-1, -1] and miss.t.tolist() == [0.0, 0.0] and miss.tests == 2
+    caster = PairCaster(v, f, o)
+    for chunks in ([pairs], []):
+        ray, face, t, tests = caster.search(d, chunks)
+        assert ray.tolist() == face.tolist() == t.tolist() == [] and tests == (2 if chunks else 0)
+        assert ray.dtype == face.dtype == torch.int64 and t.dtype == F64
+
+
+def _octahedron() -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (+-1, 0, 0), (0, +-2, 0), (0, 0, +-1) (box centre 0, bounding radius 2; all exact) and its 8 faces,
+    outward."""
+    v = np.array([[1.0, 0, 0], [-1, 0, 0], [0, 2, 0], [0, -2, 0], [0, 0, 1], [0, 0, -1]])
+    f = np.array([[0, 2, 4], [0, 5, 2], [0, 4, 3], [0, 3, 5], [1, 4, 2], [1, 2, 5], [1, 3, 4], [1, 5, 3]])
+    return v, f
+
+
+def _facing_away(v: np.ndarray, f: np.ndarray, o: np.ndarray) -> np.ndarray:
+    """(o - V0) . ((V1 - V0) x (V2 - V0)) <= 0 per face (back_faces' documented condition), directly."""
+    return ((o - v[f[:, 0]]) * np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])).sum(1) <= 0
+
+
+def test_back_faces_outside_test_at_its_margin_and_the_culled_condition_inclusive():
+    """The octahedron's bounding sphere (centre of its box, 0; radius 2): an origin at 2 (1 + 1e-6) exactly is
+    not outside (no culling), the next float beyond it is; origins at 3.5 on the y axis and at (0.5, 0, 2.1)
+    (off the box's centre line) are outside. A face seen exactly edge-on ((o - V0) . n = 0, exact) is culled
+    (documented: <= 0). Integer faces of another dtype and an origin given as a column give the same mask."""
+    v, f = _octahedron()
+    margin = 2.0 * (1 + 1e-6)
+    assert back_faces(v, f, np.array([0.0, margin, 0.0])) is None
+    for o in ([0.0, np.nextafter(margin, np.inf), 0.0], [0.0, 3.5, 0.0], [0.5, 0.0, 2.1], [3.0, 0.0, -2.0]):
+        o = np.array(o)
+        mask = back_faces(v, f, o)
+        assert mask is not None and mask.tolist() == _facing_away(v, f, o).tolist()
+    o = np.array([3.0, 0.0, -2.0])  # in the plane x + y / 2 + z = 1 of face 0
+    mask = back_faces(v, f, o)
+    assert mask[0] and not mask[1]  # edge-on: culled; the neighbour across its edge (1, 0, 0)-(0, 2, 0) faces o
+    assert back_faces(v, f.astype(np.int32), o).tolist() == mask.tolist()
+    assert back_faces(v, f, o.reshape(3, 1)).tolist() == mask.tolist()
+
+
+def test_back_faces_of_float32_vertices_agree_with_exact_arithmetic():
+    """float32 vertices, origins 1e-9 in front of or behind a face's plane, 3 m from its vertex: the face's flag
+    is the exact (rational) sign of (o - V0) . (e1 x e2) <= 0 of the float32 values."""
+    from fractions import Fraction
+
+    v, f = icosphere(1, 1.0)
+    v32 = v.astype(np.float32)
+    vx = v32.astype(np.float64)
+    rng = np.random.default_rng(0)
+    for k in rng.choice(len(f), 24, replace=False):
+        p0, p1, p2 = vx[f[k]]
+        n = np.cross(p1 - p0, p2 - p0)
+        n /= np.linalg.norm(n)
+        side = np.cross(n, rng.normal(size=3))
+        o = p0 + 3.0 * side / np.linalg.norm(side) + rng.choice([-1e-9, 1e-9]) * n
+        q = [[Fraction(float(c)) for c in p] for p in (p0, p1, p2, o)]
+        e1, e2, r = ([a - b for a, b in zip(q[i], q[0], strict=True)] for i in (1, 2, 3))
+        cross = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]]
+        mask = back_faces(v32, f, o)
+        assert mask is not None and bool(mask[k]) == (sum(a * b for a, b in zip(r, cross, strict=True)) <= 0)
+
+
+def test_back_faces_refuses_a_degenerate_face_and_an_empty_mesh_and_accepts_perturbed_icosahedra():
+    """A closed, consistently oriented tetrahedron with one edge split by its midpoint and closed by a zero-area
+    face (vertex centroid 0, exact: that face's (V0 - c) . n = 0, not > 0) does not qualify; nor does a mesh
+    without vertices and faces (None, no warning). Radially perturbed icosahedra (star-shaped, one sheet) qualify,
+    with the directly computed mask."""
+    v = np.array([[2.0, 0, 0], [0, 2, 0], [-1.5, -1.5, 2], [-1.5, -1.5, -2], [1, 1, 0]])
+    f = np.array([[0, 4, 2], [4, 1, 2], [1, 4, 0], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+    o = np.array([5.0, 5.0, 5.0])
+    assert back_faces(v, f, o) is None
+    assert back_faces(v[:4], np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]]), o) is not None  # unsplit
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert back_faces(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), o) is None
+    v0, f0 = icosphere(0, 1.0)
+    for seed in range(12):
+        vv = v0 * np.random.default_rng(seed).uniform(0.8, 1.2, (len(v0), 1))
+        mask = back_faces(vv, f0, o)
+        assert mask is not None and mask.tolist() == _facing_away(vv, f0, o).tolist()

@@ -41,7 +41,7 @@ SEARCH_CHUNK_PAIRS = 1 << 20
 #: Consecutive faces sharing one bounding sphere in the search (icosphere level L: face k of level L - 1 becomes
 #: faces 4k..4k+3; other meshes work whatever their face order, only faster when it is coherent).
 CLUSTER_SIZE = 4
-#: Faces whose |e1 x e2| is below this fraction of their longest squared edge are treated as degenerate.
+#: Faces whose |e1 x e2| is at or below this fraction of their longest squared edge are treated as degenerate.
 _SLIVER = {torch.float64: 1e-10, torch.float32: 1e-5}
 #: Barycentric tolerance: rays tangent to an edge or through a vertex still hit one of its faces.
 _BARY_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
