@@ -74,3 +74,21 @@ def test_box_car_loss_reads_kitti_rows_and_the_regressed_box():
     assert loss2.item() == pytest.approx(bev_iou(_kitti(gt[0]), _kitti(gt[0] + [0.4, 0, 0, 0, 0]))[0, 0], abs=1e-6)
     loss2.backward()
     assert center.grad[0] < 0 and center.grad[1] == 0  # moving further right lowers the IoU; height is not BEV
+
+
+def test_box_car_loss_measures_a_float32_regressed_box_in_float64():
+    """The victim regresses float32 boxes; the loss compares them with the ground truth in float64 (the
+    project's rule where geometry decides): the same value, bit for bit, as the box given in float64, with a
+    float32 or a float64 ground-truth row, and float64 rows from ``gt_bev_boxes``."""
+    labels = parse_labels("Car 0 0 0 100 100 200 200 1.5 1.6 3.9 1.1 1.7 20.3 0.21\n")
+    assert gt_bev_boxes(labels).dtype == np.float64
+    center = torch.tensor([1.3, 1.6, 20.1], dtype=torch.float32)
+    size = torch.tensor([3.7, 1.7, 1.5], dtype=torch.float32)
+    heading = torch.tensor(0.3, dtype=torch.float32)
+    want = box_car_loss(center.double(), size.double(), heading.double(), gt_bev_boxes(labels)[0])
+    assert want.dtype == torch.float64 and 0.3 < want.item() < 0.95
+    for gt in (gt_bev_boxes(labels)[0], gt_bev_boxes(labels)[0].astype(np.float32)):
+        got = box_car_loss(center, size, heading, gt)
+        assert got.dtype == torch.float64
+        if gt.dtype == np.float64:
+            assert got.item() == want.item()

@@ -119,6 +119,10 @@ def test_losses_edge_cases_from_mutation_testing():
     for bad in (torch.zeros(4, 3), torch.zeros(2, 2, 2), torch.zeros(0, 2)):
         with pytest.raises(ValueError, match="logits"):
             max_object_margin(bad)
+    for bad in (torch.tensor([[0.0, float("nan")]]), torch.tensor([[float("-inf"), 1.0]])):
+        with pytest.raises(ValueError) as err:
+            max_object_margin(bad)
+        assert str(err.value) == "field 'logits': contains NaN or inf (the victim's segmentation head diverged)"
     a = torch.tensor([0.3, -2.0], dtype=torch.float32)
     b = torch.tensor([1.0, 4.0], dtype=torch.float64)
     got = neg_log_one_minus_product(a, b)

@@ -577,3 +577,186 @@ def test_defaults_and_nothing_to_render():
         crop = render_camera_crop_torch(image, calib, meshes)
         assert crop.pixels.shape == (0,) and crop.values.shape == (0, 3) and crop.rect is None
         assert crop.values.dtype == image.dtype and torch.equal(crop.composite(image), image)
+
+
+def test_srgb_tone_curve_equals_the_generator_curve_on_its_toe_breakpoint_and_clips():
+    """srgb_tone_curve against camera_model.tone_curve (its numpy original) where the linear toe 12.92 x applies
+    (x <= 0.0031308, dark haze-free pixels), exactly at the breakpoint (where the two branches differ by 3e-8:
+    the toe is taken), and its documented clip to [0, 1] below 0 and above the shoulder."""
+    from robustbench3d.sensors.camera_render import srgb_tone_curve
+
+    at = 0.003133252396650859  # x / (1 + x / 4) == 0.0031308 exactly
+    assert at / (1.0 + 0.25 * at) == 0.0031308
+    exposed = np.array([-0.5, -1e-3, 0.0, 1e-6, 4e-4, 1.5e-3, 0.0031, at, np.nextafter(at, 1.0), 0.01, 0.3, 2.0,
+                        5.0, 100.0])
+    got = srgb_tone_curve(torch.tensor(exposed)).numpy()
+    np.testing.assert_allclose(got, cm.tone_curve(exposed), rtol=0, atol=1e-15)
+    assert got[7] == 12.92 * 0.0031308 and got[0] == got[1] == 0.0 and got[-1] == 1.0
+    np.testing.assert_allclose(got[3:6], 12.92 * exposed[3:6] / (1 + 0.25 * exposed[3:6]), rtol=1e-15)
+
+
+def test_sample_offsets_are_the_sub_pixel_centres():
+    """The s x s samples of a pixel sit at the centres of its s x s sub-pixels, (i + 1/2) / s - 1/2, sample k at
+    (row, column) = divmod(k, s): by hand for s = 1..4 (the uncached helper, and the cached per-sample table)."""
+    from robustbench3d.sensors.camera_render import _sample_offsets, _sub_sample_offsets
+
+    hand = {1: [0.0], 2: [-0.25, 0.25], 3: [-1 / 3, 0.0, 1 / 3], 4: [-0.375, -0.125, 0.125, 0.375]}
+    for s, want in hand.items():
+        np.testing.assert_allclose(_sample_offsets(s), want, rtol=0, atol=1e-15)
+    col, row = _sub_sample_offsets(2)
+    np.testing.assert_array_equal(col, [-0.25, 0.25, -0.25, 0.25])
+    np.testing.assert_array_equal(row, [-0.25, -0.25, 0.25, 0.25])
+
+
+def test_float32_geometry_gradients_do_not_depend_on_the_photo_dtype():
+    """The geometry runs in the vertices' dtype: with float32 vertices and colours, a float64 photo (of the same
+    float32-exact values) gives the same vertex and colour gradients, bit for bit, as a float32 photo; and the
+    float64 photo's own gradient is 1 - alpha with the coverage alpha summed in float32 (k samples of weight
+    float32(1/9), s = 3) and not rounded again to float32."""
+    calib = small_calib()
+    cols = np.array([[0.9, 0.2, 0.1], [0.1, 0.8, 0.3], [0.2, 0.3, 0.9]])
+    grads = {}
+    for pd in (torch.float32, torch.float64):
+        v = torch.tensor(TRI, dtype=torch.float32, requires_grad=True)
+        c = torch.tensor(cols, dtype=torch.float32, requires_grad=True)
+        p = torch.full((30, 40, 3), 0.375, dtype=pd, requires_grad=True)
+        out = render_camera_torch(p, calib, [(v, TRI_FACES, c)], supersample=3, lighting=SUNNY)
+        out.sum().backward()
+        grads[pd] = (out.detach(), v.grad, c.grad, p.grad)
+    (o32, v32, c32, _), (o64, v64, c64, p64) = grads[torch.float32], grads[torch.float64]
+    assert o64.dtype == p64.dtype == torch.float64 and torch.equal(o64, o32.double())
+    assert v64.dtype == torch.float32 and torch.equal(v64, v32) and torch.equal(c64, c32)
+    w = np.float32(1 / 9)
+    alpha32 = [np.float32(0.0)]
+    for _ in range(9):
+        alpha32.append(np.float32(alpha32[-1] + w))
+    k = torch.round((1 - p64[..., 0]) * 9).long()
+    edge = (k > 0) & (k < 9)
+    assert edge.sum() > 20 and ((k > 0) & (k < 5)).sum() > 5
+    want = 1.0 - torch.tensor([float(a) for a in alpha32], dtype=torch.float64)[k[edge]]
+    for ch in range(3):
+        assert torch.equal(p64[..., ch][edge], want)
+
+
+def test_ray_test_counts_of_a_face_kept_whole_box_rows():
+    """A face whose vertex depths differ by more than SPAN_DEPTH_RATIO skips the scanline cull and keeps its
+    whole box: with one sample per pixel its candidate pairs are exactly the pixel centres inside its projected
+    vertices' box widened by BOX_MARGIN_PX (by hand; the box's last row and column included, nothing beyond),
+    fewer than the rendered pixels (footprints overlapping the box). The default sampling is 3 x 3."""
+    from robustbench3d.sensors.camera_render import BOX_MARGIN_PX, SPAN_DEPTH_RATIO
+
+    calib = small_calib()
+    # depths 0.2 and 5 (ratio 25): projected to (20.0, 15.0), (12.6, 7.6) and (30.7, 22.6)
+    steep = np.array([[0.0, 0.0, 0.2], [-1.85, -1.85, 5.0], [2.675, 1.9, 5.0]])
+    assert SPAN_DEPTH_RATIO < 5.0 / 0.2
+    uv, _ = calib.rect_to_image(steep)
+    np.testing.assert_allclose(uv, [[20.0, 15.0], [12.6, 7.6], [30.7, 22.6]], atol=1e-12)
+    lo, hi = uv.min(axis=0) - BOX_MARGIN_PX, uv.max(axis=0) + BOX_MARGIN_PX
+    centres = np.prod(np.floor(hi) - np.ceil(lo) + 1)  # columns 13..30, rows 8..22
+    assert centres == 18 * 15
+    mesh = (steep, TRI_FACES, np.eye(3))
+    assert mesh_box(calib, steep, (40, 30))[0] == (13, 8, 32, 24)
+    assert camera_ray_tests(calib, [mesh], (40, 30), 1) == (19 * 16, centres)
+    hand = (TRI, TRI_FACES, np.eye(3))
+    assert camera_ray_tests(calib, [hand], (40, 30)) == camera_ray_tests(calib, [hand], (40, 30), 3)
+    assert camera_ray_tests(calib, [hand], (40, 30), 3) != camera_ray_tests(calib, [hand], (40, 30), 4)
+
+
+def test_candidate_pair_chunks_of_long_spans_hold_one_span_each():
+    """Chunks of whole spans, at most ``chunk`` pairs each unless one span alone is longer: then that span is a
+    chunk by itself (never two spans over the bound); together still the one-pass pairs."""
+    from robustbench3d.sensors.camera_render import _candidate_pairs, _check_meshes, _Geometry, _pixel_set
+
+    calib = small_calib()
+    meshes = _check_meshes([(TRI, TRI_FACES, np.eye(3))])
+    region = _pixel_set(calib, meshes, (40, 30), False)[0]
+    s = 2
+    spans = _Geometry.of(meshes, calib).cull.spans(s, region.rect)
+    lengths = list(spans[3] - spans[2])
+    assert min(lengths) < 5 < max(lengths)
+    chunks = list(_candidate_pairs(spans, region, s, 5))
+    at = 0
+    for samples, _ in chunks:  # the spans each chunk consists of, in order
+        n, size = 0, 0
+        while size < len(samples):
+            size, n, at = size + lengths[at], n + 1, at + 1
+        assert size == len(samples) and (size <= 5 or n == 1)
+    assert at == len(lengths) and len(chunks) > 40
+    (one_s, one_f), = list(_candidate_pairs(spans, region, s))
+    assert np.array_equal(np.concatenate([c[0] for c in chunks]), one_s)
+    assert np.array_equal(np.concatenate([c[1] for c in chunks]), one_f)
+
+
+def test_full_image_reference_of_one_mesh_reaches_its_farthest_vertices():
+    """The full-image reference for a single mesh equals the crop, for a triangle whose three vertices (all
+    at the radius of its bounding sphere about its box centre) lie on pixel-centre rays almost along the view
+    direction: those rays pass 0.9996 radii from the centre, inside the reference's inflated sphere, and hit.
+    Likewise a 0.1 um triangle with a vertex on the optical axis (the ray passes one radius from the centre:
+    the absolute 1e-9 m of the inflation keeps it, where 1e-3 of the radius is far below 1e-9 m)."""
+    calib = small_calib(f=1000.0, cu=40.0, cv=30.0)
+    tri = np.array([[0.2, 0.2, 10.0], [-0.2, 0.2, 10.0], [-0.2, -0.2, 10.0]])  # at (60, 50), (20, 50), (20, 10)
+    tiny = np.array([[0.0, 0.0, 0.01], [1e-7, 0.0, 0.01], [1e-7, 1e-7, 0.01]])  # 1 cm away, a vertex at (40, 30)
+    photo = np.random.default_rng(6).integers(0, 256, (60, 80, 3), dtype=np.uint8)
+    for verts, lit in ((tri, [(50, 60), (50, 20), (10, 20)]), (tiny, [(30, 40)])):
+        mesh = (verts, TRI_FACES, np.tile([0.9, 0.5, 0.1], (3, 1)))
+        crop = render_camera(photo, calib, [mesh], supersample=1, lighting=FLAT)
+        full = render_camera(photo, calib, [mesh], supersample=1, lighting=FLAT, full_image=True)
+        assert all(crop.alpha[v, u] == 1.0 for v, u in lit)
+        np.testing.assert_array_equal(full.alpha, crop.alpha)
+        np.testing.assert_array_equal(full.image, crop.image)
+
+
+def test_colours_are_checked_in_the_geometry_dtype():
+    """Colour tensors are taken in the vertices' dtype before the finiteness check: float64 colours beyond
+    float32's range beside float32 vertices are inf where the render uses them, and are refused."""
+    calib = small_calib()
+    cols = torch.tensor([[0.5, 0.5, 0.5], [0.5, 1e39, 0.5], [0.5, 0.5, 0.5]], dtype=torch.float64)
+    with pytest.raises(ValueError) as err:
+        render_camera(np.zeros((30, 40, 3), np.uint8), calib, [(torch.tensor(TRI, dtype=torch.float32), TRI_FACES,
+                                                                cols)])
+    assert str(err.value) == "render_camera: field 'meshes[0]': NaN or inf in vertices or colors"
+
+
+def test_render_camera_image_check_and_empty_result_lists():
+    """render_camera refuses an image that is not (H, W, 3) uint8 by its exact message, and with no meshes returns
+    empty per-mesh lists (one entry per mesh, as for meshes out of view)."""
+    calib = small_calib()
+    for bad in (np.zeros((30, 40, 4), np.uint8), np.zeros((30, 40), np.uint8), np.zeros((30, 40, 3), np.int16)):
+        with pytest.raises(ValueError) as err:
+            render_camera(bad, calib, [])
+        assert str(err.value) == (f"render_camera: field 'image': expected (H, W, 3) uint8, got {bad.shape} "
+                                  f"{bad.dtype}")
+    photo = np.zeros((30, 40, 3), np.uint8)
+    res = render_camera(photo, calib, [])
+    assert res.boxes == [] and res.status == []
+    res = render_camera(photo, calib, [(TRI * [1, 1, -1], TRI_FACES, np.eye(3))])
+    assert res.boxes == [None] and res.status == ["behind"]
+
+
+def test_lighting_defaults_to_the_depth_sources():
+    """Without a lighting argument the depth source's own lighting (a scene's, like SceneRayDepth.lighting) is
+    used, else DEFAULT_LIGHTING; an explicit lighting wins."""
+
+    class Open:
+        """No occluder anywhere, lit like the scene it came from."""
+
+        def __init__(self, lighting):
+            self.lighting = lighting
+
+        def depth(self, u, v):
+            return np.full(np.shape(u), np.inf)
+
+    calib = small_calib()
+    photo = np.full((30, 40, 3), 60, np.uint8)
+    mesh = (TRI, TRI_FACES, np.tile([0.2, 0.5, 0.8], (3, 1)))
+    flat = render_camera(photo, calib, [mesh], lighting=FLAT).image
+    default = render_camera(photo, calib, [mesh]).image
+    assert not np.array_equal(flat, default)
+    np.testing.assert_array_equal(render_camera(photo, calib, [mesh], scene_depth=Open(FLAT)).image, flat)
+    np.testing.assert_array_equal(render_camera(photo, calib, [mesh], scene_depth=Open(None)).image, default)
+    np.testing.assert_array_equal(render_camera(photo, calib, [mesh], scene_depth=Open(SUNNY), lighting=FLAT).image,
+                                  flat)
+    np.testing.assert_array_equal(render_camera_crop_torch(torch.tensor(photo / 255.0), calib, [mesh],
+                                                           scene_depth=Open(FLAT)).values.numpy(),
+                                  render_camera_crop_torch(torch.tensor(photo / 255.0), calib, [mesh],
+                                                           lighting=FLAT).values.numpy())
