@@ -222,3 +222,25 @@ def test_thresholds_equal_the_literal_loop(seed: int) -> None:
     m = int(rng.integers(0, n_gt + 1))
     scores = np.round(rng.random(m), int(rng.integers(1, 4)))  # with ties
     assert score_thresholds(scores, n_gt).tolist() == get_thresholds(list(scores), n_gt)[:41]
+
+
+def test_pass_two_by_hand_on_direct_pairs() -> None:
+    """Pass 2 on hand-made pairs of one frame (GTs in file order g0, g1, g2): a counting candidate beats an
+    ignored one whatever its overlap (0.3 here; the matching takes any pairs), a GT with only an ignored
+    candidate takes it, a detection not involved (-1) is never taken; the counts are (K,) int64 / float64
+    also when the last configuration (threshold 0.95) keeps no detection."""
+    from robustbench3d.eval.matching import CandidatePairs, assign_at_thresholds, count_at_thresholds
+
+    # detections: d0 ignored (0.9), d1 counting (0.8), d2 not involved (0.7), d3 counting, unpaired (0.6)
+    det_status = np.tile([1, 0, -1, 0], (3, 1))
+    score = np.array([0.9, 0.8, 0.7, 0.6])
+    pairs = CandidatePairs.build(np.array([0, 0, 1, 2]), np.array([0, 1, 0, 2]), np.array([0.9, 0.3, 0.8, 0.95]),
+                                 np.zeros(3, dtype=np.int64))
+    diff, thr = np.array([0, 0]), np.array([0.0, 0.95])
+    a = assign_at_thresholds(pairs, diff, thr, det_status, score)
+    assert sorted(zip(a.config.tolist(), a.gt.tolist(), a.det.tolist(), strict=True)) == [(0, 0, 1), (0, 1, 0)]
+    c = count_at_thresholds(pairs, diff, thr, np.zeros((3, 3), dtype=np.int64), det_status, score,
+                            np.zeros(3), np.full(4, 0.5), np.ones(4, dtype=bool))
+    assert c.tp.dtype == np.int64 and c.tp.tolist() == [1, 0]
+    assert c.similarity.dtype == np.float64 and c.similarity == pytest.approx([(1 + math.cos(0.5)) / 2, 0.0])
+    assert c.assigned_counting.dtype == np.int64 and c.assigned_counting.tolist() == [1, 0]

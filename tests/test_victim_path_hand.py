@@ -523,3 +523,38 @@ def test_box_coding_input_shapes_and_precision():
     # a float32 angle is binned in float64: bin 0, residual exactly the angle
     cls, res = angle_to_class(np.float32(0.1875))
     assert int(cls) == 0 and float(res) == pytest.approx(0.1875, abs=1e-15)
+
+
+def test_decode_and_to_labels_of_float32_inputs():
+    """float32 network outputs (a training forward pass) decode to float64 centres without warnings, also
+    when a logit difference overflows float32 (its exp is the exact 0); a float32 rotation angle rotates
+    in float64 (cos and sin of the float32 value, by hand)."""
+    import dataclasses
+    import warnings
+
+    seg = np.array([[[-3e38, 3e38], [0.0, 1.0], [1.0, 0.0]]], dtype=np.float32)  # -6e38 overflows float32
+    raw = _raw_box_output((0.0, 0.0, 0.0), 0, 0.0, (0.0, 0.0, 0.0))
+    o = _outputs(raw, seg, seg[..., 1] > seg[..., 0], np.zeros((1, 3)))
+    centre = np.array([[0.1, -0.7, 12.3]], dtype=np.float32)
+    o = dataclasses.replace(o, center=centre)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        boxes = decode(o)
+    p1 = 1 / (1 + math.exp(-1.0))
+    assert boxes.score_3d == pytest.approx([(1.0 + p1) / 2 * 0.5 * 0.5], rel=1e-6)
+    assert boxes.center.dtype == np.float64 and boxes.center.tolist() == centre.astype(np.float64).tolist()
+    rot = np.array([0.3], dtype=np.float32)
+    rows = to_labels(boxes, rot, np.array([[1.0, 2.0, 3.0, 4.0]]), np.array([0.5]))
+    r = float(rot[0])
+    x, y, z = (float(v) for v in centre[0])
+    assert rows.location[0].tolist() == pytest.approx(
+        [math.cos(r) * x + math.sin(r) * z, y + CAR_LWH[2] / 2, -math.sin(r) * x + math.cos(r) * z], rel=1e-14)
+
+
+def test_decode_of_frustums_without_points():
+    """A frustum with no points at all (N = 0) has no object probability to take a maximum of: its object
+    probability is 0, so its score is 0 (the other outputs decode as usual)."""
+    seg = np.zeros((1, 0, 2), dtype=np.float32)
+    raw = _raw_box_output((0.0, 0.0, 0.0), 3, 0.5, (0.0, 0.0, 0.0))
+    boxes = decode(_outputs(raw, seg, np.zeros((1, 0), dtype=bool), np.array([[1.0, 2.0, 3.0]])))
+    assert boxes.score_3d.tolist() == [0.0] and boxes.heading == pytest.approx(np.radians([97.5]))
