@@ -760,3 +760,148 @@ def test_lighting_defaults_to_the_depth_sources():
                                                            scene_depth=Open(FLAT)).values.numpy(),
                                   render_camera_crop_torch(torch.tensor(photo / 255.0), calib, [mesh],
                                                            lighting=FLAT).values.numpy())
+
+
+def test_a_face_over_one_pixel_centre_is_one_pair_and_hidden_by_a_nearer_scene_depth():
+    """A small triangle at z = 5 around pixel (20, 15) (projected to (19.8, 14.8), (20.3, 14.8), (20.0, 15.3)):
+    with one sample per pixel its one sample row is one span holding one candidate pair, the pixel centre, which
+    it covers; a scene depth of 4 everywhere (nearer) hides that single hit, one of 6 (farther) does not."""
+    calib = small_calib()
+    tiny = np.array([[-0.05, -0.05, 5.0], [0.075, -0.05, 5.0], [0.0, 0.075, 5.0]])
+    uv, _ = calib.rect_to_image(tiny)
+    np.testing.assert_allclose(uv, [[19.8, 14.8], [20.3, 14.8], [20.0, 15.3]], atol=1e-12)
+    mesh = (tiny, TRI_FACES, np.tile([0.2, 0.5, 0.8], (3, 1)))
+    assert mesh_box(calib, tiny, (40, 30))[0] == (20, 15, 21, 16)
+    assert camera_ray_tests(calib, [mesh], (40, 30), 1) == (1, 1)
+    grey = np.full((30, 40, 3), 90, np.uint8)
+    shown = render_camera(grey, calib, [mesh], supersample=1, lighting=FLAT)
+    assert shown.alpha[15, 20] == 1.0 and shown.alpha.sum() == 1.0
+    np.testing.assert_array_equal(shown.image[15, 20], np.round(255 * display([0.2, 0.5, 0.8])))
+    hidden = render_camera(grey, calib, [mesh], supersample=1, lighting=FLAT,
+                           scene_depth=DepthMap(np.full((30, 40), 4.0)))
+    np.testing.assert_array_equal(hidden.image, grey)
+    assert not hidden.alpha.any()
+    behind = render_camera(grey, calib, [mesh], supersample=1, lighting=FLAT,
+                           scene_depth=DepthMap(np.full((30, 40), 6.0)))
+    np.testing.assert_array_equal(behind.image, shown.image)
+    # the torch render takes the scene depth too
+    photo = torch.full((30, 40, 3), 0.4, dtype=torch.float64)
+    out = render_camera_torch(photo, calib, [mesh], supersample=1, lighting=FLAT,
+                              scene_depth=DepthMap(np.full((30, 40), 4.0)))
+    assert torch.equal(out, photo)
+
+
+def test_a_tilted_face_is_shaded_with_its_own_unit_normal_by_hand():
+    """One tilted triangle under a sun and sky: an interior pixel is tone(E c (a (0.6 + 0.4 n.up) sky + max(n.l, 0)
+    sun)), n its unit normal turned towards the camera, computed here by hand (numpy cross product, the lighting's
+    velodyne directions rotated to rect by the calibration's Tr_velo_to_cam)."""
+    calib = small_calib()
+    tilt = TRI + np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.5], [0.0, 0.0, -1.0]])
+    c = np.array([0.5, 0.4, 0.3])
+    photo = torch.zeros((30, 40, 3), dtype=torch.float64)
+    out = render_camera_torch(photo, calib, [(tilt, TRI_FACES, np.tile(c, (3, 1)))], supersample=1, lighting=SUNNY)
+    n = np.cross(tilt[1] - tilt[0], tilt[2] - tilt[0])
+    n /= np.linalg.norm(n)
+    n = -n if n @ tilt[0] > 0 else n  # towards the camera at the origin
+    rot = _PERM[:, :3]
+    sun, up = rot @ SUNNY.sun_direction, rot @ np.array([0.0, 0.0, 1.0])
+    sky = 0.5 * (SUNNY.sky_zenith + SUNNY.sky_horizon)
+    irr = SUNNY.ambient * (0.6 + 0.4 * (n @ up)) * sky + max(n @ sun, 0.0) * SUNNY.sun_color
+    assert abs(n[0]) > 0.1 and abs(n[1]) > 0.1  # tilted: no component is the whole normal
+    np.testing.assert_allclose(out[15, 20].numpy(), display(SUNNY.exposure * c * irr), rtol=0, atol=1e-9)
+
+
+def test_an_edge_on_face_renders_nothing_without_warnings():
+    """A face in a plane through the camera centre (x = 0) projects onto the column u = 20 (zero projected area,
+    an exactly zero cos to its centroid ray): its box is searched, nothing is hit, no division warns."""
+    import warnings
+
+    calib = small_calib()
+    edge_on = np.array([[0.0, 0.0, 5.0], [0.0, 1.0, 5.0], [0.0, 2.0, 6.0]])
+    grey = np.full((30, 40, 3), 90, np.uint8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = render_camera(grey, calib, [(edge_on, TRI_FACES, np.eye(3))], supersample=3, lighting=FLAT)
+        assert res.status == ["rendered"] and res.boxes == [(20, 15, 21, 23)]
+        np.testing.assert_array_equal(res.image, grey)
+        assert not res.alpha.any()
+        assert camera_ray_tests(calib, [(edge_on, TRI_FACES, np.eye(3))], (40, 30), 1)[0] == 8
+
+
+def test_a_face_with_one_vertex_just_in_front_of_the_camera_renders_like_the_full_image():
+    """A face with one vertex at depth 0.5 and two behind the camera (depth -1): its part in front (depths in
+    (0, 0.5]) is rendered, as the full-image reference (every sample against every face) finds it."""
+    calib = small_calib()
+    near = np.array([[0.1, 0.05, 0.5], [-2.0, -1.0, -1.0], [2.0, -1.5, -1.0]])
+    mesh = (near, TRI_FACES, np.tile([0.7, 0.6, 0.2], (3, 1)))
+    grey = np.full((30, 40, 3), 90, np.uint8)
+    crop = render_camera(grey, calib, [mesh], supersample=2, lighting=FLAT)
+    full = render_camera(grey, calib, [mesh], supersample=2, lighting=FLAT, full_image=True)
+    assert full.alpha.sum() > 10
+    np.testing.assert_array_equal(crop.image, full.image)
+    np.testing.assert_array_equal(crop.alpha, full.alpha)
+
+
+def test_a_vertex_exactly_at_the_near_depth_makes_the_face_crossing():
+    """A vertex at camera depth exactly 1e-6 (_NEAR, included): the mesh box is the whole 40 x 30 image and the
+    face a crossing one (whichever of its vertices it is), paired with every sample of it (one per pixel), not
+    only those of its projected box."""
+    from robustbench3d.sensors.camera_render import _FaceCull
+
+    calib = small_calib()
+    verts = np.array([[0.0, 0.0, 1e-6], [-1.0, -1.0, 2.0], [1.0, -1.0, 2.0]])
+    assert mesh_box(calib, verts, (40, 30))[0] == (0, 0, 40, 30)
+    for faces in ([[0, 1, 2]], [[1, 2, 0]], [[2, 0, 1]]):  # the near vertex first, last, second
+        faces = np.array(faces)
+        assert _FaceCull.of(calib, verts, faces, None, torch.float64).crossing.tolist() == [True]
+        assert camera_ray_tests(calib, [(verts, faces, np.eye(3))], (40, 30), 1) == (1200, 1200)
+
+
+def test_scanline_margin_uses_the_shortest_edge_of_a_face_of_edges_2_and_more():
+    """As the hand case above, scaled: v0 (0, 0, 10), v1 (2, 0, 10), v2 (0, 2, 12), float32 ray test: normal
+    (0, -1, 1), ray (2, 2, 32) / 3, |ray|^2 = 1032 / 9, cos = 30 / sqrt(2064), shortest edge 2:
+    cond = |ray| / (2 cos) = sqrt(1032 * 2064) / 180."""
+    from robustbench3d.sensors.camera_render import SPAN_MARGIN, _FaceCull
+
+    calib = DAY_0926.calib
+    verts = np.array([[0.0, 0.0, 10.0], [2.0, 0.0, 10.0], [0.0, 2.0, 12.0]])
+    fc = _FaceCull.of(calib, verts, np.array([[0, 1, 2]]), None, torch.float32, centre=np.zeros(3))
+    delta = SPAN_MARGIN + 64 * float(np.finfo(np.float32).eps) * np.sqrt(1032.0 * 2064.0) / 180
+    uv, _ = calib.rect_to_image(verts)
+    (x1, y1), (x2, y2) = uv[1] - uv[0], uv[2] - uv[0]
+    area2 = abs(x1 * y2 - y1 * x2)
+    assert fc.tight[0]
+    values = fc.edge[0] @ np.column_stack([uv, np.ones(3)]).T / area2
+    np.testing.assert_allclose(values, np.eye(3) + delta, rtol=0, atol=1e-9)
+
+
+def test_culled_back_faces_cost_no_ray_tests():
+    """A closed sphere (level-1 icosphere, radius 1, 6 m ahead) culls its back faces: its candidate pairs are
+    exactly those of its front faces alone (faces whose outward normal points towards the camera, by hand), an
+    open mesh that culls nothing; the image is the same."""
+    calib = small_calib()
+    v, f = icosphere(1)
+    v = v + np.array([0.0, 0.0, 6.0])
+    cen = v[f].mean(axis=1)
+    outward = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    front = np.einsum("ij,ij->i", outward, cen) < 0
+    assert 0 < front.sum() < len(f)
+    cols = np.tile([0.3, 0.6, 0.9], (len(v), 1))
+    assert camera_ray_tests(calib, [(v, f, cols)], (40, 30), 2) == camera_ray_tests(calib, [(v, f[front], cols)],
+                                                                                    (40, 30), 2)
+
+
+def test_the_lighting_cache_evicts_and_each_lighting_still_renders_its_own_exposure():
+    """More lightings than the per-calibration cache holds (_MAX_LIGHTS), each rendered once and the first again
+    after its eviction: the fronto-parallel face shows tone(exposure * albedo) for each (FLAT, by hand)."""
+    import dataclasses
+
+    from robustbench3d.sensors.camera_render import _MAX_LIGHTS
+
+    calib = small_calib()
+    c = np.array([0.2, 0.5, 0.8])
+    black = np.zeros((30, 40, 3), np.uint8)
+    lights = [dataclasses.replace(FLAT, exposure=0.5 + 0.1 * k) for k in range(_MAX_LIGHTS + 2)]
+    for light in lights + lights[:1]:
+        res = render_camera(black, calib, [(TRI, TRI_FACES, np.tile(c, (3, 1)))], supersample=1, lighting=light)
+        np.testing.assert_array_equal(res.image[15, 20], np.round(255 * display(light.exposure * c)))
