@@ -10,7 +10,9 @@ the minimum is the most repeatable estimate of the code's own cost on a shared m
 same runs moved by up to 30-50 % with the load (see the README).
 
 A benchmark fails when its normalised value is more than ``--threshold`` (25 %) above the baseline's in
-the full run AND again when only the failing benchmarks are rerun in a second pytest run;
+the full run AND again when only the failing benchmarks are rerun, in up to ``RERUN_PROCESSES`` fresh
+pytest processes, each benchmark keeping its best value over them (a process's minimum moved by 20-30 %
+between fresh processes on an idle machine: memory layout and thread start-up differ per process);
 a slowdown that does not repeat is reported as noise. A benchmark of the baseline that did not run
 (skipped, removed, renamed) also fails: re-record the baseline if that was intended.
 
@@ -45,6 +47,8 @@ STATISTIC = "min"
 #: Multiplies the fixed round counts of the heavy benchmarks (benchmarks/conftest.py's ``rounds`` fixture).
 ROUNDS_SCALE_ENV = "ROBUSTBENCH3D_BENCH_ROUNDS_SCALE"
 THRESHOLD = 0.25
+#: Fresh pytest processes the suspects are rerun in at most (stopping once every one is within the threshold).
+RERUN_PROCESSES = 3
 FORMAT = 1
 
 
@@ -93,6 +97,16 @@ def normalise(timed: dict[str, Timing]) -> dict[str, float]:
         raise BaselineError("the benchmark report holds no benchmark")
     ref = run_reference(timed)
     return {name: t.seconds / ref for name, t in timed.items()}
+
+
+def best_of(runs: list[dict[str, float]]) -> dict[str, float]:
+    """Each benchmark's smallest normalised value over several runs (a benchmark missing from a run is
+    taken from the others)."""
+    best: dict[str, float] = {}
+    for run in runs:
+        for name, value in run.items():
+            best[name] = min(value, best.get(name, value))
+    return best
 
 
 def slower(ratios: dict[str, float], baseline: dict[str, float], threshold: float = THRESHOLD) -> dict[str, float]:
@@ -244,8 +258,14 @@ def main(argv: list[str] | None = None) -> int:
             second = None
             if suspects:
                 print(f"over {args.threshold:.0%} slower, rerunning: {', '.join(sorted(suspects))}", flush=True)
-                again = run_suite(out / "run2.json", [timed[n].node_id for n in suspects])
-                second = normalise(timings(again, str(out / "run2.json")))
+                reruns: list[dict[str, float]] = []
+                for k in range(RERUN_PROCESSES):
+                    path = out / f"run{k + 2}.json"
+                    reruns.append(normalise(timings(run_suite(path, [timed[n].node_id for n in suspects]),
+                                                    str(path))))
+                    second = best_of(reruns)
+                    if all(n in second and second[n] / base["ratios"][n] - 1.0 <= args.threshold for n in suspects):
+                        break
     except BaselineError as exc:
         print(f"perf_compare: {exc}", file=sys.stderr)
         return 2
