@@ -18,7 +18,7 @@ Möller–Trumbore core as the LiDAR (:class:`robustbench3d.sensors.raycast.Pair
 a no-grad search of candidate (sample, face) pairs keeping the nearest hit per sample, ties to the
 smallest face id, run in numpy on the caster's table by :func:`_search_pairs` (the caster's kernel, operation
 for operation: a crop's few thousand pairs cost torch's per-op overhead), then one recompute with gradients
-on the winners of both passes), culled as a scanline
+on the winners of both passes, :class:`~robustbench3d.sensors.raycast.FaceRows`), culled as a scanline
 rasteriser does: each face's projected vertices give a screen box (widened by :data:`BOX_MARGIN_PX` plus
 1e-5 of its size, which covers the core's barycentric tolerance and rounding), and in each sample row of the
 box only the columns whose 2D barycentrics are all >= -delta (:meth:`_FaceCull.spans`, a margin covering
@@ -55,8 +55,9 @@ pixel is
 
     out = photo + sum_visible w_k (colour_k - photo) = alpha * mean_visible(colour) + (1 - alpha) * photo,
 
-in display values (the photo's [0, 1] values); the shading and compositing run fused with a hand-written
-backward (:class:`_ShadeComposite`). Gradients: to the colours through the barycentric
+in display values (the photo's [0, 1] values); the recompute of t, u, v, the shading and the compositing run
+fused in numpy with a hand-written backward (:class:`_ShadeHits`; a crop's few thousand samples cost torch's
+per-op overhead). Gradients: to the colours through the barycentric
 interpolation, to the vertices through u, v (interpolation), the face normal (shading) and t (haze).
 The silhouette has **no** gradient: hit/miss, visibility and the nearest-face choice are piecewise
 constant; coverage changes only by whole samples.
@@ -76,7 +77,7 @@ import torch
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.sensors.camera_depth import DepthSource, camera_centre_rect, pixel_ray_components
 from robustbench3d.sensors.camera_model import Lighting
-from robustbench3d.sensors.raycast import PairCaster, back_faces, dot3
+from robustbench3d.sensors.raycast import FaceRows, PairCaster, back_faces, cross_rows, dot3, scatter_rows
 
 #: Absolute widening (pixels) of each face's projected box in the candidate cull (see the module docstring).
 BOX_MARGIN_PX = 1e-3
@@ -227,54 +228,122 @@ def shade(albedo: torch.Tensor, normals: torch.Tensor, distance: torch.Tensor, l
     return shade_lit(albedo, irradiance(normals, light), distance, light)
 
 
-class _ShadeComposite(torch.autograd.Function):
-    """Shade the hit samples and composite them over the photo, fused (:func:`shade_lit` and the
-    compositing of the module docstring). With the per-face lit colours ``lit`` (U, 9) = exposure *
-    (c0 | c1 | c2) * irradiance (vertex colours times the face's :func:`irradiance`), a sample (u, v, t) of face
-    slot k shows ``tone(E h (1 - f) + f ((1 - u - v) L0 + u L1 + v L2))``, f = exp(-t / haze) (E the exposure,
-    h the horizon colour, tone the curve of :func:`srgb_tone_curve`), and pixel p of ``base`` (P, 3) becomes
-    ``base_p + sum (colour - base_p) / s^2`` over its visible samples (``owner`` (K,) their pixels).
-    Per-sample tensors are component-major (3, K) so every pass is contiguous; the backward is the chain rule
-    of the same formulas by hand (checked against finite differences) in a few fused passes."""
+@dataclass(frozen=True, eq=False)
+class _HitSet:
+    """The hits a render shades (no grad): the distinct faces hit ``faces`` (U, 3), per hit its face's
+    position among them ``slot`` (K,), its unit ray direction ``dirs`` (K, 3) and its pixel ``owner`` (K,)
+    with weight ``weight`` (K,) (geometry dtype); the camera centre ``origin`` (3,) (geometry dtype)."""
+
+    faces: np.ndarray
+    slot: np.ndarray
+    dirs: np.ndarray
+    owner: np.ndarray
+    weight: np.ndarray
+    origin: np.ndarray
+
+
+def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """(C, n) sums of the columns of ``values`` (C, K) by ``index`` (K,), added one by one in order in the values'
+    dtype (as torch's index_add_): np.bincount for float64 (which adds in float64, in order), np.add.at else."""
+    if values.dtype == np.float64:
+        return np.stack([np.bincount(index, weights=row, minlength=n) for row in values])
+    out = np.zeros((len(values), n), values.dtype)
+    np.add.at(out.T, index, values.T)
+    return out
+
+
+class _ShadeHits(torch.autograd.Function):
+    """The differentiable part of a render, fused, in numpy with a hand-written backward: per face hit,
+    Möller–Trumbore's rows (:class:`~robustbench3d.sensors.raycast.FaceRows`, the core's recompute) and
+    the flat shading (unit normal of e1 x e2 turned towards the camera, :func:`irradiance`, lit colours
+    L_j = exposure * c_j * irradiance); per hit t, u, v (division guarded by ``where(det != 0, det, 1)``) and
+    ``tone(E h (1 - f) + f ((1 - u - v) L0 + u L1 + v L2))``, f = exp(-t / haze) (E the exposure, h the horizon
+    colour, tone the curve of :func:`srgb_tone_curve`); pixel p of ``base`` (P, 3) becomes
+    ``base_p + sum w_k (colour_k - base_p)`` over its hits. The same formulas as :func:`shade` (checked
+    against it and against finite differences); the backward is their chain rule, scattered to the vertices
+    and colours. Per-hit arrays are component-major (3, K)."""
 
     @staticmethod
-    def forward(ctx: Any, u: torch.Tensor, v: torch.Tensor, t: torch.Tensor, lit: torch.Tensor, slot: torch.Tensor,
-                owner: torch.Tensor, weight: torch.Tensor, base: torch.Tensor, light: dict) -> torch.Tensor:
-        g = lit.T.contiguous().index_select(1, slot)  # (9, K)
-        l0, d1, d2 = g[0:3], g[3:6] - g[0:3], g[6:9] - g[0:3]
-        fade = torch.exp(t * (-1.0 / light["haze"]))
-        haze = (light["horizon"] * light["exposure"])[:, None]
-        exposed = torch.addcmul(haze * (1.0 - fade), fade, l0 + u * d1 + v * d2)  # (3, K)
+    def forward(ctx: Any, verts: torch.Tensor, colors: torch.Tensor, base: torch.Tensor, hits: _HitSet,
+                light: dict) -> torch.Tensor:
+        vn, cn = verts.detach().numpy(), colors.detach().numpy()
+        dt = vn.dtype
+        f = hits.faces
+        fr = FaceRows.of(vn, f, hits.origin)
+        pairs = fr.tuv(hits.slot, hits.dirs)
+        t, u, v, e1, e2 = pairs.t, pairs.u, pairs.v, fr.e1, fr.e2
+        a0 = vn[f[:, 0]]
+        # shading normal e1 x e2, unit, turned towards the camera (the sign of n . d is the same for every hit)
+        n = cross_rows(e1, e2)
+        norm = np.sqrt(dot3(n, n))
+        m = np.maximum(norm, dt.type(1e-30))
+        unit = n / m[:, None]
+        flip = np.where(dot3(a0 - hits.origin, unit) > 0, dt.type(-1), dt.type(1))
+        nrm = unit * flip[:, None]
+        lt = {k: (x.numpy() if isinstance(x, torch.Tensor) else x) for k, x in light.items()}
+        amb = lt["ambient"] * (0.6 + 0.4 * (nrm @ lt["up"]))
+        sun_cos = nrm @ lt["sun"]
+        irr = amb[:, None] * lt["sky"] + np.maximum(sun_cos, 0.0)[:, None] * lt["sun_color"]  # (U, 3)
+        cf = cn[f]  # (U, 3 vertices, 3 channels)
+        lit = (cf * irr[:, None, :] * lt["exposure"]).reshape(-1, 9)
+        gl = lit.T.take(hits.slot, axis=1)  # (9, K)
+        l0, dl1, dl2 = gl[0:3], gl[3:6] - gl[0:3], gl[6:9] - gl[0:3]
+        fade = np.exp(t * (-1.0 / lt["haze"]))
+        haze = (lt["horizon"] * lt["exposure"])[:, None]
+        exposed = haze * (1.0 - fade) + fade * (l0 + u * dl1 + v * dl2)  # (3, K)
         den = 1.0 + 0.25 * exposed
         x = exposed / den
-        curve = 1.055 * torch.pow(torch.clamp(x, min=0.0031308), 1 / 2.4) - 0.055
         low = x <= 0.0031308
-        y = torch.where(low, 12.92 * x, curve)
+        y = np.where(low, 12.92 * x, 1.055 * np.power(np.maximum(x, dt.type(0.0031308)), 1 / 2.4) - 0.055)
         # d tone / d exposed: the curve's slope (1.055 / 2.4) x^(1/2.4 - 1) = (y + 0.055) / (2.4 x), times dx
-        slope = torch.where(low, 12.92, (y + 0.055) / (2.4 * x)) / den ** 2
-        slope = torch.where((y >= 0.0) & (y <= 1.0), slope, 0.0)
-        base_t = base.T.to(lit.dtype)  # (3, P)
-        acc = torch.zeros_like(base_t).index_add_(1, owner,
-                                                  (torch.clamp(y, 0.0, 1.0) - base_t.index_select(1, owner)) * weight)
-        ctx.save_for_backward(u, v, fade, d1, d2, exposed - haze, slope * weight, slot, owner, weight)
-        ctx.haze, ctx.n_faces = light["haze"], len(lit)
-        return (base_t + acc).T.to(base.dtype)
+        with np.errstate(divide="ignore", invalid="ignore"):  # x = 0 only where low (the slope taken is 12.92)
+            slope = np.where(low, 12.92, (y + 0.055) / (2.4 * x)) / (den * den)
+        slope = np.where((y >= 0.0) & (y <= 1.0), slope, 0.0)
+        bn = base.detach().numpy()
+        base_t = bn.T.astype(dt)  # (3, P)
+        w = hits.weight
+        contrib = (np.clip(y, 0.0, 1.0) - base_t.take(hits.owner, axis=1)) * w
+        acc = _sum_by(hits.owner, contrib, base_t.shape[1])
+        ctx.saved = (hits, lt, fr, pairs, fade, dl1, dl2, exposed - haze, slope * w, m, unit, flip, sun_cos, irr, cf)
+        ctx.shapes = (vn.shape, cn.shape, verts.dtype, colors.dtype, base.dtype)
+        return torch.from_numpy((base_t + acc).T.astype(bn.dtype))
 
     @staticmethod
     def backward(ctx: Any, grad: torch.Tensor) -> tuple:
-        u, v, fade, d1, d2, exposed_minus_haze, slope, slot, owner, weight = ctx.saved_tensors
-        g_exp = grad.T.to(slope.dtype).index_select(1, owner) * slope  # (3, K), slope includes the weight
+        hits, lt, fr, pairs, fade, dl1, dl2, exposed_minus_haze, slope, m, unit, flip, sun_cos, irr, cf = ctx.saved
+        v_shape, c_shape, v_dtype, c_dtype, b_dtype = ctx.shapes
+        dt = pairs.inv.dtype
+        u, v = pairs.u, pairs.v
+        gn = grad.detach().numpy().T.astype(dt)  # (3, P)
+        g_exp = gn.take(hits.owner, axis=1) * slope  # (3, K), slope includes the weight
         g_lit = g_exp * fade  # d / d((1 - u - v) L0 + u L1 + v L2)
         # exposed = E h + f (lit - E h), d f / d t = -f / haze: d exposed / d t = -(exposed - E h) / haze
-        g_t = (g_exp * exposed_minus_haze).sum(0) * (-1.0 / ctx.haze)
-        g_u, g_v = (g_lit * d1).sum(0), (g_lit * d2).sum(0)
-        rows = torch.cat([(1.0 - u - v) * g_lit, u * g_lit, v * g_lit])  # (9, K)
-        g_face = torch.zeros(9, ctx.n_faces, dtype=rows.dtype).index_add_(1, slot, rows).T
-        g_base = None
-        if ctx.needs_input_grad[7]:
-            covered = torch.zeros(len(grad), dtype=weight.dtype).index_add_(0, owner, weight).to(grad.dtype)
-            g_base = grad * (1.0 - covered)[:, None]
-        return g_u, g_v, g_t, g_face, None, None, None, g_base, None
+        ge = g_exp * exposed_minus_haze
+        g_t = (ge[0] + ge[1] + ge[2]) * (-1.0 / lt["haze"])
+        gu_, gv_ = g_lit * dl1, g_lit * dl2
+        g_u, g_v = gu_[0] + gu_[1] + gu_[2], gv_[0] + gv_[1] + gv_[2]
+        n_faces = len(hits.faces)
+        per_hit = np.concatenate([(1.0 - u - v) * g_lit, u * g_lit, v * g_lit]).T  # (K, 9)
+        g_litf = scatter_rows(hits.slot, per_hit, n_faces).reshape(-1, 3, 3)  # (U, 3 vertices, 3 channels)
+        out_v = out_c = out_b = None
+        if ctx.needs_input_grad[1]:
+            gc = (g_litf * (irr[:, None, :] * lt["exposure"])).reshape(-1, 3)
+            out_c = torch.from_numpy(scatter_rows(hits.faces.reshape(-1), gc, c_shape[0])).to(c_dtype)
+        if ctx.needs_input_grad[0]:
+            g_irr = (g_litf * cf).sum(1) * lt["exposure"]  # (U, 3)
+            # irradiance = ambient (0.6 + 0.4 n.up) sky + max(n.sun, 0) sun_color (clamp passes its gradient at 0)
+            g_nrm = ((lt["ambient"] * 0.4) * (g_irr @ lt["sky"]))[:, None] * lt["up"] + \
+                (np.where(sun_cos >= 0, g_irr @ lt["sun_color"], 0.0))[:, None] * lt["sun"]
+            g_unit = g_nrm * flip[:, None]
+            g_n = (g_unit - unit * dot3(unit, g_unit)[:, None]) / m[:, None]  # through n / |n|
+            # Möller–Trumbore's t, u, v (FaceRows), plus the shading normal e1 x e2 (for a x b: b x g, g x a)
+            g_e1, g_e2, g_t0 = fr.edge_grads(pairs, g_t, g_u, g_v)
+            out_v = torch.from_numpy(fr.vertex_grads(g_e1 + cross_rows(fr.e2, g_n), g_e2 + cross_rows(g_n, fr.e1),
+                                                     g_t0, v_shape[0])).to(v_dtype)
+        if ctx.needs_input_grad[2]:
+            covered = _sum_by(hits.owner, hits.weight[None], gn.shape[1])[0]  # then 1 - it in the grad's dtype
+            out_b = (grad * (1.0 - torch.from_numpy(covered).to(grad.dtype))[:, None]).to(b_dtype)
+        return out_v, out_c, out_b, None, None
 
 
 def _sample_offsets(s: int) -> np.ndarray:
@@ -715,28 +784,12 @@ def _render_pixels(base: torch.Tensor, w: int, calib: Calibration,
             weight = np.concatenate([np.ones(len(keep)), np.full(len(fine.sample), 1.0 / s2)])
             cast, tests = cast + fine.cast, tests + fine.tests
     face = np.concatenate([p.face for p in parts])
-    verts, faces_t = g.verts, g.faces_t
-    present = np.zeros(len(faces_t), np.int64)  # index_slots(face, F) in numpy: the distinct faces, each hit's slot
+    present = np.zeros(len(g.faces), np.int64)  # the distinct faces hit, and each hit's position among them
     present[face] = 1
-    used, slot = torch.from_numpy(present.nonzero()[0]), torch.from_numpy((present.cumsum() - 1)[face])
-    t, u, v = caster.recompute(torch.from_numpy(np.concatenate([p.dirs for p in parts])), torch.from_numpy(face),
-                               (used, slot))
-
-    # per face of the hits: camera-facing unit normal, irradiance and vertex colours; per sample: the fused
-    # shading and compositing of _ShadeComposite
-    fu = faces_t.index_select(0, used)
-    a0 = verts.index_select(0, fu[:, 0])
-    n = torch.linalg.cross(verts.index_select(0, fu[:, 1]) - a0, verts.index_select(0, fu[:, 2]) - a0, dim=-1)
-    n = n / torch.clamp(torch.linalg.norm(n, dim=-1, keepdim=True), min=1e-30)
-    # two-sided: turned towards the camera (the sign of n . d is the same for every ray hitting the face)
-    with torch.no_grad():  # the side only (not recorded for autograd: the same values)
-        flip = ((a0 - g.origin) * n).sum(-1, keepdim=True) > 0
-    n = torch.where(flip, -n, n)
-    light = _cached_lighting(lighting, calib, verts.dtype)
-    lit = (g.colors.index_select(0, fu.reshape(-1)).reshape(-1, 3, 3) * irradiance(n, light)[:, None, :]
-           * light["exposure"]).reshape(-1, 9)
-    out = _ShadeComposite.apply(u, v, t, lit, slot, torch.from_numpy(owner), torch.from_numpy(weight).to(verts.dtype),
-                                base, light)
+    hits = _HitSet(g.faces[present.nonzero()[0]], (present.cumsum() - 1)[face],
+                   np.concatenate([p.dirs for p in parts]), owner, weight.astype(g.np_dtype),
+                   g.centre.astype(g.np_dtype))
+    out = _ShadeHits.apply(g.verts, g.colors, base, hits, _cached_lighting(lighting, calib, g.verts.dtype))
     alpha = np.bincount(owner, weights=weight, minlength=len(region.pixels))
     return out, alpha, (cast, tests)
 

@@ -14,7 +14,9 @@ Numerically safe form (performance-notes.md §2):
    column of constants and three 3-term dot products per pair). The test has no divisions; the sign that
    makes t > 0 is folded in per face for a shared origin (t*det is then per face), per pair with offsets;
    the nearest face per ray is kept. Optional back-face culling (:func:`back_faces`, ``skip_faces``).
-2. Recompute, with grad, on the (ray, nearest face) pairs only; divisions by ``where(ok, det, 1)``.
+2. Recompute, with grad, on the (ray, nearest face) pairs only; divisions by ``where(ok, det, 1)``. In numpy
+   (:class:`FaceRows`: per-face rows of the faces hit, then per pair) with a hand-written backward: a car's
+   or a crop's few hundred to few thousand pairs would otherwise cost torch's per-op overhead.
 
 Two entry points share these kernels (:func:`_test_pairs`, :func:`_nearest`, :func:`_recompute`):
 :func:`cast_rays` builds the candidate pairs itself (bounding spheres, above; the LiDAR), and
@@ -83,34 +85,31 @@ def _as_tensor(x: object, dtype: torch.dtype, device: torch.device) -> torch.Ten
     return torch.as_tensor(a if a.flags.writeable else a.copy(), dtype=dtype, device=device)
 
 
-def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return torch.linalg.cross(a, b.expand_as(a) if b.dim() < a.dim() else b, dim=-1)
-
-
-def _face_tables(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor, valid: torch.Tensor, origin: torch.Tensor,
-                 axis: torch.Tensor, cos_min: float, offsets: bool) -> torch.Tensor:
+def _face_tables(v0: np.ndarray, e1: np.ndarray, e2: np.ndarray, valid: np.ndarray, origin: np.ndarray,
+                 axis: np.ndarray, cos_min: float, offsets: bool) -> np.ndarray:
     """Per-face constants of the no-grad test (module docstring), component-major (k, F) so that gathers by
     face give contiguous rows: rows 3j..3j+2 the vector whose dot product with d is face f's det, u*det,
     v*det at h = 0 (j = 0, 1, 2), row 9 t*det at h = 0, row 10 the grazing floor of |det| (+inf: never hit),
     and with ``offsets`` (k = 18) the slopes in h of u*det, v*det (rows 11..16) and of t*det (row 17).
+    In numpy in the vertices' dtype (a few hundred faces cost torch's per-op overhead).
 
     Shared origin (not ``offsets``): t*det is a per-face constant, so the sign that makes t > 0 is known
     per face; rows 0..9 are multiplied by sign(t*det) (exact), a hit then needs det > floor, and a face
     whose plane holds the origin (t*det = 0) gets an infinite floor."""
-    t0 = origin[None, :] - v0  # T at offset 0, (F, 3)
-    n = _cross(e2, e1)  # det = d . (e2 x e1)
-    s0 = (e2 * _cross(t0, e1)).sum(-1)  # t*det = s0 + h s1
+    t0 = origin - v0  # T at offset 0, (F, 3)
+    n = cross_rows(e2, e1)  # det = d . (e2 x e1)
+    s0 = dot3(e2, cross_rows(t0, e1))  # t*det = s0 + h s1
     # relative grazing cut |det| > cos_min * |n| * |d| (unit d), never on a degenerate face
-    floor = torch.where(valid, cos_min * torch.linalg.norm(n, dim=-1), torch.full_like(s0, float("inf")))
-    rows = [n, _cross(e2, t0), _cross(t0, e1), s0[:, None], floor[:, None]]
+    floor = np.where(valid, cos_min * np.sqrt(dot3(n, n)), np.inf)
+    rows = [n, cross_rows(e2, t0), cross_rows(t0, e1), s0[:, None], floor[:, None]]
     if offsets:
-        ax = axis[None, :].expand_as(e1)
-        rows += [_cross(e2, ax), _cross(ax, e1), (e2 * _cross(ax, e1)).sum(-1)[:, None]]
-    table = torch.cat(rows, 1).T.contiguous()
+        ax = np.broadcast_to(axis, e1.shape)
+        rows += [cross_rows(e2, ax), cross_rows(ax, e1), dot3(e2, cross_rows(ax, e1))[:, None]]
+    table = np.concatenate(rows, axis=1).T.copy()
     if not offsets:
-        sign = torch.sign(s0)
+        sign = np.sign(s0)
         table[:10] *= sign
-        table[10] = torch.where(sign != 0, table[10], torch.full_like(s0, float("inf")))
+        table[10] = np.where(sign != 0, table[10], np.inf)
     return table
 
 
@@ -156,17 +155,54 @@ def _nearest_t(ray: torch.Tensor, face: torch.Tensor, t: torch.Tensor, n_rays: i
     return torch.where(first < n_faces, first, torch.full_like(first, -1)), best
 
 
-class _PairTUV(torch.autograd.Function):
-    """t, u, v (K,) of rays (unit d (K, 3), offsets h (K,) or None) against per-face rows ``m`` (U, 10 or 17)
-    [det vector, u*det vector, v*det vector, t*det, (slopes in h: u*det, v*det vectors, t*det)] gathered by
-    ``slot`` (K,): the shared-origin Möller–Trumbore of :func:`_test_pairs`, with the division guarded by
-    ``where(det != 0, det, 1)``. Backward: one index_add of the (K, 10 or 17) row gradients."""
+def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise a x b of (N, 3) arrays (np.cross's components, without its per-call overhead)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
 
-    @staticmethod
-    def forward(ctx: object, m: torch.Tensor, slot: torch.Tensor, d: torch.Tensor, h: torch.Tensor | None
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        g = m.T.contiguous().index_select(1, slot)
-        d0, d1, d2 = d.T.contiguous()
+
+def scatter_rows(index: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
+    """(n, C) float64 sums of the rows (K, C) by ``index`` (K,) (np.bincount, a column at a time)."""
+    return np.stack([np.bincount(index, weights=rows[:, c], minlength=n) for c in range(rows.shape[1])], axis=1)
+
+
+@dataclass(frozen=True, eq=False)
+class FaceRows:
+    """Möller–Trumbore's per-face rows of the faces ``faces`` (U, 3) of float ``vertices`` (numpy, their dtype):
+    a0 and the edges e1 = a1 - a0, e2 = a2 - a0, T0 = origin - a0, q0 = T0 x e1, and ``rows`` (10 or 17, U),
+    component-major: the det vector e2 x e1, the u*det vector e2 x T0, the v*det vector q0, t*det = e2 . q0, and
+    with an offset ``axis`` (ray origins origin + h axis) the slopes in h: e2 x axis, q1 = axis x e1, e2 . q1."""
+
+    faces: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    t0: np.ndarray
+    q0: np.ndarray
+    axis: np.ndarray | None
+    q1: np.ndarray | None
+    rows: np.ndarray
+
+    @classmethod
+    def of(cls, vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, axis: np.ndarray | None = None
+           ) -> FaceRows:
+        a0 = vertices[faces[:, 0]]
+        e1, e2 = vertices[faces[:, 1]] - a0, vertices[faces[:, 2]] - a0
+        t0 = origin - a0
+        q0 = cross_rows(t0, e1)
+        parts = [cross_rows(e2, e1), cross_rows(e2, t0), q0, dot3(e2, q0)[:, None]]
+        q1 = None
+        if axis is not None:
+            ax = np.broadcast_to(axis, e1.shape)
+            q1 = cross_rows(ax, e1)
+            parts += [cross_rows(e2, ax), q1, dot3(e2, q1)[:, None]]
+        return cls(faces, e1, e2, t0, q0, axis, q1, np.concatenate(parts, axis=1).T.copy())
+
+    def tuv(self, slot: np.ndarray, d: np.ndarray, h: np.ndarray | None = None) -> PairTUV:
+        """t, u, v of rays (unit directions ``d`` (K, 3), offsets ``h`` (K,) with an axis) against the faces
+        ``slot`` (K,) (positions in :attr:`faces`): t*det / det etc., the division guarded by
+        ``where(det != 0, det, 1)``."""
+        g = self.rows.take(slot, axis=1)
+        d0, d1, d2 = d.T
         det = g[0] * d0 + g[1] * d1 + g[2] * d2
         un = g[3] * d0 + g[4] * d1 + g[5] * d2
         vn = g[6] * d0 + g[7] * d1 + g[8] * d2
@@ -176,23 +212,83 @@ class _PairTUV(torch.autograd.Function):
             vn = vn + h * (g[13] * d0 + g[14] * d1 + g[15] * d2)
             tn = tn + h * g[16]
         ok = det != 0
-        inv = 1.0 / torch.where(ok, det, torch.ones_like(det))
-        t, u, v = tn * inv, un * inv, vn * inv
-        ctx.save_for_backward(slot, d0, d1, d2, h, ok, inv, t, u, v)
-        ctx.n_faces = len(m)
-        return t, u, v
+        inv = 1.0 / np.where(ok, det, det.dtype.type(1))
+        return PairTUV(slot, d, h, ok, inv, tn * inv, un * inv, vn * inv)
+
+    def edge_grads(self, pairs: PairTUV, gt: np.ndarray, gu: np.ndarray, gv: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Gradients (U, 3) float64 w.r.t. e1, e2 and T0 of the loss whose gradients w.r.t. the pairs' t, u, v
+        are ``gt``, ``gu``, ``gv`` (K,) (the chain rule through :meth:`tuv` and the rows; for a x b the gradient
+        is b x g w.r.t. a and g x a w.r.t. b)."""
+        inv, (d0, d1, d2) = pairs.inv, pairs.d.T
+        gdet = np.where(pairs.ok, -(gt * pairs.t + gu * pairs.u + gv * pairs.v) * inv, 0.0)
+        gun, gvn, gtn = gu * inv, gv * inv, gt * inv
+        cols = [gdet * d0, gdet * d1, gdet * d2, gun * d0, gun * d1, gun * d2, gvn * d0, gvn * d1, gvn * d2, gtn]
+        if pairs.h is not None:
+            cols += [x * pairs.h for x in cols[3:]]
+        gm = scatter_rows(pairs.slot, np.stack(cols, axis=1), len(self.faces))
+        e1, e2, t0 = self.e1, self.e2, self.t0
+        g_det, g_ru = gm[:, 0:3], gm[:, 3:6]
+        g_q0 = gm[:, 6:9] + gm[:, 9:10] * e2
+        g_e1 = cross_rows(g_det, e2) + cross_rows(g_q0, t0)
+        g_e2 = cross_rows(e1, g_det) + cross_rows(t0, g_ru) + gm[:, 9:10] * self.q0
+        g_t0 = cross_rows(g_ru, e2) + cross_rows(e1, g_q0)
+        if pairs.h is not None:
+            ax = np.broadcast_to(self.axis, e1.shape)
+            g_q1 = gm[:, 13:16] + gm[:, 16:17] * e2
+            g_e1 = g_e1 + cross_rows(g_q1, ax)
+            g_e2 = g_e2 + cross_rows(ax, gm[:, 10:13]) + gm[:, 16:17] * self.q1
+        return g_e1, g_e2, g_t0
+
+    def vertex_grads(self, g_e1: np.ndarray, g_e2: np.ndarray, g_t0: np.ndarray, n_vertices: int) -> np.ndarray:
+        """(V, 3) float64: gradients w.r.t. e1 = a1 - a0, e2 = a2 - a0 and T0 = origin - a0 summed per vertex."""
+        rows = np.concatenate([-(g_e1 + g_e2 + g_t0), g_e1, g_e2])
+        return scatter_rows(np.concatenate([self.faces[:, 0], self.faces[:, 1], self.faces[:, 2]]), rows, n_vertices)
+
+
+@dataclass(frozen=True, eq=False)
+class PairTUV:
+    """:meth:`FaceRows.tuv` of K pairs: their face positions ``slot``, directions ``d``, offsets ``h``, det != 0
+    ``ok``, 1 / det (1 where det = 0) ``inv``, and t, u, v (K,)."""
+
+    slot: np.ndarray
+    d: np.ndarray
+    h: np.ndarray | None
+    ok: np.ndarray
+    inv: np.ndarray
+    t: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+
+def face_slots(face: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(used, slot) of int64 indices ``face`` (K,) into range(n): the sorted distinct indices and each index's
+    position among them (numpy twin of :func:`index_slots`)."""
+    present = np.zeros(n, np.int64)
+    present[face] = 1
+    return present.nonzero()[0], (present.cumsum() - 1)[face]
+
+
+class _RecomputeTUV(torch.autograd.Function):
+    """Differentiable t, u, v (K,) of (ray, face) pairs (:class:`FaceRows`, in numpy in the vertices' dtype);
+    backward by hand (:meth:`FaceRows.edge_grads`, checked against finite differences)."""
+
+    @staticmethod
+    def forward(ctx: object, vertices: torch.Tensor, faces: np.ndarray, face: np.ndarray, d: np.ndarray,
+                origin: np.ndarray, h: np.ndarray | None, axis: np.ndarray | None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        used, slot = face_slots(face, len(faces))
+        fr = FaceRows.of(vertices.detach().numpy(), faces[used], origin, axis)
+        pairs = fr.tuv(slot, d, h)
+        ctx.fr, ctx.pairs, ctx.n_vertices, ctx.dtype = fr, pairs, len(vertices), vertices.dtype
+        return torch.from_numpy(pairs.t), torch.from_numpy(pairs.u), torch.from_numpy(pairs.v)
 
     @staticmethod
     def backward(ctx: object, gt: torch.Tensor, gu: torch.Tensor, gv: torch.Tensor) -> tuple:
-        slot, d0, d1, d2, h, ok, inv, t, u, v = ctx.saved_tensors
-        gdet = torch.where(ok, -(gt * t + gu * u + gv * v) * inv, torch.zeros_like(inv))  # det = 0: constant 1
-        gun, gvn, gtn = gu * inv, gv * inv, gt * inv
-        cols = [gdet * d0, gdet * d1, gdet * d2, gun * d0, gun * d1, gun * d2, gvn * d0, gvn * d1, gvn * d2, gtn]
-        if h is not None:
-            cols += [x * h for x in cols[3:]]
-        grows = torch.stack(cols, 1)
-        gm = grows.new_zeros(ctx.n_faces, grows.shape[1]).index_add_(0, slot, grows)
-        return gm, None, None, None
+        fr, pairs = ctx.fr, ctx.pairs
+        grads = fr.edge_grads(pairs, gt.numpy(), gu.numpy(), gv.numpy())
+        gvert = torch.from_numpy(fr.vertex_grads(*grads, ctx.n_vertices)).to(ctx.dtype)
+        return gvert, None, None, None, None, None, None
 
 
 def index_slots(index: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -203,30 +299,15 @@ def index_slots(index: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor
 
 
 def _recompute(vertices: torch.Tensor, faces_t: torch.Tensor, d: torch.Tensor, origin: torch.Tensor,
-               h: torch.Tensor | None, axis: torch.Tensor, ray: torch.Tensor, face: torch.Tensor,
-               slots: tuple[torch.Tensor, torch.Tensor] | None = None
+               h: torch.Tensor | None, axis: torch.Tensor, ray: torch.Tensor, face: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Differentiable t, u, v (P,) of the (ray, face) pairs (which hit): the per-face rows of the test
-    (:func:`_face_tables`' vectors, no sign fold) formed with autograd once per face (all faces, or those of
-    the pairs when there are fewer pairs than faces), then :class:`_PairTUV` per pair. ``slots``:
-    ``index_slots(face, len(faces_t))`` if the caller has it."""
-    if len(face) < len(faces_t):
-        used, slot = index_slots(face, len(faces_t)) if slots is None else slots
-        f = faces_t.index_select(0, used)
-    else:
-        slot, f = face, faces_t
-    a0 = vertices.index_select(0, f[:, 0])
-    e1 = vertices.index_select(0, f[:, 1]) - a0
-    e2 = vertices.index_select(0, f[:, 2]) - a0
-    t0 = origin[None, :] - a0
-    q0 = _cross(t0, e1)
-    rows = [_cross(e2, e1), _cross(e2, t0), q0, (e2 * q0).sum(-1, keepdim=True)]
-    if h is not None:
-        ax = axis[None, :].expand_as(e1)
-        q1 = _cross(ax, e1)
-        rows += [_cross(e2, ax), q1, (e2 * q1).sum(-1, keepdim=True)]
-    return _PairTUV.apply(torch.cat(rows, 1), slot, d.index_select(0, ray),
-                          None if h is None else h.index_select(0, ray))
+    """Differentiable t, u, v (P,) of the (ray, face) pairs (which hit): Möller–Trumbore's per-face rows
+    (:class:`FaceRows`, :func:`_face_tables`' vectors without the sign fold) of the faces of the pairs, then
+    per pair (:class:`_RecomputeTUV`; numpy: a crop's or a car's few hundred pairs cost torch's per-op
+    overhead)."""
+    return _RecomputeTUV.apply(vertices, faces_t.numpy(), face.numpy(), d.index_select(0, ray).numpy(),
+                               origin.numpy(), None if h is None else h.index_select(0, ray).numpy(),
+                               None if h is None else axis.numpy())
 
 
 def _cluster_spheres(v0: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -410,18 +491,21 @@ def _prepare(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Tens
 
 
 def _face_geometry(p: _Prepared, cos_min: float, skip: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
-    """No grad: v0, e1, e2 (F, 3) and the test's per-face table (:func:`_face_tables`); faces of the mask
-    ``skip`` (F,) never hit."""
-    vd = p.vertices.detach()
-    f = p.faces
-    v0, v1, v2 = vd.index_select(0, f[:, 0]), vd.index_select(0, f[:, 1]), vd.index_select(0, f[:, 2])
+    """No grad: v0, e1, e2 (F, 3) and the test's per-face table (:func:`_face_tables`) as tensors; faces of the
+    mask ``skip`` (F,) never hit. Formed in numpy in the vertices' dtype."""
+    vd = p.vertices.detach().numpy()
+    f = p.faces.numpy()
+    v0, v1, v2 = vd[f[:, 0]], vd[f[:, 1]], vd[f[:, 2]]
     e1, e2 = v1 - v0, v2 - v0
-    area2 = torch.linalg.norm(_cross(e1, e2), dim=-1)
-    longest = torch.maximum(torch.maximum((e1 * e1).sum(-1), (e2 * e2).sum(-1)), ((v2 - v1) ** 2).sum(-1))
-    valid = (area2 > _SLIVER[vd.dtype] * longest) & torch.isfinite(area2)
+    c = cross_rows(e1, e2)
+    area2 = np.sqrt(dot3(c, c))
+    e3 = v2 - v1
+    longest = np.maximum(np.maximum(dot3(e1, e1), dot3(e2, e2)), dot3(e3, e3))
+    valid = (area2 > _SLIVER[p.vertices.dtype] * longest) & np.isfinite(area2)
     if skip is not None:
-        valid &= ~skip
-    return v0, e1, e2, _face_tables(v0, e1, e2, valid, p.origin, p.axis, cos_min, p.h is not None)
+        valid &= ~skip.numpy()
+    table = _face_tables(v0, e1, e2, valid, p.origin.numpy(), p.axis.numpy(), cos_min, p.h is not None)
+    return torch.from_numpy(v0), torch.from_numpy(e1), torch.from_numpy(e2), torch.from_numpy(table)
 
 
 def _hits(p: _Prepared, face: torch.Tensor, tests: int) -> RayHits:
@@ -563,18 +647,16 @@ class PairCaster:
         ray = torch.nonzero(face >= 0).reshape(-1)
         return ray, face.index_select(0, ray), best.index_select(0, ray), tests
 
-    def recompute(self, directions: torch.Tensor, face: torch.Tensor,
-                  slots: tuple[torch.Tensor, torch.Tensor] | None = None
+    def recompute(self, directions: torch.Tensor, face: torch.Tensor
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """t, u, v (K,) of rays (unit directions (K, 3)) against the faces ``face`` (K,) they hit (a
-        :meth:`search`'s winners), differentiable w.r.t. the vertices (0 with a connected graph if K = 0);
-        ``slots`` = :func:`index_slots` (face, F) if the caller has it (saves recomputing it)."""
+        :meth:`search`'s winners), differentiable w.r.t. the vertices (0 with a connected graph if K = 0)."""
         p = self._p
         if len(face) == 0:
             zero = p.vertices.new_zeros(0) + 0.0 * p.vertices.sum()
             return zero, zero, zero
         d = _as_tensor(directions, self.dtype, p.vertices.device).reshape(-1, 3)
-        return _recompute(p.vertices, p.faces, d, p.origin, None, p.axis, torch.arange(len(face)), face, slots)
+        return _recompute(p.vertices, p.faces, d, p.origin, None, p.axis, torch.arange(len(face)), face)
 
 
 #: Chunks of :func:`_pair_search` after which the hits so far are reduced to each ray's nearest.
