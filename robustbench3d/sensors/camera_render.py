@@ -77,7 +77,16 @@ import torch
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.sensors.camera_depth import DepthSource, camera_centre_rect, pixel_ray_components
 from robustbench3d.sensors.camera_model import Lighting
-from robustbench3d.sensors.raycast import FaceRows, PairCaster, back_faces, cross_rows, dot3, scatter_rows
+from robustbench3d.sensors.raycast import (
+    FaceRows,
+    PairCaster,
+    back_faces,
+    cross_rows,
+    dot3,
+    hit_pairs_np,
+    nearest_np,
+    scatter_rows,
+)
 
 #: Absolute widening (pixels) of each face's projected box in the candidate cull (see the module docstring).
 BOX_MARGIN_PX = 1e-3
@@ -89,8 +98,6 @@ SPAN_MARGIN = 1e-3
 SPAN_DEPTH_RATIO = 20.0
 #: Vertices nearer than this camera-2 depth (m) count as behind the camera for the boxes.
 _NEAR = 1e-6
-#: "No face yet" in the numpy search's per-ray minimum.
-_NO_FACE = np.iinfo(np.int64).max
 
 #: Lighting for frames without a known scene (real KITTI): a clear day, sun 40 degrees high behind-left
 #: (velodyne frame), colours in the middle of the generator's clear-weather ranges.
@@ -670,45 +677,28 @@ def _dense_pairs(rays: np.ndarray, faces: np.ndarray) -> Iterator[tuple[np.ndarr
 
 def _search_pairs(caster: PairCaster, d_cols: np.ndarray, pairs: Iterator[tuple[np.ndarray, np.ndarray]]
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """:meth:`PairCaster.search` in numpy, for the few thousand pairs of a crop (torch's per-op overhead
-    dominates there): (rays (K,) ascending, their nearest faces (K,), t (K,), pairs tested) of the rays
-    (unit directions by component ``d_cols`` (3, R), in the caster's dtype) hitting a face of their candidate
-    ``pairs`` (in range). The same element-wise operations in the same order and dtype as the caster's
-    kernel (``raycast._test_pairs``, shared origin; IEEE arithmetic, so the same verdicts and t bit for bit),
-    and the same choice: the nearest t per ray, equal t to the smallest face index."""
-    table = caster.table
-    tab = None if table is None else table.numpy()
-    tol, t_min = caster.tol, caster.t_min
+    """:meth:`PairCaster.search` on numpy pairs without building tensors: (rays (K,) ascending, their nearest faces
+    (K,), t (K,), pairs tested) of the rays (unit directions by component ``d_cols`` (3, R), in the caster's
+    dtype) hitting a face of their candidate ``pairs`` (in range): the caster's kernel
+    (:func:`~robustbench3d.sensors.raycast.hit_pairs_np`, shared origin) and its choice, the nearest t per ray,
+    equal t to the smallest face index (:func:`~robustbench3d.sensors.raycast.nearest_np`)."""
+    tab = None if caster.table is None else caster.table.numpy()
     rays, faces, ts = [], [], []
     tests = 0
     for ray, face in pairs:
         tests += len(ray)
         if len(ray) == 0:
             continue
-        g = tab.take(face, axis=1)
-        d0, d1, d2 = d_cols.take(ray, axis=1)
-        det = g[0] * d0 + g[1] * d1 + g[2] * d2
-        un = g[3] * d0 + g[4] * d1 + g[5] * d2
-        vn = g[6] * d0 + g[7] * d1 + g[8] * d2
-        tn = g[9]
-        slack = tol * det
-        ok = (det > g[10]) & (un >= -slack) & (vn >= -slack) & (un + vn <= det + slack) & (tn > t_min * det)
-        idx = ok.nonzero()[0]
+        idx, t = hit_pairs_np(tab, d_cols, None, ray, face, caster.t_min, caster.tol)
         rays.append(ray[idx])
         faces.append(face[idx])
-        ts.append(tn[idx] / det[idx])
+        ts.append(t)
     if not ts or not sum(len(t) for t in ts):
         empty = np.zeros(0, np.int64)
         return empty, empty, np.zeros(0, d_cols.dtype), tests
-    ray, face, t = np.concatenate(rays), np.concatenate(faces), np.concatenate(ts)
-    n_rays = d_cols.shape[1]
-    best = np.full(n_rays, np.inf, t.dtype)
-    np.minimum.at(best, ray, t)  # nearest t per ray
-    win = (t == best[ray]).nonzero()[0]
-    first = np.full(n_rays, _NO_FACE)
-    np.minimum.at(first, ray[win], face[win])  # among equal t the smallest face
-    hit = (first != _NO_FACE).nonzero()[0]
-    return hit, first[hit], best[hit], tests
+    nearest, best = nearest_np(np.concatenate(rays), np.concatenate(faces), np.concatenate(ts), d_cols.shape[1])
+    hit = (nearest >= 0).nonzero()[0]
+    return hit, nearest[hit], best[hit], tests
 
 
 def _visible_hits(calib: Calibration, g: _Geometry, caster: PairCaster, region: _Region, w: int, s: int,

@@ -18,11 +18,15 @@ Numerically safe form (performance-notes.md §2):
    (:class:`FaceRows`: per-face rows of the faces hit, then per pair) with a hand-written backward: a car's
    or a crop's few hundred to few thousand pairs would otherwise cost torch's per-op overhead.
 
-Two entry points share these kernels (:func:`_test_pairs`, :func:`_nearest`, :func:`_recompute`):
-:func:`cast_rays` builds the candidate pairs itself (bounding spheres, above; the LiDAR), and
-:func:`cast_ray_pairs` takes candidate (ray, face) pairs from the caller's own cull (the camera's
-per-face screen boxes). Both test a pair element-wise, so its verdict and t do not depend on the
-other pairs, and keep the nearest hit per ray (equal t: the smallest face index).
+Two entry points share the per-face table (:func:`_face_tables`) and the recompute (:func:`_recompute`):
+:func:`cast_rays` builds the candidate pairs itself (bounding spheres, above) and tests them in torch
+(:func:`_test_pairs`, :func:`_nearest`: large dense casts), and :func:`cast_ray_pairs` (and
+:class:`PairCaster`) takes candidate (ray, face) pairs from the caller's own cull (the LiDAR's per-face
+bounding spheres, the camera's per-face screen boxes) and tests them with the numpy twin of the same kernel
+(:func:`hit_pairs_np`, :func:`nearest_np`: a car's few thousand pairs cost torch's per-op overhead; the same
+element-wise IEEE operations in the same order and dtype, so the same verdicts and t bit for bit). Both test
+a pair element-wise, so its verdict and t do not depend on the other pairs, and keep the nearest hit per ray
+(equal t: the smallest face index).
 
 Rejected: faces of (near) zero area, rays within ``arccos(cos_min)`` of grazing (relative cut
 |cos(incidence)| > cos_min, which also bounds the gradients at about 1/cos_min), hits at t <= t_min.
@@ -137,6 +141,45 @@ def _test_pairs(table: torch.Tensor, d_cols: torch.Tensor, h: torch.Tensor | Non
     ok = (det > g[10]) & (un >= -slack) & (vn >= -slack) & (un + vn <= det + slack) & (tn > t_min * det)
     idx = torch.nonzero(ok).reshape(-1)
     return idx, tn.index_select(0, idx) / det.index_select(0, idx)
+
+
+def hit_pairs_np(table: np.ndarray, d_cols: np.ndarray, h: np.ndarray | None, ray: np.ndarray, face: np.ndarray,
+                  t_min: float, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_test_pairs` in numpy (the same element-wise operations in the same order and dtype: IEEE
+    arithmetic, so the same verdicts and t bit for bit), for the few hundred to few thousand pairs of a car or a
+    crop, whose cost in torch is its per-op overhead."""
+    g = table.take(face, axis=1)
+    d0, d1, d2 = d_cols.take(ray, axis=1)
+    det = g[0] * d0 + g[1] * d1 + g[2] * d2
+    un = g[3] * d0 + g[4] * d1 + g[5] * d2
+    vn = g[6] * d0 + g[7] * d1 + g[8] * d2
+    tn = g[9]
+    if h is not None:
+        hr = h.take(ray)
+        un = un + hr * (g[11] * d0 + g[12] * d1 + g[13] * d2)
+        vn = vn + hr * (g[14] * d0 + g[15] * d1 + g[16] * d2)
+        tn = tn + hr * g[17]
+        sign = np.sign(tn)
+        det, un, vn, tn = det * sign, un * sign, vn * sign, np.abs(tn)
+    slack = tol * det
+    ok = (det > g[10]) & (un >= -slack) & (vn >= -slack) & (un + vn <= det + slack) & (tn > t_min * det)
+    idx = ok.nonzero()[0]
+    return idx, tn[idx] / det[idx]
+
+
+#: "No face yet" in :func:`nearest_np`'s per-ray minimum.
+_NO_FACE = np.iinfo(np.int64).max
+
+
+def nearest_np(ray: np.ndarray, face: np.ndarray, t: np.ndarray, n_rays: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_nearest_t` in numpy: (nearest face per ray (n_rays,) or -1, its t or +inf); equal t resolve to the
+    smallest face index."""
+    best = np.full(n_rays, np.inf, t.dtype)
+    np.minimum.at(best, ray, t)
+    win = (t == best[ray]).nonzero()[0]
+    first = np.full(n_rays, _NO_FACE)
+    np.minimum.at(first, ray[win], face[win])
+    return np.where(first != _NO_FACE, first, -1), best
 
 
 def _nearest(ray: torch.Tensor, face: torch.Tensor, t: torch.Tensor, n_rays: int, n_faces: int) -> torch.Tensor:
@@ -663,49 +706,51 @@ class PairCaster:
 _COMPACT_EVERY = 512
 
 
-def _compact(rays: list[torch.Tensor], faces: list[torch.Tensor], ts: list[torch.Tensor], n_rays: int, n_faces: int
-             ) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
-    """The hits of several chunks reduced to each hit ray's nearest (face, t) (:func:`_nearest_t`: the nearest t,
+def _compact(rays: list[np.ndarray], faces: list[np.ndarray], ts: list[np.ndarray], n_rays: int
+             ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """The hits of several chunks reduced to each hit ray's nearest (face, t) (:func:`nearest_np`: the nearest t,
     equal t the smallest face), so that the final reduction over all chunks gives the same winners."""
-    ray, face, t = torch.cat(rays), torch.cat(faces), torch.cat(ts)
+    ray, face, t = np.concatenate(rays), np.concatenate(faces), np.concatenate(ts)
     if len(t) == 0:
         return [ray], [face], [t]
-    nearest, best = _nearest_t(ray, face, t, n_rays, n_faces)
-    keep = torch.nonzero(nearest >= 0).reshape(-1)
-    return [keep], [nearest.index_select(0, keep)], [best.index_select(0, keep)]
+    nearest, best = nearest_np(ray, face, t, n_rays)
+    keep = (nearest >= 0).nonzero()[0]
+    return [keep], [nearest[keep]], [best[keep]]
+
+
+def _as_index(x: torch.Tensor | np.ndarray) -> np.ndarray:
+    return np.asarray(x.numpy() if isinstance(x, torch.Tensor) else x, np.int64).reshape(-1)
 
 
 def _pair_search(p: _Prepared, table: torch.Tensor | None, chunks: Iterable[tuple[torch.Tensor, torch.Tensor]],
                  t_min: float, name: str, check: bool = True) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The no-grad search of the pair casts: (nearest face per ray (R,) or -1, its t (R,) or +inf, pairs
-    tested)."""
-    dev = p.d.device
+    tested), each pair tested by :func:`hit_pairs_np`."""
     n_rays, n_faces = len(p.d), len(p.faces)
     rays, faces_hit, ts = [], [], []
     tests = 0
-    with torch.no_grad():
-        d_cols = None
-        for ray_index, face_index in chunks:
-            ray = _as_tensor(ray_index, torch.int64, dev).reshape(-1)
-            fc = _as_tensor(face_index, torch.int64, dev).reshape(-1)
-            if len(ray) != len(fc):
-                raise ValueError(f"{name}: field 'face_index': {len(fc)} faces for {len(ray)} rays")
-            if check and len(ray) and (int(ray.min()) < 0 or int(ray.max()) >= n_rays or int(fc.min()) < 0
-                             or int(fc.max()) >= n_faces):
-                raise ValueError(f"{name}: field 'ray_index': pairs must index {n_rays} rays and {n_faces} faces")
-            tests += len(ray)
-            if len(ray) == 0:
-                continue
-            if d_cols is None:
-                d_cols = p.d.T.contiguous()
-            ok, t = _test_pairs(table, d_cols, p.h, ray, fc, t_min, p.tol)
-            rays.append(ray.index_select(0, ok))
-            faces_hit.append(fc.index_select(0, ok))
-            ts.append(t)
-            if len(ts) >= _COMPACT_EVERY:  # many chunks (e.g. a full-scene cast): keep each ray's nearest so far
-                rays, faces_hit, ts = _compact(rays, faces_hit, ts, n_rays, n_faces)
-        face = torch.full((n_rays,), -1, dtype=torch.int64, device=dev)
-        best = torch.full((n_rays,), float("inf"), dtype=p.d.dtype, device=dev)
-        if ts and sum(len(t) for t in ts):
-            face, best = _nearest_t(torch.cat(rays), torch.cat(faces_hit), torch.cat(ts), n_rays, n_faces)
-    return face, best, tests
+    d_cols = h = tab = None
+    for ray_index, face_index in chunks:
+        ray, fc = _as_index(ray_index), _as_index(face_index)
+        if len(ray) != len(fc):
+            raise ValueError(f"{name}: field 'face_index': {len(fc)} faces for {len(ray)} rays")
+        if check and len(ray) and (int(ray.min()) < 0 or int(ray.max()) >= n_rays or int(fc.min()) < 0
+                         or int(fc.max()) >= n_faces):
+            raise ValueError(f"{name}: field 'ray_index': pairs must index {n_rays} rays and {n_faces} faces")
+        tests += len(ray)
+        if len(ray) == 0:
+            continue
+        if d_cols is None:
+            d_cols, tab = p.d.numpy().T.copy(), table.numpy()
+            h = None if p.h is None else p.h.numpy()
+        ok, t = hit_pairs_np(tab, d_cols, h, ray, fc, t_min, p.tol)
+        rays.append(ray[ok])
+        faces_hit.append(fc[ok])
+        ts.append(t)
+        if len(ts) >= _COMPACT_EVERY:  # many chunks (e.g. a full-scene cast): keep each ray's nearest so far
+            rays, faces_hit, ts = _compact(rays, faces_hit, ts, n_rays)
+    face = np.full(n_rays, -1, np.int64)
+    best = np.full(n_rays, np.inf, p.d.numpy().dtype)
+    if ts and sum(len(t) for t in ts):
+        face, best = nearest_np(np.concatenate(rays), np.concatenate(faces_hit), np.concatenate(ts), n_rays)
+    return torch.from_numpy(face), torch.from_numpy(best), tests
