@@ -1,0 +1,177 @@
+"""How far any texture of the roof object can move the 2D detector: a per-frame, per-pixel bound.
+
+For each of the first N val frames of the embedded dataset with target cars, the pixels of a mask are set
+free (one colour logit per pixel and channel, colour = sigmoid(logit), starting at the shaded grey object, or
+at the photo for ``box``) and optimised against that frame alone with Adam, minimising for every target car
+the sum over its 2D candidates of IoU >= 0.5 of ``-log(1 - objectness * class probability)`` (the image
+loss's terms, from logits).
+With the ``bounds`` mask this attacker is stronger than any universal object within the bounds: every shape
+inside the bounds' box covers a subset of the box's pixels, and it picks the colour of every pixel separately
+for each frame instead of 162 vertex colours shared by all cars. The masks:
+
+* ``object``: every pixel the undeformed sphere (r = 0.40 m) on each car's roof covers (its coverage alpha);
+* ``bounds``: every pixel the bounds' box (0.8 m cube, an 8-vertex mesh) placed the same way covers;
+* both rendered without scene occlusion, so also the pixels a nearer object would hide (a superset);
+* ``box``: each car's whole ground-truth 2D box (a control: the optimiser can remove a car when it may
+  repaint all of it).
+
+Each attacked image (rounded to 8 bits, the clean scan) goes through the whole victim with its own 2D
+detections, and Car BEV AP @0.7 (R40, easy / moderate / hard) is computed over the N frames.
+
+Usage: python docs/scripts/texture_bound.py [N] [STEPS] [MASKS]   (default 20 50 object,bounds,box)
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from robustbench3d.attacks.base import target_cars
+from robustbench3d.attacks.losses import neg_log_one_minus_product
+from robustbench3d.attacks.object import BOUNDS, benign_sphere, template_faces
+from robustbench3d.attacks.placement import cars_of, place_on_roof
+from robustbench3d.datasets import load_ground_truth, resolve_dataset
+from robustbench3d.eval.kitti_eval import evaluate
+from robustbench3d.sensors.camera_render import render_camera, render_camera_torch
+from robustbench3d.victims import create_victim
+
+GREY = 0.5
+#: The unit cube [-1, 1]^3 as 12 outward triangles.
+CUBE_VERTS = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+CUBE_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                       [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+LR = 0.1
+LR_VERTEX = 0.5
+
+
+def free_pixels(frame, cars, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) coverage alpha in [0, 1] of the pixels set free and (H, W, 3) their starting colours in [0, 1]:
+    the shaded grey sphere for the object masks, the photo for ``box``."""
+    h, w = frame.image.shape[:2]
+    photo = frame.image.astype(np.float64) / 255.0
+    if kind == "box":
+        m = np.zeros((h, w))
+        for u0, v0, u1, v1 in cars.bbox:
+            m[int(np.floor(v0)):int(np.ceil(v1)) + 1, int(np.floor(u0)):int(np.ceil(u1)) + 1] = 1.0
+        return m, photo
+    if kind == "object":
+        verts, faces = benign_sphere().vertices(), template_faces()
+    elif kind == "bounds":
+        verts, faces = CUBE_VERTS * np.asarray(BOUNDS), CUBE_FACES
+    else:
+        raise SystemExit(f"unknown mask {kind!r}: expected object, bounds or box")
+    meshes = [(place_on_roof(verts, car)[0], faces, np.full((len(verts), 3), GREY)) for car in cars_of(cars)]
+    res = render_camera(frame.image, frame.calib, meshes)
+    a = res.alpha.astype(np.float64)[..., None]
+    with np.errstate(divide="ignore", invalid="ignore"):  # the object's colour c of rendered = a c + (1 - a) photo
+        start = np.where(a > 0, (res.image / 255.0 - (1 - a) * photo) / a, photo)
+    return a[..., 0], start
+
+
+def masks_of_object(frame, cars) -> np.ndarray:
+    """(H, W) coverage of the undeformed sphere on every car (the ``object`` mask)."""
+    return free_pixels(frame, cars, "object")[0]
+
+
+def attack_frame(victim, frame, cars, mask: np.ndarray, start: np.ndarray, steps: int
+                 ) -> tuple[np.ndarray, float, float]:
+    """(attacked uint8 image, first loss, last loss) after ``steps`` Adam steps on the free pixels."""
+    photo = torch.from_numpy(frame.image.astype(np.float64) / 255.0)
+    alpha = torch.from_numpy(mask)[..., None]
+    p = np.clip(start, 0.01, 0.99)
+    logit = torch.tensor(np.log(p / (1 - p)), dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([logit], lr=LR)
+    boxes = [np.asarray(cars.bbox, np.float64)]
+    first = last = float("nan")
+    for step in range(steps + 1):
+        image = photo * (1 - alpha) + alpha * torch.sigmoid(logit)
+        if step == steps:
+            break
+        cands = victim.objectness(image.permute(2, 0, 1)[None].float(), boxes)
+        keep = cands.iou >= 0.5
+        loss = neg_log_one_minus_product(cands.objectness_logit[keep], cands.class_logit[keep]).sum()
+        first = loss.item() if step == 0 else first
+        last = loss.item()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return np.clip(np.round(image.detach().numpy() * 255.0), 0, 255).astype(np.uint8), first, last
+
+
+def attack_frame_vertices(victim, frame, cars, steps: int) -> tuple[np.ndarray, float, float]:
+    """As :func:`attack_frame`, but the free parameters are the 162 vertex colours of the undeformed sphere on
+    every car of the frame (the issue's parametrisation, one colour set per frame), rendered with
+    :func:`render_camera_torch` (shading, 3 x 3 edge samples, no scene occlusion); Adam lr :data:`LR_VERTEX`
+    on the colour logits, starting at the grey."""
+    photo = torch.from_numpy(frame.image.astype(np.float64) / 255.0)
+    verts, faces = benign_sphere().vertices(), template_faces()
+    placed = [torch.from_numpy(place_on_roof(verts, car)[0]) for car in cars_of(cars)]
+    logit = torch.zeros((len(verts), 3), dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([logit], lr=LR_VERTEX)
+    boxes = [np.asarray(cars.bbox, np.float64)]
+    first = last = float("nan")
+    for step in range(steps + 1):
+        colours = torch.sigmoid(logit)
+        image = render_camera_torch(photo, frame.calib, [(p, faces, colours) for p in placed])
+        if step == steps:
+            break
+        cands = victim.objectness(image.permute(2, 0, 1)[None].float(), boxes)
+        keep = cands.iou >= 0.5
+        loss = neg_log_one_minus_product(cands.objectness_logit[keep], cands.class_logit[keep]).sum()
+        first = loss.item() if step == 0 else first
+        last = loss.item()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return np.clip(np.round(image.detach().numpy() * 255.0), 0, 255).astype(np.uint8), first, last
+
+
+def main(n: int, steps: int, kinds: list[str]) -> None:
+    torch.manual_seed(0)
+    victim = create_victim("fpointnet-v1-lite")
+    dataset = resolve_dataset(None, "val", progress=False)
+    kitti = dataset.kitti()
+    gt = load_ground_truth(dataset, None)
+    frames = [kitti.frame(f) for f, lab in zip(gt.frame_ids, gt.labels, strict=True) if len(target_cars(lab))][:n]
+    labels = [f.labels for f in frames]
+    clean = victim.detect([replace(f, labels=None) for f in frames], "detector")
+    rows = [("clean", evaluate(labels, clean), 0.0, 0.0, 0.0, 0.0)]
+    for kind in kinds:
+        t0 = time.time()
+        attacked, first, last, share = [], [], [], []
+        for f in frames:
+            cars = target_cars(f.labels)
+            if kind == "vertex":
+                m = masks_of_object(f, cars)
+                image, a, b = attack_frame_vertices(victim, f, cars, steps)
+            else:
+                m, start = free_pixels(f, cars, kind)
+                image, a, b = attack_frame(victim, f, cars, m, start, steps)
+            attacked.append(replace(f, image=image, labels=None))
+            first.append(a)
+            last.append(b)
+            share.append(m.sum())
+        dets = victim.detect(attacked, "detector")
+        box_px = sum(float(np.prod(np.maximum(c.bbox[:, 2:] - c.bbox[:, :2], 0), axis=1).sum())
+                     for c in (target_cars(f.labels) for f in frames))
+        rows.append((kind, evaluate(labels, dets), float(np.mean(first)), float(np.mean(last)),
+                     sum(share) / box_px, time.time() - t0))
+    n_cars = sum(len(target_cars(lab)) for lab in labels)
+    print(f"{len(frames)} val frames, {n_cars} target cars, {steps} Adam steps per frame (lr {LR})")
+    print(f"{'mask':10} {'free px / box px':>16} {'loss first':>10} {'loss last':>10} "
+          f"{'BEV R40 E / M / H':>22} {'rel. drop M':>11} {'s':>6}")
+    ref = rows[0][1]["Car"]["bev"]["R40"]
+    for kind, res, a, b, share, sec in rows:
+        ap = res["Car"]["bev"]["R40"]
+        e, m, h = (ap[k] for k in ("easy", "moderate", "hard"))
+        drop = (ref["moderate"] - m) / ref["moderate"]
+        print(f"{kind:10} {share:16.3f} {a:10.3f} {b:10.3f} {e:8.2f} / {m:5.2f} / {h:5.2f} {drop:11.1%} {sec:6.0f}")
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 20, int(sys.argv[2]) if len(sys.argv) > 2 else 50,
+         (sys.argv[3] if len(sys.argv) > 3 else "object,bounds,box").split(","))
