@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -84,22 +85,7 @@ def attack_frame(victim, frame, cars, mask: np.ndarray, start: np.ndarray, steps
     alpha = torch.from_numpy(mask)[..., None]
     p = np.clip(start, 0.01, 0.99)
     logit = torch.tensor(np.log(p / (1 - p)), dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.Adam([logit], lr=LR)
-    boxes = [np.asarray(cars.bbox, np.float64)]
-    first = last = float("nan")
-    for step in range(steps + 1):
-        image = photo * (1 - alpha) + alpha * torch.sigmoid(logit)
-        if step == steps:
-            break
-        cands = victim.objectness(image.permute(2, 0, 1)[None].float(), boxes)
-        keep = cands.iou >= 0.5
-        loss = neg_log_one_minus_product(cands.objectness_logit[keep], cands.class_logit[keep]).sum()
-        first = loss.item() if step == 0 else first
-        last = loss.item()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    return np.clip(np.round(image.detach().numpy() * 255.0), 0, 255).astype(np.uint8), first, last
+    return optimise(victim, cars, logit, LR, steps, lambda: photo * (1 - alpha) + alpha * torch.sigmoid(logit))
 
 
 def attack_frame_vertices(victim, frame, cars, steps: int) -> tuple[np.ndarray, float, float]:
@@ -111,12 +97,19 @@ def attack_frame_vertices(victim, frame, cars, steps: int) -> tuple[np.ndarray, 
     verts, faces = benign_sphere().vertices(), template_faces()
     placed = [torch.from_numpy(place_on_roof(verts, car)[0]) for car in cars_of(cars)]
     logit = torch.zeros((len(verts), 3), dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.Adam([logit], lr=LR_VERTEX)
+    return optimise(victim, cars, logit, LR_VERTEX, steps, lambda: render_camera_torch(
+        photo, frame.calib, [(p, faces, torch.sigmoid(logit)) for p in placed]))
+
+
+def optimise(victim, cars, param: torch.Tensor, lr: float, steps: int, image_of: Callable[[], torch.Tensor]
+             ) -> tuple[np.ndarray, float, float]:
+    """``steps`` Adam steps on ``param``, the (H, W, 3) image in [0, 1] being ``image_of()``, minimising the sum
+    over the cars' candidates of IoU >= 0.5 of ``-log(1 - o c)``: (last image as uint8, first loss, last loss)."""
+    opt = torch.optim.Adam([param], lr=lr)
     boxes = [np.asarray(cars.bbox, np.float64)]
     first = last = float("nan")
     for step in range(steps + 1):
-        colours = torch.sigmoid(logit)
-        image = render_camera_torch(photo, frame.calib, [(p, faces, colours) for p in placed])
+        image = image_of()
         if step == steps:
             break
         cands = victim.objectness(image.permute(2, 0, 1)[None].float(), boxes)
