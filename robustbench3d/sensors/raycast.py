@@ -52,8 +52,9 @@ _SLIVER = {torch.float64: 1e-10, torch.float32: 1e-5}
 #: Barycentric tolerance: rays tangent to an edge or through a vertex still hit one of its faces.
 _BARY_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 
-__all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "PairCaster", "RayHits", "back_faces", "cast_ray_pair_chunks",
-           "cast_ray_pairs", "cast_rays", "index_slots"]
+__all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "FaceRows", "PairCaster", "PairTUV", "RayHits", "back_faces",
+           "cast_ray_pair_chunks", "cast_ray_pairs", "cast_rays", "cross_rows", "face_slots", "hit_pairs_np",
+           "nearest_np", "scatter_rows"]
 
 
 @dataclass(frozen=True)
@@ -212,7 +213,7 @@ def scatter_rows(index: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class FaceRows:
     """Möller–Trumbore's per-face rows of the faces ``faces`` (U, 3) of float ``vertices`` (numpy, their dtype):
-    a0 and the edges e1 = a1 - a0, e2 = a2 - a0, T0 = origin - a0, q0 = T0 x e1, and ``rows`` (10 or 17, U),
+    the edges e1 = a1 - a0, e2 = a2 - a0, T0 = origin - a0, q0 = T0 x e1, and ``rows`` (10 or 17, U),
     component-major: the det vector e2 x e1, the u*det vector e2 x T0, the v*det vector q0, t*det = e2 . q0, and
     with an offset ``axis`` (ray origins origin + h axis) the slopes in h: e2 x axis, q1 = axis x e1, e2 . q1."""
 
@@ -306,7 +307,7 @@ class PairTUV:
 
 def face_slots(face: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """(used, slot) of int64 indices ``face`` (K,) into range(n): the sorted distinct indices and each index's
-    position among them (numpy twin of :func:`index_slots`)."""
+    position among them (``np.unique(face, return_inverse=True)`` in O(K + n), without a sort)."""
     present = np.zeros(n, np.int64)
     present[face] = 1
     return present.nonzero()[0], (present.cumsum() - 1)[face]
@@ -332,13 +333,6 @@ class _RecomputeTUV(torch.autograd.Function):
         grads = fr.edge_grads(pairs, gt.numpy(), gu.numpy(), gv.numpy())
         gvert = torch.from_numpy(fr.vertex_grads(*grads, ctx.n_vertices)).to(ctx.dtype)
         return gvert, None, None, None, None, None, None
-
-
-def index_slots(index: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(used, slot) of int64 indices (K,) into range(n): the sorted distinct indices and each index's position
-    among them (``torch.unique(index, return_inverse=True)`` in O(K + n), without a sort)."""
-    present = torch.zeros(n, dtype=torch.int64, device=index.device).index_fill_(0, index, 1)
-    return torch.nonzero(present).reshape(-1), (torch.cumsum(present, 0) - 1).index_select(0, index)
 
 
 def _recompute(vertices: torch.Tensor, faces_t: torch.Tensor, d: torch.Tensor, origin: torch.Tensor,
