@@ -19,7 +19,9 @@ lowers the object probabilities of the frustum without moving the lite victim's 
 
 Image (reference §2.4, the "mirrors the LiDAR loss" reading): per target, the mean over its candidate
 predictions of ``-log(1 - o * c)`` with ``o = sigmoid(a)`` the objectness and ``c = sigmoid(b)`` the
-class probability (both logits). Since ``1 - o c = (1 + e^a + e^b) / ((1 + e^a)(1 + e^b))``,
+class probability (both logits); or (``image_loss="sum"``) the sum over its candidates of IoU >= 0.5 with
+the target, the predictions that can still detect it (measured stronger, ``docs/attacks.md``). Since
+``1 - o c = (1 + e^a + e^b) / ((1 + e^a)(1 + e^b))``,
 
     -log(1 - o c) = softplus(a) + softplus(b) - logsumexp(0, a, b),
 
@@ -87,15 +89,29 @@ def neg_log_one_minus_product(a: torch.Tensor, b: torch.Tensor | None = None) ->
     return F.softplus(a) + F.softplus(b.to(a.dtype)) - torch.logsumexp(stacked, dim=0)
 
 
+#: How :func:`image_target_losses` combines a target's candidates: the mean over all of them, or the sum over
+#: those of IoU >= :data:`SUM_MIN_IOU` with the target.
+IMAGE_LOSSES = ("mean", "sum")
+SUM_MIN_IOU = 0.5
+
+
 def image_target_losses(candidates: ObjectnessCandidates, n_targets: int, image_index: int = 0,
-                        use_class: bool = True) -> torch.Tensor:
+                        use_class: bool = True, reduce: str = "mean") -> torch.Tensor:
     """(n_targets,) image loss of each target box of image ``image_index``: the mean over its candidates
-    of ``-log(1 - o * c)`` (``-log(1 - o)`` if not ``use_class``); 0 for a target without candidates."""
+    of ``-log(1 - o * c)`` (``-log(1 - o)`` if not ``use_class``), or with ``reduce="sum"`` the sum over its
+    candidates of IoU >= :data:`SUM_MIN_IOU`; 0 for a target without (such) candidates."""
+    if reduce not in IMAGE_LOSSES:
+        raise ValueError(f"image_target_losses: field 'reduce': expected one of {', '.join(IMAGE_LOSSES)}, "
+                         f"got {reduce!r}")
     on_image = candidates.image_index == image_index
+    if reduce == "sum":
+        on_image = on_image & (candidates.iou >= SUM_MIN_IOU)
     target = candidates.target_index[on_image]
     a = candidates.objectness_logit[on_image]
     per = neg_log_one_minus_product(a, candidates.class_logit[on_image] if use_class else None)
     sums = torch.zeros(n_targets, dtype=per.dtype).index_add(0, target, per)
+    if reduce == "sum":
+        return sums
     counts = torch.zeros(n_targets, dtype=per.dtype).index_add(0, target, torch.ones_like(per))
     return sums / counts.clamp(min=1.0)
 

@@ -372,7 +372,8 @@ class UniversalTrainer:
                                        supersample=self.config.supersample)
         boxes = targets.bbox[chosen]
         cands = self.victim.objectness(rendered.permute(2, 0, 1)[None].float(), [boxes])
-        terms = image_target_losses(cands, len(chosen), 0, self.config.use_class).to(torch.float64)
+        terms = image_target_losses(cands, len(chosen), 0, self.config.use_class,
+                                    self.config.image_loss).to(torch.float64)
         as_uint8 = np.clip(np.round(rendered.detach().numpy() * 255.0), 0, 255).astype(np.uint8)
         return terms, best_candidate_scores(cands, len(chosen), 0, CANDIDATE_IOU), as_uint8
 

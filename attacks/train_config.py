@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from robustbench3d.attacks.base import target_cars
-from robustbench3d.attacks.losses import IOU_FLOOR
+from robustbench3d.attacks.losses import IMAGE_LOSSES, IOU_FLOOR
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.kitti.labels import Labels
 
@@ -27,6 +27,9 @@ LIDAR_BOXES = ("gt", "detector")
 #: The LiDAR loss's terms (:mod:`~robustbench3d.attacks.losses`): the seed paper's segmentation term, the
 #: box term (BEV IoU of the box the victim regresses with the car's ground truth), or their sum.
 LIDAR_LOSSES = ("seed", "box", "seed+box")
+#: Config fields added after objects were shipped, with the value those objects were trained with: a record
+#: (a sidecar's ``made_by.config``) without one of them means that value.
+RECORD_DEFAULTS = {"image_loss": "mean"}
 #: The per-step counts kept in the history beside the losses.
 COUNTS = ("cars", "detected", "clean_cars", "detected_clean")
 DROP_WINDOW = 50
@@ -83,6 +86,7 @@ class TrainConfig:
     lidar_boxes: str = "gt"
     lidar_loss: str = "seed"
     lambda_box: float = 1.0
+    image_loss: str = "mean"
     supersample: int = 3
     checkpoint_every: int = 25
     zero_grad_patience: int = 10
@@ -111,6 +115,9 @@ class TrainConfig:
         if self.lidar_boxes not in LIDAR_BOXES:
             raise TrainingError(f"{_field('lidar_boxes')}: expected one of {', '.join(LIDAR_BOXES)}, "
                                 f"got {self.lidar_boxes!r}")
+        if self.image_loss not in IMAGE_LOSSES:
+            raise TrainingError(f"{_field('image_loss')}: expected one of {', '.join(IMAGE_LOSSES)}, "
+                                f"got {self.image_loss!r}")
         if self.lidar_loss not in LIDAR_LOSSES:
             raise TrainingError(f"{_field('lidar_loss')}: expected one of {', '.join(LIDAR_LOSSES)}, "
                                 f"got {self.lidar_loss!r}")

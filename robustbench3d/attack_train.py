@@ -52,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="LiDAR loss terms: the seed paper's segmentation term, the regressed box's BEV IoU "
                              "with the ground truth, or both (default seed)")
     parser.add_argument("--lambda-box", type=float, default=1.0, help="weight of the box term (default 1)")
+    parser.add_argument("--image-loss", choices=("mean", "sum"), default="mean",
+                        help="image loss per car: the mean over its 2D candidates, or the sum over those of IoU "
+                             ">= 0.5 with it (default mean)")
     parser.add_argument("--checkpoint-every", type=int, default=25, metavar="K", help="steps per checkpoint (25)")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the checkpoint OBJ.train.pt if it exists (its configuration must match; "
@@ -90,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
                          lr_shape=args.lr_shape, lr_color=args.lr_color, lambda_lap=args.lambda_lap,
                          lambda_img=args.lambda_img, use_class=not args.no_class_prob, eot=_eot(args.eot),
                          occlusion=args.occlusion, lidar_boxes=args.lidar_boxes,
-                         lidar_loss=args.lidar_loss, lambda_box=args.lambda_box,
+                         lidar_loss=args.lidar_loss, lambda_box=args.lambda_box, image_loss=args.image_loss,
                          checkpoint_every=args.checkpoint_every)
     kwargs = _victim_kwargs(args.victim_arg)
     spec = VICTIMS.get(args.victim)

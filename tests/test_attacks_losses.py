@@ -86,6 +86,17 @@ def test_image_target_losses_mean_per_target():
     no_class = image_target_losses(c, 3, use_class=False).numpy()
     np.testing.assert_allclose(no_class, [(math.log1p(math.exp(0)) + math.log1p(math.exp(2))) / 2,
                                           math.log1p(math.exp(-1)), 0.0], rtol=1e-12)
+    # reduce="sum": the sum over each target's candidates of IoU >= 0.5 (target 0: row 0 only, row 1 has IoU 0.2)
+    summed = image_target_losses(c, 3, reduce="sum").numpy()
+    np.testing.assert_allclose(summed, [-math.log(1 - sigmoid(0) * sigmoid(1)), t1, 0.0], rtol=1e-12)
+    c2 = candidates([0.0, 2.0, -1.0, 5.0], [1.0, 0.0, 3.0, 5.0], [0.6, 0.5, 0.9, 0.9], [0, 0, 1, 0])
+    both = -math.log(1 - sigmoid(0) * sigmoid(1)) - math.log(1 - sigmoid(2) * sigmoid(0))  # IoU 0.5 counts
+    np.testing.assert_allclose(image_target_losses(c2, 3, reduce="sum").numpy(), [both, t1, 0.0], rtol=1e-12)
+    np.testing.assert_allclose(image_target_losses(c2, 3, use_class=False, reduce="sum").numpy(),
+                               [math.log1p(math.exp(0)) + math.log1p(math.exp(2)), math.log1p(math.exp(-1)), 0.0],
+                               rtol=1e-12)
+    with pytest.raises(ValueError, match="field 'reduce'"):
+        image_target_losses(c, 3, reduce="max")
     # best score among candidates with IoU >= 0.5 (row 1 has IoU 0.2; row 3 is image 1)
     np.testing.assert_allclose(best_candidate_scores(c, 3), [sigmoid(0) * sigmoid(1), sigmoid(-1) * sigmoid(3), 0.0])
 

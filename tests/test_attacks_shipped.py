@@ -79,14 +79,19 @@ def _train_config(command: str) -> dict[str, Any]:
     config = TrainConfig(mode=a.mode, steps=a.steps, batch_cars=a.batch_cars, seed=a.seed, lr_shape=a.lr_shape,
                          lr_color=a.lr_color, lambda_lap=a.lambda_lap, lambda_img=a.lambda_img,
                          use_class=not a.no_class_prob, eot=_eot(a.eot), occlusion=a.occlusion,
-                         lidar_boxes=a.lidar_boxes, lidar_loss=a.lidar_loss, lambda_box=a.lambda_box)
+                         lidar_boxes=a.lidar_boxes, lidar_loss=a.lidar_loss, lambda_box=a.lambda_box,
+                         image_loss=a.image_loss)
     d = {**asdict(config), "eot": list(config.eot)}
     d.pop("checkpoint_every")
     return d
 
 
 def _without_checkpoint(config: dict[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in config.items() if k != "checkpoint_every"}
+    """A recorded config as the TrainConfig it describes: without checkpoint_every, fields added since (absent
+    from older records) at the value the record implies (train_config.RECORD_DEFAULTS)."""
+    from robustbench3d.attacks.train_config import RECORD_DEFAULTS
+
+    return {**RECORD_DEFAULTS, **{k: v for k, v in config.items() if k != "checkpoint_every"}}
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 import torch
 
+from robustbench3d.attacks.base import target_cars
 from robustbench3d.attacks.object import NEUTRAL_GREY, TANH_EPS, template_vertices
 from robustbench3d.attacks.objectfile import read_object_file
+from robustbench3d.attacks.placement import cars_of, place_on_roof
 from robustbench3d.attacks.train import UniversalTrainer
 from robustbench3d.attacks.train_config import TrainConfig, TrainingError
 from robustbench3d.attacks.train_run import checkpoint_path, data_identity, train_universal
@@ -254,3 +256,46 @@ def test_box_term_trains_the_regressed_boxes_iou(victim, data, tmp_path):
         TrainConfig(mode="adv-shape", lidar_loss="iou")
     with pytest.raises(TrainingError, match=r"does not implement FrustumBoxOracle \(frustum_box"):
         train(as_class(victim, NoBoxOracle), data, tmp_path / "x.ply", **kw, lidar_loss="box")
+
+
+def test_image_loss_summed_over_the_candidates_that_can_still_detect_a_car(victim, data, tmp_path):
+    """``image_loss="sum"`` (``--image-loss sum``): per car the sum of -log(1 - o c) over its candidates of IoU
+    >= 0.5, not the mean over all of them; the same cars and object at step 0, so the summed loss equals the
+    hand sum from the victim's candidates; recorded in the config; a bad name is refused."""
+    from robustbench3d.attacks.losses import neg_log_one_minus_product
+
+    kw = {"mode": "adv-texture", "steps": 1}
+    mean = train(victim, data, tmp_path / "m.ply", **kw)
+    summed = train(victim, data, tmp_path / "s.ply", **kw, image_loss="sum")
+    assert mean["config"]["image_loss"] == "mean" and summed["config"]["image_loss"] == "sum"
+    first_mean, first_sum = mean["losses"]["first_step"]["image"], summed["losses"]["first_step"]["image"]
+    assert first_sum > first_mean  # the confident candidates summed, not averaged with the weak ones
+    # the step-0 image loss by hand: the trainer's first batch, the grey sphere, the victim's candidates
+    resolved, gt = data
+    trainer = UniversalTrainer(victim, resolved.kitti(), gt.frame_ids, gt.labels,
+                               TrainConfig(**{**FAST, **kw, "image_loss": "sum"}))
+    by_frame: dict[int, list[int]] = {}
+    for fi, k in trainer.batch(0):
+        by_frame.setdefault(fi, []).append(k)
+    total = 0.0
+    for fi, chosen in by_frame.items():
+        frame = trainer._frame(trainer.frame_ids[fi], with_image=True)
+        targets = target_cars(frame.labels)
+        placed = [place_on_roof(trainer.vertices(), car)[0] for car in cars_of(targets)]
+        cands = victim.objectness(_rendered(trainer, frame, targets, placed), [targets.bbox[chosen]])
+        keep = cands.iou >= 0.5
+        total += neg_log_one_minus_product(cands.objectness_logit[keep], cands.class_logit[keep]).sum().item()
+    assert first_sum == pytest.approx(total / sum(len(c) for c in by_frame.values()), rel=1e-6)
+    with pytest.raises(TrainingError, match=r"field 'image_loss' \(--image-loss\): expected one of mean, sum"):
+        TrainConfig(mode="adv-texture", image_loss="max")
+
+
+def _rendered(trainer, frame, targets, placed) -> torch.Tensor:
+    """(1, 3, H, W) float32 camera image with the trainer's object on every car, as its image loss sees it."""
+    from robustbench3d.sensors.camera_render import render_camera_torch
+
+    image = torch.from_numpy(frame.image.astype(np.float64) / 255.0)
+    out = render_camera_torch(image, frame.calib, [(p, trainer._faces, trainer.colours()) for p in placed],
+                              scene_depth=trainer._depth.scene_depth(frame, targets),
+                              supersample=trainer.config.supersample)
+    return out.permute(2, 0, 1)[None].float()

@@ -42,7 +42,7 @@ TRAIN_TOOL = "robustbench3d attack train"
 _OPTIONS = {"steps": "--steps", "seed": "--seed", "batch_cars": "--batch-cars", "lr_shape": "--lr-shape",
             "lr_color": "--lr-color", "lambda_lap": "--lambda-lap", "lambda_img": "--lambda-img",
             "eot": "--eot", "occlusion": "--occlusion", "lidar_boxes": "--lidar-boxes",
-            "lidar_loss": "--lidar-loss", "lambda_box": "--lambda-box"}
+            "lidar_loss": "--lidar-loss", "lambda_box": "--lambda-box", "image_loss": "--image-loss"}
 #: Config fields that do not change the object (left out of the command).
 _IRRELEVANT = ("mode", "checkpoint_every")
 #: Always written, even at their default value.
