@@ -905,3 +905,36 @@ def test_the_lighting_cache_evicts_and_each_lighting_still_renders_its_own_expos
     for light in lights + lights[:1]:
         res = render_camera(black, calib, [(TRI, TRI_FACES, np.tile(c, (3, 1)))], supersample=1, lighting=light)
         np.testing.assert_array_equal(res.image[15, 20], np.round(255 * display(light.exposure * c)))
+
+
+def test_fused_shading_equals_shade_at_the_hits_of_an_independent_cast():
+    """The fused numpy recompute + shading (_ShadeHits) against the torch reference :func:`shade` evaluated at
+    the hits of cast_rays (the torch kernel) of every pixel centre: vertex colours interpolated at (u, v), the
+    face's unit normal turned towards the camera, the distance t; one sample per pixel, so each covered pixel
+    shows exactly that colour (a random-shape object at 6 m, float64)."""
+    from robustbench3d.attacks.object import random_shape
+    from robustbench3d.sensors.camera_depth import camera_centre_rect, pixel_rays_rect
+    from robustbench3d.sensors.raycast import cast_rays
+
+    calib = DAY_0926.calib
+    obj = random_shape(seed=5, amplitude=0.4)
+    verts = obj.vertices() + np.array([0.3, 0.1, 6.0])
+    cols = np.random.default_rng(8).random((len(verts), 3))
+    w, h = DAY_0926.image_size
+    photo = torch.zeros((h, w, 3), dtype=torch.float64)
+    crop = render_camera_crop_torch(photo, calib, [(verts, obj.faces, cols)], supersample=1, lighting=SUNNY)
+    pv, pu = np.divmod(crop.pixels.numpy(), w)
+    origin = camera_centre_rect(calib)
+    hits = cast_rays(torch.tensor(verts), torch.tensor(obj.faces), torch.tensor(pixel_rays_rect(calib, pu, pv)),
+                     torch.tensor(origin))
+    k = hits.hit.numpy()
+    assert k.sum() > 1000
+    f = obj.faces[hits.face.numpy()[k]]
+    u, v, t = (x.detach().numpy()[k] for x in (hits.u, hits.v, hits.t))
+    albedo = (1 - u - v)[:, None] * cols[f[:, 0]] + u[:, None] * cols[f[:, 1]] + v[:, None] * cols[f[:, 2]]
+    n = np.cross(verts[f[:, 1]] - verts[f[:, 0]], verts[f[:, 2]] - verts[f[:, 0]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n *= np.where(((verts[f[:, 0]] - origin) * n).sum(1) > 0, -1.0, 1.0)[:, None]
+    want = shade(torch.tensor(albedo), torch.tensor(n), torch.tensor(t), _rect_lighting(SUNNY, calib, torch.float64))
+    np.testing.assert_allclose(crop.values.detach().numpy()[k], want.numpy(), rtol=0, atol=1e-12)
+    assert not crop.values.detach().numpy()[~k].any()  # the uncovered pixels keep the black photo

@@ -250,7 +250,7 @@ class _HitSet:
 
 
 def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """(C, n) sums of the columns of ``values`` (C, K) by ``index`` (K,), added one by one in order in the values'
+    """(C, n): each row of ``values`` (C, K) summed by ``index`` (K,), entry by entry in order in the values'
     dtype (as torch's index_add_): np.bincount for float64 (which adds in float64, in order), np.add.at else."""
     if values.dtype == np.float64:
         return np.stack([np.bincount(index, weights=row, minlength=n) for row in values])
