@@ -77,11 +77,11 @@ import torch
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.sensors.camera_depth import DepthSource, camera_centre_rect, pixel_ray_components
 from robustbench3d.sensors.camera_model import Lighting
+from robustbench3d.sensors.mesh import cross_rows
 from robustbench3d.sensors.raycast import (
     FaceRows,
     PairCaster,
     back_faces,
-    cross_rows,
     dot3,
     hit_pairs_np,
     nearest_np,
@@ -439,9 +439,7 @@ class _FaceCull:
         edge = q[:, [2, 0, 1]] - q[:, [1, 2, 0]]  # edge k runs from vertex (k+1) % 3 to (k+2) % 3
         area2 = edge[:, 1, 0] * edge[:, 2, 1] - edge[:, 1, 1] * edge[:, 2, 0]  # (p1 - p0) x (p2 - p0)
         e3 = v3[:, [2, 0, 1]] - v3[:, [1, 2, 0]]
-        a, b = e3[:, 2], -e3[:, 1]  # n3 = a x b, as np.cross forms it (without its per-call overhead)
-        n3 = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                       a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+        n3 = cross_rows(e3[:, 2], -e3[:, 1])
         ray = (v3[:, 0] + v3[:, 1] + v3[:, 2]) / 3 - (camera_centre_rect(calib) if centre is None else centre)
         with np.errstate(divide="ignore", invalid="ignore"):
             ray2 = dot3(ray, ray)

@@ -42,6 +42,8 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from robustbench3d.sensors.mesh import cross_rows
+
 #: Rays x faces per chunk of the no-grad search (bounds its memory to about 150 MB even if every pair is tested).
 SEARCH_CHUNK_PAIRS = 1 << 20
 #: Consecutive faces sharing one bounding sphere in the search (icosphere level L: face k of level L - 1 becomes
@@ -53,7 +55,7 @@ _SLIVER = {torch.float64: 1e-10, torch.float32: 1e-5}
 _BARY_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 
 __all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "FaceRows", "PairCaster", "PairTUV", "RayHits", "back_faces",
-           "cast_ray_pair_chunks", "cast_ray_pairs", "cast_rays", "cross_rows", "face_slots", "hit_pairs_np",
+           "cast_ray_pair_chunks", "cast_ray_pairs", "cast_rays", "face_slots", "hit_pairs_np",
            "nearest_np", "scatter_rows"]
 
 
@@ -197,12 +199,6 @@ def _nearest_t(ray: torch.Tensor, face: torch.Tensor, t: torch.Tensor, n_rays: i
     first = torch.full((n_rays,), n_faces, dtype=torch.int64, device=t.device)
     first = first.scatter_reduce(0, ray[win], face[win], "amin")
     return torch.where(first < n_faces, first, torch.full_like(first, -1)), best
-
-
-def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise a x b of (N, 3) arrays (np.cross's components, without its per-call overhead)."""
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
 
 
 def scatter_rows(index: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
@@ -460,8 +456,7 @@ def back_faces(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray) -> n
     c = v.sum(axis=0) / len(v)  # v.mean(axis=0), without its per-call overhead (the same sum and division)
     a, b, cc = v[f[:, 0]] - c, v[f[:, 1]] - c, v[f[:, 2]] - c
     e1, e2 = b - a, cc - a
-    normal = np.stack([e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1], e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
-                       e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]], axis=1)
+    normal = cross_rows(e1, e2)
     triple = dot3(a, normal)  # det[a, b, cc]
     if not np.all(triple > 0):
         return None
