@@ -83,9 +83,9 @@ from robustbench3d.sensors.raycast import (
     PairCaster,
     back_faces,
     dot3,
-    hit_pairs_np,
-    nearest_np,
+    face_slots,
     scatter_rows,
+    search_pairs_np,
 )
 
 #: Absolute widening (pixels) of each face's projected box in the candidate cull (see the module docstring).
@@ -253,7 +253,7 @@ def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     """(C, n): each row of ``values`` (C, K) summed by ``index`` (K,), entry by entry in order in the values'
     dtype (as torch's index_add_): np.bincount for float64 (which adds in float64, in order), np.add.at else."""
     if values.dtype == np.float64:
-        return np.stack([np.bincount(index, weights=row, minlength=n) for row in values])
+        return scatter_rows(index, values.T, n).T
     out = np.zeros((len(values), n), values.dtype)
     np.add.at(out.T, index, values.T)
     return out
@@ -678,25 +678,12 @@ def _search_pairs(caster: PairCaster, d_cols: np.ndarray, pairs: Iterator[tuple[
     """:meth:`PairCaster.search` on numpy pairs without building tensors: (rays (K,) ascending, their nearest faces
     (K,), t (K,), pairs tested) of the rays (unit directions by component ``d_cols`` (3, R), in the caster's
     dtype) hitting a face of their candidate ``pairs`` (in range): the caster's kernel
-    (:func:`~robustbench3d.sensors.raycast.hit_pairs_np`, shared origin) and its choice, the nearest t per ray,
-    equal t to the smallest face index (:func:`~robustbench3d.sensors.raycast.nearest_np`)."""
+    (:func:`~robustbench3d.sensors.raycast.search_pairs_np`, shared origin) and its choice, the nearest t per ray,
+    equal t to the smallest face index."""
     tab = None if caster.table is None else caster.table.numpy()
-    rays, faces, ts = [], [], []
-    tests = 0
-    for ray, face in pairs:
-        tests += len(ray)
-        if len(ray) == 0:
-            continue
-        idx, t = hit_pairs_np(tab, d_cols, None, ray, face, caster.t_min, caster.tol)
-        rays.append(ray[idx])
-        faces.append(face[idx])
-        ts.append(t)
-    if not ts or not sum(len(t) for t in ts):
-        empty = np.zeros(0, np.int64)
-        return empty, empty, np.zeros(0, d_cols.dtype), tests
-    nearest, best = nearest_np(np.concatenate(rays), np.concatenate(faces), np.concatenate(ts), d_cols.shape[1])
-    hit = (nearest >= 0).nonzero()[0]
-    return hit, nearest[hit], best[hit], tests
+    face, best, tests = search_pairs_np(tab, d_cols, None, pairs, caster.t_min, caster.tol, check=False)
+    hit = (face >= 0).nonzero()[0]
+    return hit, face[hit], best[hit], tests
 
 
 def _visible_hits(calib: Calibration, g: _Geometry, caster: PairCaster, region: _Region, w: int, s: int,
@@ -772,9 +759,8 @@ def _render_pixels(base: torch.Tensor, w: int, calib: Calibration,
             weight = np.concatenate([np.ones(len(keep)), np.full(len(fine.sample), 1.0 / s2)])
             cast, tests = cast + fine.cast, tests + fine.tests
     face = np.concatenate([p.face for p in parts])
-    present = np.zeros(len(g.faces), np.int64)  # the distinct faces hit, and each hit's position among them
-    present[face] = 1
-    hits = _HitSet(g.faces[present.nonzero()[0]], (present.cumsum() - 1)[face],
+    used, slot = face_slots(face, len(g.faces))  # the distinct faces hit, and each hit's position among them
+    hits = _HitSet(g.faces[used], slot,
                    np.concatenate([p.dirs for p in parts]), owner, weight.astype(g.np_dtype),
                    g.centre.astype(g.np_dtype))
     out = _ShadeHits.apply(g.verts, g.colors, base, hits, _cached_lighting(lighting, calib, g.verts.dtype))

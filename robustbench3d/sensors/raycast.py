@@ -56,7 +56,7 @@ _BARY_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 
 __all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "FaceRows", "PairCaster", "PairTUV", "RayHits", "back_faces",
            "cast_ray_pair_chunks", "cast_ray_pairs", "cast_rays", "face_slots", "hit_pairs_np",
-           "nearest_np", "scatter_rows"]
+           "nearest_np", "scatter_rows", "search_pairs_np"]
 
 
 @dataclass(frozen=True)
@@ -711,14 +711,17 @@ def _as_index(x: torch.Tensor | np.ndarray) -> np.ndarray:
     return np.asarray(x.numpy() if isinstance(x, torch.Tensor) else x, np.int64).reshape(-1)
 
 
-def _pair_search(p: _Prepared, table: torch.Tensor | None, chunks: Iterable[tuple[torch.Tensor, torch.Tensor]],
-                 t_min: float, name: str, check: bool = True) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """The no-grad search of the pair casts: (nearest face per ray (R,) or -1, its t (R,) or +inf, pairs
-    tested), each pair tested by :func:`hit_pairs_np`."""
-    n_rays, n_faces = len(p.d), len(p.faces)
+def search_pairs_np(table: np.ndarray | None, d_cols: np.ndarray, h: np.ndarray | None,
+                    chunks: Iterable[tuple[torch.Tensor | np.ndarray, torch.Tensor | np.ndarray]], t_min: float,
+                    tol: float, name: str = "search_pairs_np", check: bool = True
+                    ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The no-grad search of candidate (ray, face) pairs in numpy: (nearest face per ray (R,) or -1, its t (R,) or
+    +inf, pairs tested) of rays with directions by component ``d_cols`` (3, R) (offsets ``h`` (R,) or None) against
+    the per-face ``table`` (:func:`_face_tables`; None without faces), each pair tested by :func:`hit_pairs_np`,
+    equal t resolved to the smallest face. ``check=False`` skips the range check of the pairs."""
+    n_rays, n_faces = d_cols.shape[1], 0 if table is None else table.shape[1]
     rays, faces_hit, ts = [], [], []
     tests = 0
-    d_cols = h = tab = None
     for ray_index, face_index in chunks:
         ray, fc = _as_index(ray_index), _as_index(face_index)
         if len(ray) != len(fc):
@@ -729,17 +732,22 @@ def _pair_search(p: _Prepared, table: torch.Tensor | None, chunks: Iterable[tupl
         tests += len(ray)
         if len(ray) == 0:
             continue
-        if d_cols is None:
-            d_cols, tab = p.d.numpy().T.copy(), table.numpy()
-            h = None if p.h is None else p.h.numpy()
-        ok, t = hit_pairs_np(tab, d_cols, h, ray, fc, t_min, p.tol)
+        ok, t = hit_pairs_np(table, d_cols, h, ray, fc, t_min, tol)
         rays.append(ray[ok])
         faces_hit.append(fc[ok])
         ts.append(t)
         if len(ts) >= _COMPACT_EVERY:  # many chunks (e.g. a full-scene cast): keep each ray's nearest so far
             rays, faces_hit, ts = _compact(rays, faces_hit, ts, n_rays)
     face = np.full(n_rays, -1, np.int64)
-    best = np.full(n_rays, np.inf, p.d.numpy().dtype)
+    best = np.full(n_rays, np.inf, d_cols.dtype)
     if ts and sum(len(t) for t in ts):
         face, best = nearest_np(np.concatenate(rays), np.concatenate(faces_hit), np.concatenate(ts), n_rays)
+    return face, best, tests
+
+
+def _pair_search(p: _Prepared, table: torch.Tensor | None, chunks: Iterable[tuple[torch.Tensor, torch.Tensor]],
+                 t_min: float, name: str, check: bool = True) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """:func:`search_pairs_np` of the prepared cast's rays, as tensors."""
+    face, best, tests = search_pairs_np(None if table is None else table.numpy(), p.d.numpy().T.copy(),
+                                        None if p.h is None else p.h.numpy(), chunks, t_min, p.tol, name, check)
     return torch.from_numpy(face), torch.from_numpy(best), tests
