@@ -240,7 +240,8 @@ def bench_attack_training(steps: int, name: str = "adv-object") -> dict[str, flo
     """``steps`` steps of the shipped object ``name``'s training command (its manifest entry's
     ``training.command``, embedded dataset) in a fresh interpreter, as ``attacks/objects/reproduce.sh`` runs it
     (one thread): the trainer's own seconds for the steps (``made_by.wall_time_s``, start-up excluded), the
-    process's wall seconds and peak RSS (start-up and data loading included), and the shipped schedule's steps."""
+    process's wall seconds and peak RSS (start-up and data loading included), and the shipped schedule's steps
+    and cars per step."""
     import json
     import shlex
     import sys
@@ -266,7 +267,7 @@ def bench_attack_training(steps: int, name: str = "adv-object") -> dict[str, flo
             made_by = json.load(f)["made_by"]
     return {"steps": float(steps), "train_s": float(made_by["wall_time_s"]), "process_s": measured.seconds,
             "peak_rss_mb": measured.peak_rss_mb, "schedule_steps": float(training["steps"]),
-            "shipped_train_s": float(training["wall_time_s"])}
+            "batch_cars": float(training["config"]["batch_cars"]), "shipped_train_s": float(training["wall_time_s"])}
 
 
 def _train_rows(quick: bool) -> list[dict]:
@@ -275,7 +276,7 @@ def _train_rows(quick: bool) -> list[dict]:
     startup = r["process_s"] - r["train_s"]
     total_min = (startup + per_step * r["schedule_steps"]) / 60.0
     gb = r["peak_rss_mb"] / 1024.0
-    case = f"adv-object training, shipped schedule ({r['schedule_steps']:.0f} steps x 8 cars)"
+    case = f"adv-object training, shipped schedule ({r['schedule_steps']:.0f} steps x {r['batch_cars']:.0f} cars)"
     return [{"case": f"{case}: {r['steps']:.0f} steps measured, s/step", "median_ms": round(1000 * per_step, 1)},
             {"case": f"{case}: start-up + steps x s/step, minutes", "clean": round(total_min, 1),
              "target": f"<= {TARGET_TRAIN_MIN:g} min", "met": total_min <= TARGET_TRAIN_MIN},
