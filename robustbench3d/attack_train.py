@@ -14,7 +14,10 @@ Standard library only at module level.
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from robustbench3d.attacks.train_config import TrainConfig
 
 MODE_NAMES = ("adv-shape", "adv-texture", "adv-object")
 EOT_NAMES = ("jitter", "range-noise", "dropout")
@@ -80,8 +83,19 @@ def _eot(text: str) -> tuple[str, ...]:
     return tuple(names)
 
 
-def run(args: argparse.Namespace) -> int:
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """The training configuration of parsed ``attack train`` arguments (:func:`add_arguments`)."""
     from robustbench3d.attacks.train_config import TrainConfig
+
+    return TrainConfig(mode=args.mode, steps=args.steps, batch_cars=args.batch_cars, seed=args.seed,
+                       lr_shape=args.lr_shape, lr_color=args.lr_color, lambda_lap=args.lambda_lap,
+                       lambda_img=args.lambda_img, use_class=not args.no_class_prob, eot=_eot(args.eot),
+                       occlusion=args.occlusion, lidar_boxes=args.lidar_boxes, lidar_loss=args.lidar_loss,
+                       lambda_box=args.lambda_box, image_loss=args.image_loss,
+                       checkpoint_every=args.checkpoint_every)
+
+
+def run(args: argparse.Namespace) -> int:
     from robustbench3d.attacks.train_run import data_identity, train_universal
     from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
     from robustbench3d.errors import RobustBenchError
@@ -89,12 +103,7 @@ def run(args: argparse.Namespace) -> int:
     from robustbench3d.victims import VICTIMS, create_victim
 
     out = check_output_file(args.out, "--out")
-    config = TrainConfig(mode=args.mode, steps=args.steps, batch_cars=args.batch_cars, seed=args.seed,
-                         lr_shape=args.lr_shape, lr_color=args.lr_color, lambda_lap=args.lambda_lap,
-                         lambda_img=args.lambda_img, use_class=not args.no_class_prob, eot=_eot(args.eot),
-                         occlusion=args.occlusion, lidar_boxes=args.lidar_boxes,
-                         lidar_loss=args.lidar_loss, lambda_box=args.lambda_box, image_loss=args.image_loss,
-                         checkpoint_every=args.checkpoint_every)
+    config = config_from_args(args)
     kwargs = _victim_kwargs(args.victim_arg)
     spec = VICTIMS.get(args.victim)
     try:

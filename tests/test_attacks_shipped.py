@@ -66,21 +66,15 @@ def _fresh_registry() -> Registry[AttackSpec]:
 
 
 def _train_config(command: str) -> dict[str, Any]:
-    """The TrainConfig an ``attack train`` command line builds (the mapping of ``attack_train.run``),
-    as a dict without the fields that do not change the object."""
-    from robustbench3d.attack_train import _eot, add_arguments
-    from robustbench3d.attacks.train_config import TrainConfig
+    """The TrainConfig an ``attack train`` command line builds (``attack_train.config_from_args``, as
+    ``attack_train.run`` builds it), as a dict without the fields that do not change the object."""
+    from robustbench3d.attack_train import add_arguments, config_from_args
 
     words = shlex.split(command)
     assert words[:3] == ["robustbench3d", "attack", "train"], command
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    a = parser.parse_args(words[3:])
-    config = TrainConfig(mode=a.mode, steps=a.steps, batch_cars=a.batch_cars, seed=a.seed, lr_shape=a.lr_shape,
-                         lr_color=a.lr_color, lambda_lap=a.lambda_lap, lambda_img=a.lambda_img,
-                         use_class=not a.no_class_prob, eot=_eot(a.eot), occlusion=a.occlusion,
-                         lidar_boxes=a.lidar_boxes, lidar_loss=a.lidar_loss, lambda_box=a.lambda_box,
-                         image_loss=a.image_loss)
+    config = config_from_args(parser.parse_args(words[3:]))
     d = {**asdict(config), "eot": list(config.eot)}
     d.pop("checkpoint_every")
     return d
