@@ -381,7 +381,7 @@ def test_numpy_pair_search_equals_the_pair_casters_bit_for_bit(dtype):
         _pixel_set,
         _search_pairs,
     )
-    from robustbench3d.sensors.raycast import PairCaster
+    from robustbench3d.sensors.raycast import PairCaster, PairTable
 
     calib = DAY_0926.calib
     rng = np.random.default_rng(11)
@@ -393,6 +393,8 @@ def test_numpy_pair_search_equals_the_pair_casters_bit_for_bit(dtype):
             region = _pixel_set(calib, meshes, DAY_0926.image_size, False)[0]
             g = _Geometry.of(meshes, calib)
             caster = PairCaster(g.verts, g.faces_t, torch.as_tensor(camera_centre_rect(calib), dtype=dtype))
+            table = PairTable.of(g.verts.numpy(), g.faces, camera_centre_rect(calib))
+            assert np.array_equal(table.table, caster.table.numpy()) and table.tol == caster.tol
             s = 3
             pv, pu = np.divmod(region.pixels, DAY_0926.image_size[0])
             off = (np.arange(s) + 0.5) / s - 0.5
@@ -402,7 +404,7 @@ def test_numpy_pair_search_equals_the_pair_casters_bit_for_bit(dtype):
             n_extra = 20000
             chunks.append((rng.integers(0, len(dirs), n_extra), rng.integers(0, len(g.faces), n_extra)))
             d = dirs.astype(np.float32 if dtype == torch.float32 else np.float64)
-            ray, face, t, tests = _search_pairs(caster, np.ascontiguousarray(d.T), iter(chunks))
+            ray, face, t, tests = _search_pairs(table, np.ascontiguousarray(d.T), iter(chunks))
             ray_t, face_t, t_t, tests_t = caster.search(torch.from_numpy(dirs),
                                                         [(torch.from_numpy(a), torch.from_numpy(b)) for a, b in chunks])
             assert tests == tests_t == sum(len(a) for a, _ in chunks)
@@ -414,6 +416,64 @@ def test_numpy_pair_search_equals_the_pair_casters_bit_for_bit(dtype):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_compiled_region_walk_equals_the_numpy_spans_and_pair_search_bit_for_bit(dtype):
+    """kernels.nearest_in_region (the compiled walk of each face's box and scanline spans) against its numpy
+    reference, _FaceCull.spans -> _candidate_pairs -> _search_pairs: the same nearest face and t per sample (bit
+    for bit) and the same pair count, for one box (every pixel rendered) and a masked region restricted to the
+    faces touching it (two meshes, the second pass of a render), deformed objects from 0.6 m (faces crossing the
+    camera plane) to 60 m, s = 1 and 3, and every face doubled (equal t: the smaller face index must win)."""
+    from robustbench3d.attacks.object import random_shape
+    from robustbench3d.sensors.camera_depth import camera_centre_rect, pixel_rays_rect
+    from robustbench3d.sensors.camera_render import (
+        _candidate_pairs,
+        _check_meshes,
+        _Geometry,
+        _pixel_set,
+        _Region,
+        _search_pairs,
+    )
+    from robustbench3d.sensors.kernels import nearest_in_region
+    from robustbench3d.sensors.raycast import PairTable
+
+    calib = DAY_0926.calib
+    w, h = DAY_0926.image_size
+    rng = np.random.default_rng(4)
+    checked = 0
+    for k, distance in enumerate([0.6, 8.0, 60.0]):
+        obj = random_shape(seed=10 + k, amplitude=0.45)
+        v = obj.vertices() + np.array([0.1, 0.05, distance])
+        for faces in (obj.faces, np.concatenate([obj.faces, obj.faces])):
+            meshes = _check_meshes([(torch.as_tensor(v, dtype=dtype), faces, np.full_like(v, 0.5)),
+                                    (torch.as_tensor(v + np.array([1.5, 0.3, 4.0]), dtype=dtype), faces,
+                                     np.full_like(v, 0.5))][:1 if distance < 1 else 2])
+            whole = _pixel_set(calib, meshes, (w, h), False)[0]
+            g = _Geometry.of(meshes, calib)
+            table = PairTable.of(g.verts.numpy(), g.faces, camera_centre_rect(calib))
+            sparse = whole.mask & (rng.random(whole.mask.shape) < 0.3)
+            lv, lu = np.nonzero(sparse)
+            masked = _Region(whole.rect, sparse, (lv + whole.rect[1]) * w + lu + whole.rect[0])
+            for region, faces_in in ((whole, None), (masked, g.cull.touching(masked))):
+                for s in (1, 3):
+                    pv, pu = np.divmod(region.pixels, w)
+                    off = (np.arange(s) + 0.5) / s - 0.5
+                    dirs = pixel_rays_rect(calib, (pu[:, None] + np.tile(off, s)).reshape(-1),
+                                           (pv[:, None] + np.repeat(off, s)).reshape(-1))
+                    d = np.ascontiguousarray(dirs.T.astype(g.np_dtype))
+                    pairs = _candidate_pairs(g.cull.spans(s, region.rect, faces_in), region, s, 5000)
+                    ray, face, t, tests = _search_pairs(table, d, pairs)
+                    near, best, tests_c = nearest_in_region(g.cull, faces_in, table.table, d, region.mask,
+                                                            region.rect, s, table.t_min, table.tol)
+                    assert tests_c == tests > 0
+                    assert np.array_equal(np.flatnonzero(near >= 0), ray) and np.array_equal(near[ray], face)
+                    assert best.dtype == t.dtype == g.np_dtype and np.array_equal(best[ray], t)
+                    assert np.all(np.isinf(np.delete(best, ray)))
+                    checked += len(ray)
+            if len(faces) > len(obj.faces):
+                assert np.all(face % len(faces) < len(obj.faces))  # each face ties with its copy: the first wins
+    assert checked > 20000
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_visible_hits_search_in_the_geometry_dtype_like_a_brute_force_cast(dtype):
     """_visible_hits (no scene depth, s = 2) against the PairCaster's search of every sample x every face: the
     same hit samples and nearest faces, and hit directions in the geometry's dtype (a float32 render searches
@@ -421,7 +481,7 @@ def test_visible_hits_search_in_the_geometry_dtype_like_a_brute_force_cast(dtype
     from robustbench3d.attacks.object import random_shape
     from robustbench3d.sensors.camera_depth import camera_centre_rect, pixel_rays_rect
     from robustbench3d.sensors.camera_render import _check_meshes, _Geometry, _pixel_set, _visible_hits
-    from robustbench3d.sensors.raycast import PairCaster
+    from robustbench3d.sensors.raycast import PairCaster, PairTable
 
     calib = DAY_0926.calib
     obj = random_shape(seed=3, amplitude=0.45)
@@ -431,7 +491,8 @@ def test_visible_hits_search_in_the_geometry_dtype_like_a_brute_force_cast(dtype
     region = _pixel_set(calib, meshes, DAY_0926.image_size, False)[0]
     g = _Geometry.of(meshes, calib)
     caster = PairCaster(g.verts, g.faces_t, torch.as_tensor(camera_centre_rect(calib), dtype=dtype))
-    hits = _visible_hits(calib, g, caster, region, w, 2, None, False)
+    hits = _visible_hits(calib, g, PairTable.of(g.verts.numpy(), g.faces, camera_centre_rect(calib)), region, w, 2,
+                         None, False)
     pv, pu = np.divmod(region.pixels, w)
     off = np.array([-0.25, 0.25])
     dirs = pixel_rays_rect(calib, (pu[:, None] + np.tile(off, 2)).reshape(-1),
@@ -938,3 +999,88 @@ def test_fused_shading_equals_shade_at_the_hits_of_an_independent_cast():
     want = shade(torch.tensor(albedo), torch.tensor(n), torch.tensor(t), _rect_lighting(SUNNY, calib, torch.float64))
     np.testing.assert_allclose(crop.values.detach().numpy()[k], want.numpy(), rtol=0, atol=1e-12)
     assert not crop.values.detach().numpy()[~k].any()  # the uncovered pixels keep the black photo
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_compiled_face_cull_equals_the_numpy_reference_bit_for_bit(dtype):
+    """_FaceCull.of (kernels.face_cull) against the numpy code it replaced: every field bit for bit, for
+    deformed objects ahead, straddling the camera plane and behind it, with skipped faces, a degenerate face
+    (two equal vertices) and a sliver."""
+    from robustbench3d.attacks.object import random_shape
+    from robustbench3d.sensors.camera_depth import camera_centre_rect
+    from robustbench3d.sensors.camera_render import _FaceCull
+
+    calib = DAY_0926.calib
+    centre = camera_centre_rect(calib)
+    rng = np.random.default_rng(8)
+    for k, z in enumerate([0.15, 0.9, 6.0, 45.0, -3.0]):
+        obj = random_shape(seed=20 + k, amplitude=0.45)
+        v = obj.vertices() + np.array([0.2, 0.1, z])
+        v = np.concatenate([v, [[0.0, 0.0, 5.0], [1.0, 0.0, 5.0], [2.0, 1e-9, 5.0]]])
+        n = len(obj.vertices())
+        faces = np.concatenate([obj.faces, [[n, n + 1, n + 1], [n, n + 1, n + 2]]])
+        skip = rng.random(len(faces)) < 0.2
+        for sk in (None, skip):
+            got = _FaceCull.of(calib, v, faces, sk, dtype, centre)
+            want = _face_cull_reference(calib, v, faces, sk, dtype, centre)
+            for name, a in zip(("lo", "hi", "crossing", "unreachable", "edge", "tight"), want, strict=True):
+                b = getattr(got, name)
+                assert b.dtype == a.dtype and np.array_equal(b, a, equal_nan=True), name
+        plain = _FaceCull.of(calib, v, faces, None, dtype, centre)
+        if 0 < z < 0.4:
+            assert plain.crossing.any() and plain.unreachable.any()
+        if z > 1:
+            assert plain.tight.sum() > 250 and not plain.tight[-2:].any()
+        if z < 0:
+            assert plain.unreachable[:-2].all() and not plain.unreachable[-2:].any()
+
+
+def _face_cull_reference(calib, vertices, faces, skip, dtype, centre):
+    """The numpy _FaceCull.of that kernels.face_cull replaced (its arithmetic, array by array)."""
+    from robustbench3d.sensors.camera_render import _NEAR, BOX_MARGIN_PX, SPAN_DEPTH_RATIO, SPAN_MARGIN
+    from robustbench3d.sensors.mesh import cross_rows
+    from robustbench3d.sensors.raycast import dot3
+
+    uv, depth = calib.rect_to_image(vertices)
+    p, fd = uv[faces], depth[faces]  # (F, 3, 2), (F, 3)
+    # reductions over the 3 vertices written out: numpy's reductions along a short axis cost far more, and
+    # min / max / any / all are exact, sums are (x0 + x1) + x2 as numpy's (see raycast.dot3)
+    d0, d1, d2 = fd[:, 0], fd[:, 1], fd[:, 2]
+    unreachable = (d0 <= 0) & (d1 <= 0) & (d2 <= 0)
+    if skip is not None:
+        unreachable |= skip
+    crossing = ((d0 <= _NEAR) | (d1 <= _NEAR) | (d2 <= _NEAR)) & ~unreachable
+    fuv = np.where(crossing[:, None, None] | unreachable[:, None, None], 0.0, p)
+    f0, f1, f2 = fuv[:, 0], fuv[:, 1], fuv[:, 2]  # min / max over the 3 vertices (exact either way)
+    lo, hi = np.minimum(np.minimum(f0, f1), f2), np.maximum(np.maximum(f0, f1), f2)
+    extent = hi - lo
+    margin = BOX_MARGIN_PX + 1e-5 * np.maximum(extent[:, 0], extent[:, 1])[:, None]
+    # the scanline cull (see spans), for the faces in front of the camera: delta_f and where it applies
+    edge_fn = np.zeros((len(faces), 3, 3))
+    tight = np.zeros(len(faces), bool)
+    ahead = np.flatnonzero(~crossing & ~unreachable)
+    q, v3 = p[ahead], vertices[faces[ahead]]
+    edge = q[:, [2, 0, 1]] - q[:, [1, 2, 0]]  # edge k runs from vertex (k+1) % 3 to (k+2) % 3
+    area2 = edge[:, 1, 0] * edge[:, 2, 1] - edge[:, 1, 1] * edge[:, 2, 0]  # (p1 - p0) x (p2 - p0)
+    e3 = v3[:, [2, 0, 1]] - v3[:, [1, 2, 0]]
+    n3 = cross_rows(e3[:, 2], -e3[:, 1])
+    ray = (v3[:, 0] + v3[:, 1] + v3[:, 2]) / 3 - centre
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ray2 = dot3(ray, ray)
+        cos = np.abs(dot3(n3, ray)) / np.sqrt(dot3(n3, n3) * ray2)
+        e3sq = dot3(e3, e3)
+        cond = np.sqrt(ray2 / np.minimum(np.minimum(e3sq[:, 0], e3sq[:, 1]), e3sq[:, 2])) / cos
+        delta = SPAN_MARGIN + 64 * float(torch.finfo(dtype).eps) * cond
+        fa0, fa1, fa2 = d0[ahead], d1[ahead], d2[ahead]
+        e2d = edge * edge
+        e2d = e2d[:, :, 0] + e2d[:, :, 1]
+        ok = ((np.maximum(np.maximum(fa0, fa1), fa2) <= SPAN_DEPTH_RATIO * np.minimum(np.minimum(fa0, fa1), fa2))
+              & (np.abs(area2) > 1e-6 * np.maximum(np.maximum(e2d[:, 0], e2d[:, 1]), e2d[:, 2]))
+              & np.isfinite(delta))
+    sign = np.sign(area2)[:, None]
+    start = q[:, [1, 2, 0]]
+    edge_fn[ahead] = np.stack([-edge[:, :, 1] * sign, edge[:, :, 0] * sign,  # a x + b y + c, positive inside
+                               (edge[:, :, 1] * start[:, :, 0] - edge[:, :, 0] * start[:, :, 1]) * sign
+                               + (np.where(ok, delta, 0.0) * np.abs(area2))[:, None]], axis=2)
+    tight[ahead] = ok
+    return lo - margin, hi + margin, crossing, unreachable, edge_fn, tight

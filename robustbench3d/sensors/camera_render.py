@@ -14,15 +14,18 @@ occlusion edge and is refined to s x s samples (``supersample`` = s) at the cent
 sub-pixels; every other pixel keeps its centre sample (the generator renders its scene with one ray per
 pixel, so object interiors look like the scene's surfaces, and soft edges are where they differ). Each
 sample is a ray from the camera-2 centre (-K^-1 P2[:, 3] in rect). Rays meet the meshes in the same
-Möller–Trumbore core as the LiDAR (:class:`robustbench3d.sensors.raycast.PairCaster`: one per-face table,
-a no-grad search of candidate (sample, face) pairs keeping the nearest hit per sample, ties to the
-smallest face id, run in numpy on the caster's table by :func:`_search_pairs` (the caster's kernel, operation
-for operation: a crop's few thousand pairs cost torch's per-op overhead), then one recompute with gradients
-on the winners of both passes, :class:`~robustbench3d.sensors.raycast.FaceRows`), culled as a scanline
+Möller–Trumbore core as the LiDAR (one per-face table, :class:`robustbench3d.sensors.raycast.PairTable`, as
+:class:`~robustbench3d.sensors.raycast.PairCaster` builds it; a no-grad search of candidate (sample, face) pairs
+keeping the nearest hit per sample, ties to the smallest face id, the caster's kernel operation for operation,
+compiled: :func:`robustbench3d.sensors.kernels.nearest_in_region` walks each face's box and spans without
+materialising the pairs; a crop's few thousand pairs cost numpy's and torch's per-op overhead; then one
+recompute with gradients on the winners of both passes, :class:`~robustbench3d.sensors.raycast.FaceRows`), culled
+as a scanline
 rasteriser does: each face's projected vertices give a screen box (widened by :data:`BOX_MARGIN_PX` plus
 1e-5 of its size, which covers the core's barycentric tolerance and rounding), and in each sample row of the
-box only the columns whose 2D barycentrics are all >= -delta (:meth:`_FaceCull.spans`, a margin covering
-the core's tolerance, its rounding in the geometry dtype and perspective) become candidates. Back faces
+box only the columns whose 2D barycentrics are all >= -delta (:meth:`_FaceCull.spans`, the numpy reference of
+the compiled walk; a margin covering the core's tolerance, its rounding in the geometry dtype and perspective)
+become candidates. Back faces
 of a closed star-shaped mesh seen from outside its bounding sphere get no pairs
 (:func:`~robustbench3d.sensors.raycast.back_faces`, which states the condition; the full-image reference
 skips the same faces). A face whose vertices are all at camera depth <= 0 cannot be hit by a ray through
@@ -77,10 +80,11 @@ import torch
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.sensors.camera_depth import DepthSource, camera_centre_rect, pixel_ray_components
 from robustbench3d.sensors.camera_model import Lighting
+from robustbench3d.sensors.kernels import face_cull, nearest_in_region, scatter_add
 from robustbench3d.sensors.mesh import cross_rows
 from robustbench3d.sensors.raycast import (
     FaceRows,
-    PairCaster,
+    PairTable,
     back_faces,
     dot3,
     face_slots,
@@ -249,16 +253,6 @@ class _HitSet:
     origin: np.ndarray
 
 
-def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """(C, n): each row of ``values`` (C, K) summed by ``index`` (K,), entry by entry in order in the values'
-    dtype (as torch's index_add_): np.bincount for float64 (which adds in float64, in order), np.add.at else."""
-    if values.dtype == np.float64:
-        return scatter_rows(index, values.T, n).T
-    out = np.zeros((len(values), n), values.dtype)
-    np.add.at(out.T, index, values.T)
-    return out
-
-
 class _ShadeHits(torch.autograd.Function):
     """The differentiable part of a render, fused, in numpy with a hand-written backward: per face hit,
     Möller–Trumbore's rows (:class:`~robustbench3d.sensors.raycast.FaceRows`, the core's recompute) and
@@ -310,7 +304,7 @@ class _ShadeHits(torch.autograd.Function):
         base_t = bn.T.astype(dt)  # (3, P)
         w = hits.weight
         contrib = (np.clip(y, 0.0, 1.0) - base_t.take(hits.owner, axis=1)) * w
-        acc = _sum_by(hits.owner, contrib, base_t.shape[1])
+        acc = scatter_add(hits.owner, contrib, base_t.shape[1])
         ctx.saved = (hits, lt, fr, pairs, fade, dl1, dl2, exposed - haze, slope * w, m, unit, flip, sun_cos, irr, cf)
         ctx.shapes = (vn.shape, cn.shape, verts.dtype, colors.dtype, base.dtype)
         return torch.from_numpy((base_t + acc).T.astype(bn.dtype))
@@ -348,7 +342,7 @@ class _ShadeHits(torch.autograd.Function):
             out_v = torch.from_numpy(fr.vertex_grads(g_e1 + cross_rows(fr.e2, g_n), g_e2 + cross_rows(g_n, fr.e1),
                                                      g_t0, v_shape[0])).to(v_dtype)
         if ctx.needs_input_grad[2]:
-            covered = _sum_by(hits.owner, hits.weight[None], gn.shape[1])[0]  # then 1 - it in the grad's dtype
+            covered = scatter_add(hits.owner, hits.weight[None], gn.shape[1])[0]  # then 1 - it in the grad's dtype
             out_b = (grad * (1.0 - torch.from_numpy(covered).to(grad.dtype))[:, None]).to(b_dtype)
         return out_v, out_c, out_b, None, None
 
@@ -418,48 +412,11 @@ class _FaceCull:
         """Faces (F, 3) of float64 rect ``vertices``; ``skip`` (F,) bool faces never hit; ``dtype`` the ray
         test's (its rounding widens the scanline margin); ``centre`` the camera centre (rect; computed if None)."""
         uv, depth = calib.rect_to_image(vertices)
-        p, fd = uv[faces], depth[faces]  # (F, 3, 2), (F, 3)
-        # reductions over the 3 vertices written out: numpy's reductions along a short axis cost far more, and
-        # min / max / any / all are exact, sums are (x0 + x1) + x2 as numpy's (see raycast.dot3)
-        d0, d1, d2 = fd[:, 0], fd[:, 1], fd[:, 2]
-        unreachable = (d0 <= 0) & (d1 <= 0) & (d2 <= 0)
-        if skip is not None:
-            unreachable |= skip
-        crossing = ((d0 <= _NEAR) | (d1 <= _NEAR) | (d2 <= _NEAR)) & ~unreachable
-        fuv = np.where(crossing[:, None, None] | unreachable[:, None, None], 0.0, p)
-        f0, f1, f2 = fuv[:, 0], fuv[:, 1], fuv[:, 2]  # min / max over the 3 vertices (exact either way)
-        lo, hi = np.minimum(np.minimum(f0, f1), f2), np.maximum(np.maximum(f0, f1), f2)
-        extent = hi - lo
-        margin = BOX_MARGIN_PX + 1e-5 * np.maximum(extent[:, 0], extent[:, 1])[:, None]
-        # the scanline cull (see spans), for the faces in front of the camera: delta_f and where it applies
-        edge_fn = np.zeros((len(faces), 3, 3))
-        tight = np.zeros(len(faces), bool)
-        ahead = np.flatnonzero(~crossing & ~unreachable)
-        q, v3 = p[ahead], vertices[faces[ahead]]
-        edge = q[:, [2, 0, 1]] - q[:, [1, 2, 0]]  # edge k runs from vertex (k+1) % 3 to (k+2) % 3
-        area2 = edge[:, 1, 0] * edge[:, 2, 1] - edge[:, 1, 1] * edge[:, 2, 0]  # (p1 - p0) x (p2 - p0)
-        e3 = v3[:, [2, 0, 1]] - v3[:, [1, 2, 0]]
-        n3 = cross_rows(e3[:, 2], -e3[:, 1])
-        ray = (v3[:, 0] + v3[:, 1] + v3[:, 2]) / 3 - (camera_centre_rect(calib) if centre is None else centre)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ray2 = dot3(ray, ray)
-            cos = np.abs(dot3(n3, ray)) / np.sqrt(dot3(n3, n3) * ray2)
-            e3sq = dot3(e3, e3)
-            cond = np.sqrt(ray2 / np.minimum(np.minimum(e3sq[:, 0], e3sq[:, 1]), e3sq[:, 2])) / cos
-            delta = SPAN_MARGIN + 64 * float(torch.finfo(dtype).eps) * cond
-            fa0, fa1, fa2 = d0[ahead], d1[ahead], d2[ahead]
-            e2d = edge * edge
-            e2d = e2d[:, :, 0] + e2d[:, :, 1]
-            ok = ((np.maximum(np.maximum(fa0, fa1), fa2) <= SPAN_DEPTH_RATIO * np.minimum(np.minimum(fa0, fa1), fa2))
-                  & (np.abs(area2) > 1e-6 * np.maximum(np.maximum(e2d[:, 0], e2d[:, 1]), e2d[:, 2]))
-                  & np.isfinite(delta))
-        sign = np.sign(area2)[:, None]
-        start = q[:, [1, 2, 0]]
-        edge_fn[ahead] = np.stack([-edge[:, :, 1] * sign, edge[:, :, 0] * sign,  # a x + b y + c, positive inside
-                                   (edge[:, :, 1] * start[:, :, 0] - edge[:, :, 0] * start[:, :, 1]) * sign
-                                   + (np.where(ok, delta, 0.0) * np.abs(area2))[:, None]], axis=2)
-        tight[ahead] = ok
-        return cls(lo - margin, hi + margin, crossing, unreachable, edge_fn, tight)
+        skip = np.zeros(len(faces), bool) if skip is None else skip
+        return cls(*face_cull(uv[faces], depth[faces], vertices[faces], skip,
+                              camera_centre_rect(calib) if centre is None else centre, near=_NEAR,
+                              box_margin=BOX_MARGIN_PX, span_margin=SPAN_MARGIN,
+                              eps64=64 * float(torch.finfo(dtype).eps), depth_ratio=SPAN_DEPTH_RATIO))
 
     def boxes(self, s: int, rect: Box) -> np.ndarray:
         """(F, 4) int64 per face the half-open box (c0, r0, c1, r1) of the sample grid (sample column c at
@@ -545,9 +502,10 @@ class _FaceCull:
 def _candidate_pairs(spans: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], region: _Region, s: int,
                      chunk: int | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Candidate (sample, face) pairs: every sample of each span (:meth:`_FaceCull.spans`) whose pixel is rendered,
-    in span order. Samples are numbered pixel-major in ``region.pixels`` order (s^2 per pixel, sub-pixel
-    row-major). Yields (samples, faces) in chunks of whole spans of at most ``chunk`` pairs each (one span's
-    if larger), all in one chunk for None."""
+    in span order (the numpy reference of the pairs :func:`~robustbench3d.sensors.kernels.nearest_in_region`
+    tests; the renders use the compiled walk). Samples are numbered pixel-major in ``region.pixels`` order (s^2
+    per pixel, sub-pixel row-major). Yields (samples, faces) in chunks of whole spans of at most ``chunk`` pairs
+    each (one span's if larger), all in one chunk for None."""
     face, row, c0, c1 = spans
     count = c1 - c0
     if len(count) == 0:
@@ -601,7 +559,7 @@ def _check_meshes(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.nd
                              f"{tuple(c.shape)} must both be (V, 3)")
         if f.ndim != 2 or f.shape[1] != 3 or (f.size and (f.min() < 0 or f.max() >= len(v))):
             raise ValueError(f"render_camera: field 'meshes[{i}]': faces must be (F, 3) indices into {len(v)} vertices")
-        if not bool(torch.isfinite(v.detach()).all()) or not bool(torch.isfinite(c.detach()).all()):
+        if not (np.isfinite(v.detach().cpu().numpy()).all() and np.isfinite(c.detach().cpu().numpy()).all()):
             raise ValueError(f"render_camera: field 'meshes[{i}]': NaN or inf in vertices or colors")
         out.append((v, f, c))
     return out
@@ -673,20 +631,19 @@ def _dense_pairs(rays: np.ndarray, faces: np.ndarray) -> Iterator[tuple[np.ndarr
         yield np.repeat(r, len(faces)), np.tile(faces, len(r))
 
 
-def _search_pairs(caster: PairCaster, d_cols: np.ndarray, pairs: Iterator[tuple[np.ndarray, np.ndarray]]
+def _search_pairs(test: PairTable, d_cols: np.ndarray, pairs: Iterator[tuple[np.ndarray, np.ndarray]]
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """:meth:`PairCaster.search` on numpy pairs without building tensors: (rays (K,) ascending, their nearest faces
-    (K,), t (K,), pairs tested) of the rays (unit directions by component ``d_cols`` (3, R), in the caster's
+    (K,), t (K,), pairs tested) of the rays (unit directions by component ``d_cols`` (3, R), in the table's
     dtype) hitting a face of their candidate ``pairs`` (in range): the caster's kernel
     (:func:`~robustbench3d.sensors.raycast.search_pairs_np`, shared origin) and its choice, the nearest t per ray,
-    equal t to the smallest face index."""
-    tab = None if caster.table is None else caster.table.numpy()
-    face, best, tests = search_pairs_np(tab, d_cols, None, pairs, caster.t_min, caster.tol, check=False)
+    equal t to the smallest face index. The full-image reference's search (and the crop's numpy reference)."""
+    face, best, tests = search_pairs_np(test.table, d_cols, None, pairs, test.t_min, test.tol, check=False)
     hit = (face >= 0).nonzero()[0]
     return hit, face[hit], best[hit], tests
 
 
-def _visible_hits(calib: Calibration, g: _Geometry, caster: PairCaster, region: _Region, w: int, s: int,
+def _visible_hits(calib: Calibration, g: _Geometry, test: PairTable, region: _Region, w: int, s: int,
                   scene_depth: DepthSource | None, full_image: bool) -> _Hits:
     """Search the s x s samples of each pixel of ``region`` (numbered pixel-major, s^2 per pixel, sub-pixel
     row-major) and keep the nearest hits the scene depth does not hide (module docstring)."""
@@ -703,11 +660,14 @@ def _visible_hits(calib: Calibration, g: _Geometry, caster: PairCaster, region: 
         mesh_verts = [g.vnp[np.unique(g.faces[g.mesh_of_face == i])] for i in range(g.mesh_of_face.max() + 1)]
         pairs = _dense_pairs(_sphere_cull(np.ascontiguousarray(d64.T), g.centre, mesh_verts),
                              np.flatnonzero(~g.culled))
+        sample, face, t, tests = _search_pairs(test, d_cols, pairs)
     else:
         # a whole box (one mesh's first pass): every face whose sample box meets it touches it, no filter needed
         touching = None if region.mask.all() else g.cull.touching(region)
-        pairs = _candidate_pairs(g.cull.spans(s, region.rect, touching), region, s, PAIR_CHUNK)
-    sample, face, t, tests = _search_pairs(caster, d_cols, pairs)
+        nearest, best, tests = nearest_in_region(g.cull, touching, test.table, d_cols, region.mask, region.rect, s,
+                                                 test.t_min, test.tol)
+        sample = (nearest >= 0).nonzero()[0]
+        face, t = nearest[sample], best[sample]
     hits = _Hits(sample, face, d_cols.take(sample, axis=1).T, len(su), tests)
     if scene_depth is None or len(hits.sample) == 0:
         return hits
@@ -739,8 +699,8 @@ def _render_pixels(base: torch.Tensor, w: int, calib: Calibration,
     (values (P, 3), alpha (P,), (samples cast, pairs tested)). Sampling: the module docstring."""
     s, s2 = supersample, supersample * supersample
     g = _Geometry.of(meshes, calib)
-    caster = PairCaster(g.verts, g.faces_t, g.origin, name="render_camera")
-    centre = _visible_hits(calib, g, caster, region, w, 1, scene_depth, full_image)
+    test = PairTable.of(g.verts.detach().numpy(), g.faces, g.centre, name="render_camera")
+    centre = _visible_hits(calib, g, test, region, w, 1, scene_depth, full_image)
     parts, owner, weight = [centre], centre.sample, np.ones(len(centre.sample))
     cast, tests = centre.cast, centre.tests
     if s > 1:
@@ -751,7 +711,7 @@ def _render_pixels(base: torch.Tensor, w: int, calib: Calibration,
         if len(refined):
             mask = np.zeros_like(region.mask)
             mask[region.mask] = edge
-            fine = _visible_hits(calib, g, caster, _Region(region.rect, mask, region.pixels[refined]), w, s,
+            fine = _visible_hits(calib, g, test, _Region(region.rect, mask, region.pixels[refined]), w, s,
                                  scene_depth, full_image)
             keep = np.flatnonzero(~edge[centre.sample])
             parts = [centre.select(keep), fine]

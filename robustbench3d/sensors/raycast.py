@@ -42,6 +42,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from robustbench3d.sensors.kernels import scatter_pair_grads, scatter_rows, star_faces
 from robustbench3d.sensors.mesh import cross_rows
 
 #: Rays x faces per chunk of the no-grad search (bounds its memory to about 150 MB even if every pair is tested).
@@ -54,9 +55,9 @@ _SLIVER = {torch.float64: 1e-10, torch.float32: 1e-5}
 #: Barycentric tolerance: rays tangent to an edge or through a vertex still hit one of its faces.
 _BARY_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 
-__all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "FaceRows", "PairCaster", "PairTUV", "RayHits", "back_faces",
-           "cast_ray_pair_chunks", "cast_ray_pairs", "cast_rays", "face_slots", "hit_pairs_np",
-           "nearest_np", "scatter_rows", "search_pairs_np"]
+__all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "FaceRows", "PairCaster", "PairTUV", "PairTable", "RayHits",
+           "back_faces", "cast_ray_pair_chunks", "cast_ray_pairs", "cast_rays", "face_slots", "face_test_geometry",
+           "hit_pairs_np", "nearest_np", "scatter_rows", "search_pairs_np"]
 
 
 @dataclass(frozen=True)
@@ -201,11 +202,6 @@ def _nearest_t(ray: torch.Tensor, face: torch.Tensor, t: torch.Tensor, n_rays: i
     return torch.where(first < n_faces, first, torch.full_like(first, -1)), best
 
 
-def scatter_rows(index: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
-    """(n, C) float64 sums of the rows (K, C) by ``index`` (K,) (np.bincount, a column at a time)."""
-    return np.stack([np.bincount(index, weights=rows[:, c], minlength=n) for c in range(rows.shape[1])], axis=1)
-
-
 @dataclass(frozen=True, eq=False)
 class FaceRows:
     """Möller–Trumbore's per-face rows of the faces ``faces`` (U, 3) of float ``vertices`` (numpy, their dtype):
@@ -260,13 +256,10 @@ class FaceRows:
         """Gradients (U, 3) float64 w.r.t. e1, e2 and T0 of the loss whose gradients w.r.t. the pairs' t, u, v
         are ``gt``, ``gu``, ``gv`` (K,) (the chain rule through :meth:`tuv` and the rows; for a x b the gradient
         is b x g w.r.t. a and g x a w.r.t. b)."""
-        inv, (d0, d1, d2) = pairs.inv, pairs.d.T
+        inv = pairs.inv
         gdet = np.where(pairs.ok, -(gt * pairs.t + gu * pairs.u + gv * pairs.v) * inv, 0.0)
-        gun, gvn, gtn = gu * inv, gv * inv, gt * inv
-        cols = [gdet * d0, gdet * d1, gdet * d2, gun * d0, gun * d1, gun * d2, gvn * d0, gvn * d1, gvn * d2, gtn]
-        if pairs.h is not None:
-            cols += [x * pairs.h for x in cols[3:]]
-        gm = scatter_rows(pairs.slot, np.stack(cols, axis=1), len(self.faces))
+        # per face the sums of the columns gdet d, gun d, gvn d, gtn (and, with offsets, those but gdet d times h)
+        gm = scatter_pair_grads(pairs.slot, gdet, gu * inv, gv * inv, gt * inv, pairs.d, pairs.h, len(self.faces))
         e1, e2, t0 = self.e1, self.e2, self.t0
         g_det, g_ru = gm[:, 0:3], gm[:, 3:6]
         g_q0 = gm[:, 6:9] + gm[:, 9:10] * e2
@@ -454,22 +447,17 @@ def back_faces(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray) -> n
     if len(f) == 0 or not _closed_oriented(f.tobytes(), len(v)):
         return None
     c = v.sum(axis=0) / len(v)  # v.mean(axis=0), without its per-call overhead (the same sum and division)
-    a, b, cc = v[f[:, 0]] - c, v[f[:, 1]] - c, v[f[:, 2]] - c
-    e1, e2 = b - a, cc - a
-    normal = cross_rows(e1, e2)
-    triple = dot3(a, normal)  # det[a, b, cc]
-    if not np.all(triple > 0):
-        return None
-    la, lb, lc = (np.sqrt(dot3(x, x)) for x in (a, b, cc))
-    den = la * lb * lc + dot3(a, b) * lc + dot3(a, cc) * lb + dot3(b, cc) * la
-    if abs(2.0 * np.arctan2(triple, den).sum() - 4.0 * np.pi) > np.pi:  # the sum is 4 pi x the sheet count
-        return None
     o = np.asarray(origin, np.float64).reshape(3)
+    # per face a, b, cc relative to c: det[a, b, cc] = a . (e1 x e2) > 0, the solid angles 2 atan2(det, den)
+    # (den = |a||b||cc| + (a.b)|cc| + (a.cc)|b| + (b.cc)|a|), and the cull (o - c - a) . (e1 x e2) <= 0 (compiled)
+    positive, solid_angle, mask = star_faces(v, f, c, o)
+    if not positive or abs(solid_angle - 4.0 * np.pi) > np.pi:  # the sum is 4 pi x the sheet count
+        return None
     centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
     r = v - centre
     if np.linalg.norm(o - centre) <= np.sqrt(dot3(r, r).max()) * (1 + 1e-6):
         return None
-    return dot3(o - c - a, normal) <= 0
+    return mask
 
 
 def dot3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -524,20 +512,32 @@ def _prepare(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Tens
 
 def _face_geometry(p: _Prepared, cos_min: float, skip: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
     """No grad: v0, e1, e2 (F, 3) and the test's per-face table (:func:`_face_tables`) as tensors; faces of the
-    mask ``skip`` (F,) never hit. Formed in numpy in the vertices' dtype."""
-    vd = p.vertices.detach().numpy()
-    f = p.faces.numpy()
-    v0, v1, v2 = vd[f[:, 0]], vd[f[:, 1]], vd[f[:, 2]]
+    mask ``skip`` (F,) never hit. Formed in numpy in the vertices' dtype (:func:`face_test_geometry`)."""
+    return tuple(torch.from_numpy(x) for x in face_test_geometry(
+        p.vertices.detach().numpy(), p.faces.numpy(), p.origin.numpy(), cos_min,
+        None if p.h is None else p.axis.numpy(), None if skip is None else skip.numpy()))
+
+
+def face_test_geometry(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, cos_min: float = 1e-3,
+                       axis: np.ndarray | None = None, skip: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """v0, e1, e2 (F, 3) and the per-face table of the no-grad test (:func:`_face_tables`; offsets along ``axis``
+    if given, else shared origin) of faces (F, 3) int64 into float32 or float64 ``vertices`` (V, 3) (validated
+    by the caller), in their dtype; a face that is a sliver (:data:`_SLIVER`) or in the mask ``skip`` (F,) is
+    never hit. ``cos_min`` as in :func:`cast_rays`."""
+    vd = vertices
+    v0, v1, v2 = vd[faces[:, 0]], vd[faces[:, 1]], vd[faces[:, 2]]
     e1, e2 = v1 - v0, v2 - v0
     c = cross_rows(e1, e2)
     area2 = np.sqrt(dot3(c, c))
     e3 = v2 - v1
     longest = np.maximum(np.maximum(dot3(e1, e1), dot3(e2, e2)), dot3(e3, e3))
-    valid = (area2 > _SLIVER[p.vertices.dtype] * longest) & np.isfinite(area2)
+    valid = (area2 > _SLIVER[torch.float32 if vd.dtype == np.float32 else torch.float64] * longest) \
+        & np.isfinite(area2)
     if skip is not None:
-        valid &= ~skip.numpy()
-    table = _face_tables(v0, e1, e2, valid, p.origin.numpy(), p.axis.numpy(), cos_min, p.h is not None)
-    return torch.from_numpy(v0), torch.from_numpy(e1), torch.from_numpy(e2), torch.from_numpy(table)
+        valid &= ~skip
+    ax = np.zeros(3, vd.dtype) if axis is None else axis
+    return v0, e1, e2, _face_tables(v0, e1, e2, valid, origin, ax, cos_min, axis is not None)
 
 
 def _hits(p: _Prepared, face: torch.Tensor, tests: int) -> RayHits:
@@ -635,6 +635,30 @@ def cast_ray_pair_chunks(vertices: torch.Tensor, faces: torch.Tensor, directions
         table = _face_geometry(p, cos_min)[3] if len(p.faces) else None
     face, _, tests = _pair_search(p, table, chunks, t_min, name)
     return _hits(p, face, tests)
+
+
+@dataclass(frozen=True, eq=False)
+class PairTable:
+    """What :meth:`PairCaster.search`'s kernel runs on, in numpy: the per-face ``table`` of the no-grad test from
+    a shared origin (:func:`_face_tables`, (11, F) in the vertices' dtype; None without faces), ``t_min`` and the
+    barycentric tolerance ``tol`` of that dtype. For a renderer that validated its mesh and searches with the
+    numpy or compiled kernels (no tensors, no gradients)."""
+
+    table: np.ndarray | None
+    t_min: float
+    tol: float
+
+    @classmethod
+    def of(cls, vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, *, t_min: float = 1e-6,
+           cos_min: float = 1e-3, name: str = "PairTable") -> PairTable:
+        """The table of faces (F, 3) int64 into float32 or float64 ``vertices`` (V, 3), rays from ``origin`` (3,)
+        (taken in the vertices' dtype, as :class:`PairCaster` takes it); ``t_min``, ``cos_min`` as there."""
+        dtype = {np.dtype(np.float32): torch.float32, np.dtype(np.float64): torch.float64}.get(vertices.dtype)
+        if dtype is None:
+            raise ValueError(f"{name}: field 'vertices': dtype must be float32 or float64, got {vertices.dtype}")
+        o = np.asarray(origin).astype(vertices.dtype).reshape(3)
+        table = face_test_geometry(vertices, faces, o, cos_min)[3] if len(faces) else None
+        return cls(table, t_min, _BARY_TOL[dtype])
 
 
 class PairCaster:
