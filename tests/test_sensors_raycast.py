@@ -275,8 +275,9 @@ def test_pair_chunks_give_the_hits_of_one_call():
 
 @pytest.mark.parametrize("every", [1, 2])
 def test_hits_reduced_between_chunks_keep_the_nearest_and_the_smallest_face_of_a_tie(monkeypatch, every):
-    """A long search reduces its hits to each ray's nearest every few chunks (memory of a full-scene cast): the
-    same winners bit for bit, also when a face's exact duplicate (equal t, higher index) is tested first."""
+    """A long search reduces its hits to each ray's nearest every few chunks (the numpy reference search_pairs_np
+    compacts its hit lists; the compiled search_pairs keeps one nearest per ray): the same winners bit for bit,
+    also when a face's exact duplicate (equal t, higher index) is tested first."""
     import robustbench3d.sensors.raycast as rc
 
     rng = np.random.default_rng(11)
@@ -298,6 +299,14 @@ def test_hits_reduced_between_chunks_keep_the_nearest_and_the_smallest_face_of_a
     assert torch.equal(many.hit, one.hit) and torch.equal(many.face, one.face)
     for a, b in ((many.t, one.t), (many.u, one.u), (many.v, one.v)):
         assert torch.equal(a.detach(), b.detach())
+    # the numpy reference (which compacts every `every` chunks) against the compiled search of the same chunks
+    table = rc.PairTable.of(v, f2, np.zeros(3)).table
+    d_cols = np.ascontiguousarray(d.T)
+    chunks = [(r[a:b].numpy(), fa[a:b].numpy()) for a, b in itertools.pairwise(cuts)]
+    face_np, best_np, tests_np = rc.search_pairs_np(table, d_cols, None, iter(chunks), 1e-6, 1e-6)
+    face_c, best_c, tests_c = rc.search_pairs(table, d_cols, None, iter(chunks), 1e-6, 1e-6)
+    assert tests_np == tests_c == len(r) and np.array_equal(face_np, face_c) and np.array_equal(best_np, best_c)
+    assert np.array_equal(face_c, one.face.numpy())
 
 
 def test_pair_caster_searches_then_recomputes_like_cast_ray_pairs():

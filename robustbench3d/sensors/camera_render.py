@@ -80,7 +80,14 @@ import torch
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.sensors.camera_depth import DepthSource, camera_centre_rect, pixel_ray_components
 from robustbench3d.sensors.camera_model import Lighting
-from robustbench3d.sensors.kernels import face_cull, nearest_in_region, scatter_add
+from robustbench3d.sensors.kernels import (
+    face_cull,
+    nearest_in_region,
+    scatter_add,
+    shade_exposure,
+    shade_grads,
+    shade_tone,
+)
 from robustbench3d.sensors.mesh import cross_rows
 from robustbench3d.sensors.raycast import (
     FaceRows,
@@ -287,25 +294,17 @@ class _ShadeHits(torch.autograd.Function):
         irr = amb[:, None] * lt["sky"] + np.maximum(sun_cos, 0.0)[:, None] * lt["sun_color"]  # (U, 3)
         cf = cn[f]  # (U, 3 vertices, 3 channels)
         lit = (cf * irr[:, None, :] * lt["exposure"]).reshape(-1, 9)
-        gl = lit.T.take(hits.slot, axis=1)  # (9, K)
-        l0, dl1, dl2 = gl[0:3], gl[3:6] - gl[0:3], gl[6:9] - gl[0:3]
+        # per hit (compiled, numpy's arithmetic): exposed = E h (1 - f) + f ((1 - u - v) L0 + u L1 + v L2), f the
+        # haze's fade; den = 1 + exposed / 4, x = exposed / den; the tone curve's power from numpy
         fade = np.exp(t * (-1.0 / lt["haze"]))
-        haze = (lt["horizon"] * lt["exposure"])[:, None]
-        exposed = haze * (1.0 - fade) + fade * (l0 + u * dl1 + v * dl2)  # (3, K)
-        den = 1.0 + 0.25 * exposed
-        x = exposed / den
-        low = x <= 0.0031308
-        y = np.where(low, 12.92 * x, 1.055 * np.power(np.maximum(x, dt.type(0.0031308)), 1 / 2.4) - 0.055)
-        # d tone / d exposed: the curve's slope (1.055 / 2.4) x^(1/2.4 - 1) = (y + 0.055) / (2.4 x), times dx
-        with np.errstate(divide="ignore", invalid="ignore"):  # x = 0 only where low (the slope taken is 12.92)
-            slope = np.where(low, 12.92, (y + 0.055) / (2.4 * x)) / (den * den)
-        slope = np.where((y >= 0.0) & (y <= 1.0), slope, 0.0)
+        haze = lt["horizon"] * lt["exposure"]
+        dl1, dl2, exposed_minus_haze, den, x, knee_x = shade_exposure(lit, hits.slot, u, v, fade, haze)
+        power = np.power(knee_x, 1 / 2.4)
         bn = base.detach().numpy()
         base_t = bn.T.astype(dt)  # (3, P)
-        w = hits.weight
-        contrib = (np.clip(y, 0.0, 1.0) - base_t.take(hits.owner, axis=1)) * w
-        acc = scatter_add(hits.owner, contrib, base_t.shape[1])
-        ctx.saved = (hits, lt, fr, pairs, fade, dl1, dl2, exposed - haze, slope * w, m, unit, flip, sun_cos, irr, cf)
+        # y = tone(x), its slope d y / d exposed times the hit's weight, and base + sum w (clip(y) - base) per pixel
+        acc, slope_w = shade_tone(x, den, power, base_t, hits.owner, hits.weight)
+        ctx.saved = (hits, lt, fr, pairs, fade, dl1, dl2, exposed_minus_haze, slope_w, m, unit, flip, sun_cos, irr, cf)
         ctx.shapes = (vn.shape, cn.shape, verts.dtype, colors.dtype, base.dtype)
         return torch.from_numpy((base_t + acc).T.astype(bn.dtype))
 
@@ -316,16 +315,10 @@ class _ShadeHits(torch.autograd.Function):
         dt = pairs.inv.dtype
         u, v = pairs.u, pairs.v
         gn = grad.detach().numpy().T.astype(dt)  # (3, P)
-        g_exp = gn.take(hits.owner, axis=1) * slope  # (3, K), slope includes the weight
-        g_lit = g_exp * fade  # d / d((1 - u - v) L0 + u L1 + v L2)
-        # exposed = E h + f (lit - E h), d f / d t = -f / haze: d exposed / d t = -(exposed - E h) / haze
-        ge = g_exp * exposed_minus_haze
-        g_t = (ge[0] + ge[1] + ge[2]) * (-1.0 / lt["haze"])
-        gu_, gv_ = g_lit * dl1, g_lit * dl2
-        g_u, g_v = gu_[0] + gu_[1] + gu_[2], gv_[0] + gv_[1] + gv_[2]
-        n_faces = len(hits.faces)
-        per_hit = np.concatenate([(1.0 - u - v) * g_lit, u * g_lit, v * g_lit]).T  # (K, 9)
-        g_litf = scatter_rows(hits.slot, per_hit, n_faces).reshape(-1, 3, 3)  # (U, 3 vertices, 3 channels)
+        # per hit g_t, g_u, g_v and per face the gradients w.r.t. its lit colours (compiled, numpy's arithmetic)
+        g_t, g_u, g_v, g_litf = shade_grads(gn, hits.owner, slope, fade, exposed_minus_haze, dl1, dl2, u, v,
+                                            hits.slot, len(hits.faces), lt["haze"])
+        g_litf = g_litf.reshape(-1, 3, 3)  # (U, 3 vertices, 3 channels)
         out_v = out_c = out_b = None
         if ctx.needs_input_grad[1]:
             gc = (g_litf * (irr[:, None, :] * lt["exposure"])).reshape(-1, 3)

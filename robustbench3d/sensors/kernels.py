@@ -11,6 +11,20 @@ references.
   sample there with the Möller–Trumbore test of :func:`robustbench3d.sensors.raycast.hit_pairs_np` (shared
   origin), keeping the choice of :func:`~robustbench3d.sensors.raycast.nearest_np` (the nearest t, equal t to the
   smallest face index), without materialising the pairs.
+* :func:`nearest_of_pairs` tests explicit (ray, face) pairs (shared origin or per-ray offsets along an axis) with
+  :func:`~robustbench3d.sensors.raycast.hit_pairs_np`'s arithmetic and keeps each ray's nearest hit as
+  :func:`~robustbench3d.sensors.raycast.nearest_np` (together the numpy reference
+  :func:`~robustbench3d.sensors.raycast.search_pairs_np`).
+* :func:`face_test_table` is :func:`robustbench3d.sensors.raycast.face_test_geometry` (edges, sliver test and the
+  per-face table of the no-grad test; its numpy code is the reference).
+* :func:`face_rows` and :func:`pair_tuv` are :class:`robustbench3d.sensors.raycast.FaceRows`' rows and t, u, v
+  (its numpy code is the reference).
+* :func:`cone_cull` is :meth:`robustbench3d.sensors.lidar_beams.BeamPattern.cull_many`'s per-(sphere, laser)
+  test and its sorted union of rays (its numpy code is the reference).
+* :func:`sphere_ray_ranges` is the per-(sphere, laser) part of
+  :meth:`robustbench3d.sensors.lidar_beams.BeamPattern.sphere_rays` (its numpy code is the reference).
+* :func:`shade_exposure`, :func:`shade_tone` and :func:`shade_grads` are the per-hit arithmetic of the camera's
+  fused shading (:class:`robustbench3d.sensors.camera_render._ShadeHits`; its exp and power stay in numpy).
 * :func:`scatter_rows` sums rows by an index in float64, in order (``np.bincount``'s arithmetic);
   :func:`scatter_add` in the values' dtype, in order (``np.add.at``'s).
 * :func:`face_cull` is the per-face part of :meth:`robustbench3d.sensors.camera_render._FaceCull.of` (its numpy
@@ -18,7 +32,7 @@ references.
 * :func:`scatter_pair_grads` is :meth:`robustbench3d.sensors.raycast.FaceRows.edge_grads`' per-pair products
   summed by face (``scatter_rows`` of the stacked columns).
 * :func:`star_faces` is the per-face part of :func:`robustbench3d.sensors.raycast.back_faces`.
-* :func:`cross_rows_same` is :func:`robustbench3d.sensors.mesh.cross_rows` of two float arrays of one dtype.
+* :func:`cross_rows_same` is :func:`robustbench3d.sensors.mesh.cross_rows` of two float32 / float64 arrays.
 """
 
 from __future__ import annotations
@@ -124,6 +138,10 @@ def nearest_in_region(cull: FaceCullArrays, faces: np.ndarray | None, table: np.
         return best_face, best_t, 0
     if table.dtype != d_cols.dtype:
         raise ValueError(f"nearest_in_region: table {table.dtype} and directions {d_cols.dtype} differ")
+    # the walk reads the faces' rows and the samples' directions by index: their counts must be the cull's and mask's
+    if table.shape[1] != len(cull.lo) or n != int(mask.sum()) * s * s:
+        raise ValueError(f"nearest_in_region: {table.shape[1]} faces in the table for {len(cull.lo)} culled, "
+                         f"{n} directions for {int(mask.sum())} pixels of {s} x {s} samples")
     skip = cull.unreachable if faces is None else cull.unreachable | ~faces
     flat = mask.reshape(-1)
     pos = np.where(flat, flat.cumsum() - 1, -1)  # a pixel's position among the rendered ones
@@ -178,19 +196,20 @@ def scatter_add(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    out = np.empty((a.shape[0], 3), a.dtype)
+def _cross_rows(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
     for i in range(a.shape[0]):
         out[i, 0] = a[i, 1] * b[i, 2] - a[i, 2] * b[i, 1]
         out[i, 1] = a[i, 2] * b[i, 0] - a[i, 0] * b[i, 2]
         out[i, 2] = a[i, 0] * b[i, 1] - a[i, 1] * b[i, 0]
-    return out
 
 
 def cross_rows_same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise a x b of two (N, 3) float32 or float64 arrays of the same dtype (any strides), in that dtype: the
-    components of np.cross, the same bits (the caller checks the shapes and dtypes)."""
-    return _cross_rows(a, b)
+    """Row-wise a x b of two (N, 3) float32 or float64 arrays (any strides), in numpy's result dtype (a float32
+    operand of a float64 product is widened first, as numpy does): the components of np.cross, the same bits (the
+    caller checks the shapes and dtypes)."""
+    out = np.empty(a.shape, np.result_type(a.dtype, b.dtype))
+    _cross_rows(a, b, out)
+    return out
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -338,3 +357,460 @@ def scatter_pair_grads(slot: np.ndarray, gdet: np.ndarray, gun: np.ndarray, gvn:
     hh = np.zeros(0, gdet.dtype) if h is None else np.ascontiguousarray(h)
     return _scatter_pair_grads(slot, np.ascontiguousarray(gdet), np.ascontiguousarray(gun), np.ascontiguousarray(gvn),
                                np.ascontiguousarray(gtn), np.ascontiguousarray(d), hh, h is not None, n)
+
+
+@njit(cache=True, nogil=True)
+def _nearest_of_pairs(table: np.ndarray, d_cols: np.ndarray, h: np.ndarray, offsets: bool, ray: np.ndarray,
+                      face: np.ndarray, t_min: float, tol: float, best_face: np.ndarray,
+                      best_t: np.ndarray) -> int:  # pragma: no cover - compiled
+    n_rays, n_faces = d_cols.shape[1], table.shape[1]
+    for k in range(len(ray)):
+        r, f = ray[k], face[k]
+        if r < 0 or r >= n_rays or f < 0 or f >= n_faces:  # never read outside the arrays
+            return k
+        d0, d1, d2 = d_cols[0, r], d_cols[1, r], d_cols[2, r]
+        det = table[0, f] * d0 + table[1, f] * d1 + table[2, f] * d2
+        un = table[3, f] * d0 + table[4, f] * d1 + table[5, f] * d2
+        vn = table[6, f] * d0 + table[7, f] * d1 + table[8, f] * d2
+        tn = table[9, f]
+        if offsets:
+            hr = h[r]
+            un = un + hr * (table[11, f] * d0 + table[12, f] * d1 + table[13, f] * d2)
+            vn = vn + hr * (table[14, f] * d0 + table[15, f] * d1 + table[16, f] * d2)
+            tn = tn + hr * table[17, f]
+            sign = np.sign(tn)
+            det, un, vn, tn = det * sign, un * sign, vn * sign, np.abs(tn)
+        slack = tol * det
+        if det > table[10, f] and un >= -slack and vn >= -slack and un + vn <= det + slack and tn > t_min * det:
+            t = tn / det
+            if t < best_t[r] or (t == best_t[r] and f < best_face[r]):
+                best_t[r] = t
+                best_face[r] = f
+    return -1
+
+
+def nearest_of_pairs(table: np.ndarray, d_cols: np.ndarray, h: np.ndarray | None, ray: np.ndarray,
+                     face: np.ndarray, t_min: float, tol: float, best_face: np.ndarray, best_t: np.ndarray) -> None:
+    """Test the pairs (``ray`` (K,), ``face`` (K,) int64) of rays with directions by
+    component ``d_cols`` (3, R) (offsets ``h`` (R,) with an offset table, or None) against the per-face ``table``
+    (:func:`robustbench3d.sensors.raycast._face_tables`, the same dtype) and update each ray's nearest hit in
+    ``best_face`` (R,) int64 (-1: none) and ``best_t`` (R,) (+inf: none) in place: the smaller t wins, equal t
+    the smaller face index (so the result does not depend on how the pairs are split or ordered). A pair out of
+    range raises IndexError (the pairs before it are applied)."""
+    scalar = d_cols.dtype.type  # the test's constants in the geometry dtype, as numpy takes Python floats
+    hh = np.zeros(0, d_cols.dtype) if h is None else np.ascontiguousarray(h)
+    if h is not None and len(hh) != d_cols.shape[1]:
+        raise ValueError(f"nearest_of_pairs: field 'h': {len(hh)} offsets for {d_cols.shape[1]} rays")
+    ray, face = np.ascontiguousarray(ray, np.int64), np.ascontiguousarray(face, np.int64)
+    bad = _nearest_of_pairs(np.ascontiguousarray(table), np.ascontiguousarray(d_cols), hh, h is not None, ray, face,
+                            scalar(t_min), scalar(tol), best_face, best_t)
+    if bad >= 0:
+        raise IndexError(f"nearest_of_pairs: pair {bad} (ray {ray[bad]}, face {face[bad]}) outside "
+                         f"{d_cols.shape[1]} rays and {table.shape[1]} faces")
+
+
+@njit(cache=True, nogil=True)
+def _face_rows(v: np.ndarray, f: np.ndarray, origin: np.ndarray, axis: np.ndarray, offsets: bool
+               ) -> tuple:  # pragma: no cover - compiled
+    n = f.shape[0]
+    e1, e2, t0, q0 = np.empty((n, 3), v.dtype), np.empty((n, 3), v.dtype), np.empty((n, 3), v.dtype), \
+        np.empty((n, 3), v.dtype)
+    q1 = np.empty((n if offsets else 0, 3), v.dtype)
+    rows = np.empty((17 if offsets else 10, n), v.dtype)
+    for i in range(n):
+        for c in range(3):
+            a = v[f[i, 0], c]
+            e1[i, c] = v[f[i, 1], c] - a
+            e2[i, c] = v[f[i, 2], c] - a
+            t0[i, c] = origin[c] - a
+        x0, x1, x2 = e1[i, 0], e1[i, 1], e1[i, 2]
+        y0, y1, y2 = e2[i, 0], e2[i, 1], e2[i, 2]
+        z0, z1, z2 = t0[i, 0], t0[i, 1], t0[i, 2]
+        q0[i, 0], q0[i, 1], q0[i, 2] = z1 * x2 - z2 * x1, z2 * x0 - z0 * x2, z0 * x1 - z1 * x0  # T0 x e1
+        rows[0, i], rows[1, i], rows[2, i] = y1 * x2 - y2 * x1, y2 * x0 - y0 * x2, y0 * x1 - y1 * x0  # e2 x e1
+        rows[3, i], rows[4, i], rows[5, i] = y1 * z2 - y2 * z1, y2 * z0 - y0 * z2, y0 * z1 - y1 * z0  # e2 x T0
+        rows[6, i], rows[7, i], rows[8, i] = q0[i, 0], q0[i, 1], q0[i, 2]
+        rows[9, i] = y0 * q0[i, 0] + y1 * q0[i, 1] + y2 * q0[i, 2]
+        if offsets:
+            w0, w1, w2 = axis[0], axis[1], axis[2]
+            q1[i, 0], q1[i, 1], q1[i, 2] = w1 * x2 - w2 * x1, w2 * x0 - w0 * x2, w0 * x1 - w1 * x0  # axis x e1
+            rows[10, i], rows[11, i], rows[12, i] = y1 * w2 - y2 * w1, y2 * w0 - y0 * w2, y0 * w1 - y1 * w0
+            rows[13, i], rows[14, i], rows[15, i] = q1[i, 0], q1[i, 1], q1[i, 2]
+            rows[16, i] = y0 * q1[i, 0] + y1 * q1[i, 1] + y2 * q1[i, 2]
+    return e1, e2, t0, q0, q1, rows
+
+
+def face_rows(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, axis: np.ndarray | None
+              ) -> tuple[np.ndarray, ...]:
+    """(e1, e2, T0, q0, q1 or None, rows) of :meth:`robustbench3d.sensors.raycast.FaceRows.of` for float32 or
+    float64 ``vertices`` (V, 3), ``origin`` (3,) and ``axis`` (3,) or None all of one dtype, faces (U, 3) int64 in
+    range (the caller checks)."""
+    offsets = axis is not None
+    ax = np.zeros(3, vertices.dtype) if axis is None else np.ascontiguousarray(axis)
+    e1, e2, t0, q0, q1, rows = _face_rows(vertices, np.ascontiguousarray(faces, np.int64),
+                                          np.ascontiguousarray(origin), ax, offsets)
+    return e1, e2, t0, q0, q1 if offsets else None, rows
+
+
+@njit(cache=True, nogil=True)
+def _pair_tuv(rows: np.ndarray, slot: np.ndarray, d: np.ndarray, h: np.ndarray, offsets: bool, one: float
+              ) -> tuple:  # pragma: no cover - compiled
+    k = len(slot)
+    ok = np.empty(k, np.bool_)
+    inv, t, u, v = np.empty(k, d.dtype), np.empty(k, d.dtype), np.empty(k, d.dtype), np.empty(k, d.dtype)
+    for i in range(k):
+        s = slot[i]
+        d0, d1, d2 = d[i, 0], d[i, 1], d[i, 2]
+        det = rows[0, s] * d0 + rows[1, s] * d1 + rows[2, s] * d2
+        un = rows[3, s] * d0 + rows[4, s] * d1 + rows[5, s] * d2
+        vn = rows[6, s] * d0 + rows[7, s] * d1 + rows[8, s] * d2
+        tn = rows[9, s]
+        if offsets:
+            un = un + h[i] * (rows[10, s] * d0 + rows[11, s] * d1 + rows[12, s] * d2)
+            vn = vn + h[i] * (rows[13, s] * d0 + rows[14, s] * d1 + rows[15, s] * d2)
+            tn = tn + h[i] * rows[16, s]
+        ok[i] = det != 0
+        r = one / (det if ok[i] else one)
+        inv[i], t[i], u[i], v[i] = r, tn * r, un * r, vn * r
+    return ok, inv, t, u, v
+
+
+def pair_tuv(rows: np.ndarray, slot: np.ndarray, d: np.ndarray, h: np.ndarray | None
+             ) -> tuple[np.ndarray, ...]:
+    """(ok, inv, t, u, v) (K,) of :meth:`robustbench3d.sensors.raycast.FaceRows.tuv` for ``rows`` (10 or 17, U),
+    directions ``d`` (K, 3) and offsets ``h`` (K,) or None all of one float dtype; ``slot`` (K,) int64 in [0, U)
+    (checked)."""
+    slot = _checked_index(slot, len(d), rows.shape[1], "pair_tuv")
+    offsets = h is not None
+    hh = np.zeros(0, d.dtype) if h is None else np.ascontiguousarray(h)
+    return _pair_tuv(np.ascontiguousarray(rows), slot, np.ascontiguousarray(d), hh, offsets, d.dtype.type(1))
+
+
+@njit(cache=True, nogil=True)
+def _face_test_table(vd: np.ndarray, f: np.ndarray, origin: np.ndarray, axis: np.ndarray, offsets: bool,
+                     skip: np.ndarray, sliver: float, cos_min: float) -> tuple:  # pragma: no cover - compiled
+    n = f.shape[0]
+    dt = vd.dtype
+    v0, e1, e2 = np.empty((n, 3), dt), np.empty((n, 3), dt), np.empty((n, 3), dt)
+    table = np.empty((18 if offsets else 11, n), dt)
+    for i in range(n):
+        for c in range(3):
+            a = vd[f[i, 0], c]
+            v0[i, c] = a
+            e1[i, c] = vd[f[i, 1], c] - a
+            e2[i, c] = vd[f[i, 2], c] - a
+        x0, x1, x2 = e1[i, 0], e1[i, 1], e1[i, 2]
+        y0, y1, y2 = e2[i, 0], e2[i, 1], e2[i, 2]
+        # sliver test: |e1 x e2| > sliver * longest squared edge, finite
+        c0, c1, c2 = x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0
+        area2 = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        w0, w1, w2 = vd[f[i, 2], 0] - vd[f[i, 1], 0], vd[f[i, 2], 1] - vd[f[i, 1], 1], vd[f[i, 2], 2] - vd[f[i, 1], 2]
+        longest = np.maximum(np.maximum(x0 * x0 + x1 * x1 + x2 * x2, y0 * y0 + y1 * y1 + y2 * y2),
+                             w0 * w0 + w1 * w1 + w2 * w2)
+        valid = (area2 > sliver * longest) and np.isfinite(area2) and not skip[i]
+        z0, z1, z2 = origin[0] - v0[i, 0], origin[1] - v0[i, 1], origin[2] - v0[i, 2]  # T0
+        n0, n1, n2 = y1 * x2 - y2 * x1, y2 * x0 - y0 * x2, y0 * x1 - y1 * x0  # e2 x e1
+        q0, q1, q2 = z1 * x2 - z2 * x1, z2 * x0 - z0 * x2, z0 * x1 - z1 * x0  # T0 x e1
+        s0 = y0 * q0 + y1 * q1 + y2 * q2
+        floor = cos_min * np.sqrt(n0 * n0 + n1 * n1 + n2 * n2) if valid else np.inf
+        col = (n0, n1, n2, y1 * z2 - y2 * z1, y2 * z0 - y0 * z2, y0 * z1 - y1 * z0, q0, q1, q2, s0)
+        if offsets:
+            for k in range(10):
+                table[k, i] = col[k]
+            table[10, i] = floor
+            a0, a1, a2 = axis[0], axis[1], axis[2]
+            table[11, i], table[12, i], table[13, i] = y1 * a2 - y2 * a1, y2 * a0 - y0 * a2, y0 * a1 - y1 * a0
+            p0, p1, p2 = a1 * x2 - a2 * x1, a2 * x0 - a0 * x2, a0 * x1 - a1 * x0  # axis x e1
+            table[14, i], table[15, i], table[16, i] = p0, p1, p2
+            table[17, i] = y0 * p0 + y1 * p1 + y2 * p2
+        else:  # rows 0..9 times sign(t*det) (exact); a face whose plane holds the origin is never hit
+            sign = np.sign(s0)
+            for k in range(10):
+                table[k, i] = col[k] * sign
+            table[10, i] = floor if sign != 0 else np.inf
+    return v0, e1, e2, table
+
+
+def face_test_table(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, cos_min: float,
+                    axis: np.ndarray | None, skip: np.ndarray | None, sliver: float) -> tuple[np.ndarray, ...]:
+    """(v0, e1, e2, table) of :func:`robustbench3d.sensors.raycast.face_test_geometry` for float32 or float64
+    ``vertices`` (V, 3), ``origin`` and ``axis`` (3,) or None of that dtype and faces (F, 3) int64 in range (the
+    caller checks); ``sliver`` its dtype's sliver ratio."""
+    dt = vertices.dtype.type
+    offsets = axis is not None
+    ax = np.zeros(3, vertices.dtype) if axis is None else np.ascontiguousarray(axis)
+    sk = np.zeros(len(faces), np.bool_) if skip is None else np.ascontiguousarray(skip, np.bool_)
+    return _face_test_table(np.ascontiguousarray(vertices), np.ascontiguousarray(faces, np.int64),
+                            np.ascontiguousarray(origin), ax, offsets, sk, dt(sliver), dt(cos_min))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _sphere_ray_ranges(c: np.ndarray, r: np.ndarray, first: np.ndarray, last: np.ndarray, phi: np.ndarray,
+                       sin_phi: np.ndarray, cos_phi: np.ndarray, origin_z: np.ndarray, top_down: bool, h_lo: float,
+                       h_hi: float, keys: np.ndarray, band: float) -> tuple:  # pragma: no cover - compiled
+    m = len(r)
+    neg_phi = -phi
+    rho = np.empty(m)
+    lo_l, hi_l = first.copy(), last.copy()
+    for i in range(m):
+        rho[i] = np.hypot(c[i, 0], c[i, 1])
+        if top_down:  # lasers top down: keep those within the sphere's reach from any apex height
+            d_min = np.hypot(rho[i], c[i, 2] - np.minimum(np.maximum(c[i, 2], h_lo), h_hi))
+            if r[i] >= d_min:
+                top, bottom = np.inf, -np.inf
+            else:
+                reach = np.arcsin(np.minimum(r[i] / d_min, 1.0)) + 1e-9
+                top = np.arctan2(c[i, 2] - h_lo, rho[i]) + reach
+                bottom = np.arctan2(c[i, 2] - h_hi, rho[i]) - reach
+            lo_l[i] = max(first[i], np.searchsorted(neg_phi, -top, side="left"))
+            hi_l[i] = min(last[i], np.searchsorted(neg_phi, -bottom, side="right") - 1)
+    count = 0
+    for i in range(m):
+        count += max(hi_l[i] - lo_l[i] + 1, 0)
+    sph, las = np.empty(3 * count, np.int64), np.empty(3 * count, np.int64)
+    lo, hi = np.empty(3 * count), np.empty(3 * count)
+    wrap = np.empty(count, np.int64)
+    n, n_wrap = 0, 0
+    for i in range(m):
+        theta = np.degrees(np.arctan2(c[i, 1], c[i, 0])) % 360.0
+        for k in range(lo_l[i], hi_l[i] + 1):
+            rs, rho_s, dz = r[i], rho[i], c[i, 2] - origin_z[k]
+            dist2 = rho_s * rho_s + dz * dz
+            kappa = (np.sqrt(np.maximum(dist2 - rs * rs, 0.0)) - sin_phi[k] * dz) / (cos_phi[k] * rho_s)
+            kappa = kappa - 1e-9
+            full = (rs >= rho_s) or (dist2 <= rs * rs) or (kappa <= -1.0)
+            if not (full or kappa <= 1.0):
+                continue
+            if full:
+                a, b = -1.0, 500.0
+            else:
+                half = np.degrees(np.arccos(np.minimum(np.maximum(kappa, -1.0), 1.0))) + 1e-7
+                a, b = theta - half, theta + half
+                if a < 1.0 or b > 359.0:
+                    wrap[n_wrap] = n
+                    n_wrap += 1
+            sph[n], las[n], lo[n], hi[n] = i, k, a, b
+            n += 1
+    for turn in (360.0, -360.0):  # a sphere near azimuth 0 may also reach rays a turn away
+        for w in range(n_wrap):
+            j = wrap[w]
+            sph[n], las[n], lo[n], hi[n] = sph[j], las[j], lo[j] + turn, hi[j] + turn
+            n += 1
+    total = 0
+    start, stop = np.empty(n, np.int64), np.empty(n, np.int64)
+    for j in range(n):
+        a, b = np.minimum(np.maximum(lo[j], -1.0), 500.0), np.minimum(np.maximum(hi[j], -1.0), 500.0)
+        start[j] = np.searchsorted(keys, las[j] * band + a, side="left")
+        stop[j] = np.searchsorted(keys, las[j] * band + b, side="right")
+        total += max(stop[j] - start[j], 0)
+    out_s, out_r = np.empty(total, np.int64), np.empty(total, np.int64)
+    q = 0
+    for j in range(n):
+        for ray in range(start[j], stop[j]):
+            out_s[q], out_r[q] = sph[j], ray
+            q += 1
+    return out_s, out_r
+
+
+def sphere_ray_ranges(centers: np.ndarray, radii: np.ndarray, first: np.ndarray, last: np.ndarray,
+                      phi: np.ndarray, origin_z: np.ndarray, keys: np.ndarray, band: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(sphere (K,), ray (K,)) of :meth:`robustbench3d.sensors.lidar_beams.BeamPattern.sphere_rays` (its
+    docstring) for float64 ``centers`` (M, 3), ``radii`` (M,), int64 laser bounds (M,), the lasers' elevations
+    ``phi`` (L,) (rad) and apex heights ``origin_z`` (L,) (m), the pattern's sorted ray ``keys`` and ``band``."""
+    top_down = bool(np.all(np.diff(phi) < 0))
+    h_lo, h_hi = float(origin_z.min()), float(origin_z.max())
+    return _sphere_ray_ranges(np.ascontiguousarray(centers, np.float64), np.ascontiguousarray(radii, np.float64),
+                              np.ascontiguousarray(first, np.int64), np.ascontiguousarray(last, np.int64),
+                              np.ascontiguousarray(phi), np.sin(phi), np.cos(phi),
+                              np.ascontiguousarray(origin_z, np.float64), top_down, h_lo, h_hi,
+                              np.ascontiguousarray(keys), float(band))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _cone_cull(c: np.ndarray, radii: np.ndarray, sin_phi: np.ndarray, cos_phi: np.ndarray, origin_z: np.ndarray,
+               margin_deg: float, keys: np.ndarray, band: float) -> tuple:  # pragma: no cover - compiled
+    m, n_lasers = len(radii), len(sin_phi)
+    counts = np.zeros(m, np.int64)
+    chunks = []
+    for i in range(m):
+        r = radii[i] * (1 + 1e-9) + 1e-9
+        r2 = r * r
+        rho = np.hypot(c[i, 0], c[i, 1])
+        theta = np.degrees(np.arctan2(c[i, 1], c[i, 0])) % 360.0
+        starts = np.empty(3 * n_lasers, np.int64)
+        stops = np.empty(3 * n_lasers, np.int64)
+        n = 0
+        for k in range(n_lasers):
+            cz = c[i, 2] - origin_z[k]
+            dist2 = rho * rho + cz * cz
+            if dist2 <= r2:
+                kappa = -np.inf
+            else:
+                kappa = (np.sqrt(np.maximum(dist2 - r2, 0.0)) - sin_phi[k] * cz) / (cos_phi[k] * rho)
+                if np.isnan(kappa):
+                    kappa = np.inf
+            kappa = kappa - 1e-9
+            if not kappa <= 1.0:
+                continue
+            half = np.degrees(np.arccos(np.minimum(np.maximum(kappa, -1.0), 1.0))) + margin_deg
+            for turn in (-360.0, 0.0, 360.0):  # a full laser gets its whole range three times (merged below)
+                if half >= 180.0:
+                    lo, hi = -1.0, 500.0
+                else:
+                    lo = np.minimum(np.maximum(theta - half + turn, -1.0), 500.0)
+                    hi = np.minimum(np.maximum(theta + half + turn, -1.0), 500.0)
+                a = np.searchsorted(keys, k * band + lo, side="left")
+                b = np.searchsorted(keys, k * band + hi, side="right")
+                if b > a:
+                    starts[n], stops[n] = a, b
+                    n += 1
+        order = np.argsort(starts[:n])
+        rays = np.empty(0, np.int64)
+        if n:
+            total = 0
+            for j in range(n):
+                total += stops[j] - starts[j]
+            rays = np.empty(total, np.int64)
+            q, reach = 0, -1  # rays below reach are out already
+            for j in order:
+                for ray in range(max(starts[j], reach), stops[j]):
+                    rays[q] = ray
+                    q += 1
+                reach = max(reach, stops[j])
+            rays = rays[:q]
+        counts[i] = len(rays)
+        chunks.append(rays)
+    out = np.empty(counts.sum(), np.int64)
+    q = 0
+    for i in range(m):
+        out[q:q + counts[i]] = chunks[i]
+        q += counts[i]
+    return out, counts
+
+
+def cone_cull(centers: np.ndarray, radii: np.ndarray, phi: np.ndarray, origin_z: np.ndarray, margin_deg: float,
+              keys: np.ndarray, band: float) -> list[np.ndarray]:
+    """Per sphere (float64 ``centers`` (M, 3), ``radii`` (M,)) the sorted rays of
+    :meth:`robustbench3d.sensors.lidar_beams.BeamPattern.cull_many` (its docstring): lasers' elevations ``phi``
+    (L,) (rad), apex heights ``origin_z`` (L,) (m), the pattern's sorted ray ``keys`` and ``band``."""
+    rays, counts = _cone_cull(np.ascontiguousarray(centers, np.float64), np.ascontiguousarray(radii, np.float64),
+                              np.sin(phi), np.cos(phi), np.ascontiguousarray(origin_z, np.float64), float(margin_deg),
+                              np.ascontiguousarray(keys), float(band))
+    return np.split(rays, np.cumsum(counts)[:-1])
+
+
+@njit(cache=True, nogil=True)
+def _shade_exposure(lit: np.ndarray, slot: np.ndarray, u: np.ndarray, v: np.ndarray, fade: np.ndarray,
+                    haze: np.ndarray, one: float, quarter: float, knee: float) -> tuple:  # pragma: no cover
+    k = len(slot)
+    dt = lit.dtype
+    dl1, dl2, emh = np.empty((3, k), dt), np.empty((3, k), dt), np.empty((3, k), dt)
+    den, x, xm = np.empty((3, k), dt), np.empty((3, k), dt), np.empty((3, k), dt)
+    for i in range(k):
+        s, f = slot[i], fade[i]
+        for c in range(3):
+            g0 = lit[s, c]
+            d1, d2 = lit[s, 3 + c] - g0, lit[s, 6 + c] - g0
+            e = haze[c] * (one - f) + f * (g0 + u[i] * d1 + v[i] * d2)
+            dn = one + quarter * e
+            xx = e / dn
+            dl1[c, i], dl2[c, i], emh[c, i], den[c, i], x[c, i] = d1, d2, e - haze[c], dn, xx
+            xm[c, i] = np.maximum(xx, knee)
+    return dl1, dl2, emh, den, x, xm
+
+
+def shade_exposure(lit: np.ndarray, slot: np.ndarray, u: np.ndarray, v: np.ndarray, fade: np.ndarray,
+                   haze: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per hit (K) of its face's lit vertex colours ``lit`` (U, 9) (L0, L1, L2, by channel), at barycentrics u, v
+    (K,), hazed by ``fade`` (K,) towards ``haze`` (3,) (all one float dtype): (dl1 = L1 - L0, dl2 = L2 - L0,
+    exposed - haze, den = 1 + exposed / 4, x = exposed / den, max(x, 0.0031308)), each (3, K), with exposed =
+    haze (1 - fade) + fade (L0 + u dl1 + v dl2): :class:`~robustbench3d.sensors.camera_render._ShadeHits`'
+    numpy arithmetic, constants in that dtype."""
+    dt = lit.dtype.type
+    return _shade_exposure(np.ascontiguousarray(lit), np.ascontiguousarray(slot, np.int64), np.ascontiguousarray(u),
+                           np.ascontiguousarray(v), np.ascontiguousarray(fade), np.ascontiguousarray(haze), dt(1.0),
+                           dt(0.25), dt(0.0031308))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _shade_tone(x: np.ndarray, den: np.ndarray, power: np.ndarray, base: np.ndarray, owner: np.ndarray,
+                weight: np.ndarray, consts: tuple) -> tuple:  # pragma: no cover - compiled
+    knee, lin, gain, offset, gamma, zero, one = consts
+    k = x.shape[1]
+    slope_w = np.empty((3, k), x.dtype)
+    acc = np.zeros(base.shape, x.dtype)
+    for i in range(k):
+        p, w = owner[i], weight[i]
+        for c in range(3):
+            xx = x[c, i]
+            low = xx <= knee
+            y = lin * xx if low else gain * power[c, i] - offset
+            sl = (lin if low else (y + offset) / (gamma * xx)) / (den[c, i] * den[c, i])
+            if not (y >= zero and y <= one):
+                sl = zero
+            slope_w[c, i] = sl * w
+            acc[c, p] += (np.minimum(np.maximum(y, zero), one) - base[c, p]) * w
+    return acc, slope_w
+
+
+def shade_tone(x: np.ndarray, den: np.ndarray, power: np.ndarray, base: np.ndarray, owner: np.ndarray,
+               weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The tone curve and compositing of :class:`~robustbench3d.sensors.camera_render._ShadeHits` per hit (K) and
+    channel: y = 12.92 x where x <= 0.0031308, else 1.055 ``power`` - 0.055 (``power`` = max(x, 0.0031308)^(1/2.4),
+    from numpy), its slope d y / d exposed (0 where y leaves [0, 1]) times the hit's ``weight`` (K,), and the sum
+    per pixel (``owner`` (K,) into ``base`` (3, P)) of weight (clip(y, 0, 1) - base) in hit order: (acc (3, P),
+    slope * weight (3, K)), numpy's arithmetic with the constants in the arrays' dtype."""
+    dt = x.dtype.type
+    consts = (dt(0.0031308), dt(12.92), dt(1.055), dt(0.055), dt(2.4), dt(0.0), dt(1.0))
+    _checked_index(owner, x.shape[1], base.shape[1], "shade_tone")
+    return _shade_tone(np.ascontiguousarray(x), np.ascontiguousarray(den), np.ascontiguousarray(power),
+                       np.ascontiguousarray(base), np.ascontiguousarray(owner, np.int64), np.ascontiguousarray(weight),
+                       consts)
+
+
+@njit(cache=True, nogil=True)
+def _shade_grads(gn: np.ndarray, owner: np.ndarray, slope_w: np.ndarray, fade: np.ndarray, emh: np.ndarray,
+                 dl1: np.ndarray, dl2: np.ndarray, u: np.ndarray, v: np.ndarray, slot: np.ndarray, n_faces: int,
+                 t_scale: float, one: float) -> tuple:  # pragma: no cover - compiled
+    k = len(owner)
+    dt = gn.dtype
+    g_t, g_u, g_v = np.empty(k, dt), np.empty(k, dt), np.empty(k, dt)
+    g_lit = np.zeros((n_faces, 9))
+    for i in range(k):
+        p, f, s = owner[i], fade[i], slot[i]
+        w0 = one - u[i] - v[i]
+        gl0 = gn[0, p] * slope_w[0, i]
+        gl1 = gn[1, p] * slope_w[1, i]
+        gl2 = gn[2, p] * slope_w[2, i]
+        g_t[i] = (gl0 * emh[0, i] + gl1 * emh[1, i] + gl2 * emh[2, i]) * t_scale
+        a0, a1, a2 = gl0 * f, gl1 * f, gl2 * f  # d / d((1 - u - v) L0 + u L1 + v L2)
+        g_u[i] = a0 * dl1[0, i] + a1 * dl1[1, i] + a2 * dl1[2, i]
+        g_v[i] = a0 * dl2[0, i] + a1 * dl2[1, i] + a2 * dl2[2, i]
+        g_lit[s, 0] += w0 * a0
+        g_lit[s, 1] += w0 * a1
+        g_lit[s, 2] += w0 * a2
+        g_lit[s, 3] += u[i] * a0
+        g_lit[s, 4] += u[i] * a1
+        g_lit[s, 5] += u[i] * a2
+        g_lit[s, 6] += v[i] * a0
+        g_lit[s, 7] += v[i] * a1
+        g_lit[s, 8] += v[i] * a2
+    return g_t, g_u, g_v, g_lit
+
+
+def shade_grads(gn: np.ndarray, owner: np.ndarray, slope_w: np.ndarray, fade: np.ndarray, emh: np.ndarray,
+                dl1: np.ndarray, dl2: np.ndarray, u: np.ndarray, v: np.ndarray, slot: np.ndarray, n_faces: int,
+                haze_distance: float) -> tuple[np.ndarray, ...]:
+    """The backward of :func:`shade_exposure` / :func:`shade_tone` per hit, from the pixels' gradients ``gn``
+    (3, P): (g_t, g_u, g_v (K,) in the arrays' dtype, and per face (``slot`` (K,) into ``n_faces``) the gradients
+    w.r.t. its lit colours L0, L1, L2 by channel, (n_faces, 9) summed in float64 in hit order): numpy's arithmetic
+    of :class:`~robustbench3d.sensors.camera_render._ShadeHits.backward`."""
+    dt = gn.dtype.type
+    _checked_index(owner, len(u), gn.shape[1], "shade_grads")
+    _checked_index(slot, len(u), n_faces, "shade_grads")
+    return _shade_grads(np.ascontiguousarray(gn), np.ascontiguousarray(owner, np.int64),
+                        np.ascontiguousarray(slope_w), np.ascontiguousarray(fade), np.ascontiguousarray(emh),
+                        np.ascontiguousarray(dl1), np.ascontiguousarray(dl2), np.ascontiguousarray(u),
+                        np.ascontiguousarray(v), np.ascontiguousarray(slot, np.int64), n_faces,
+                        dt(-1.0 / haze_distance), dt(1.0))

@@ -21,6 +21,7 @@ from functools import cached_property
 import numpy as np
 
 from robustbench3d.sensors.hdl64e import AZIMUTH_QUANTUM_DEG, HDL64E, BeamRays, ring_ids_from_azimuth_wrap
+from robustbench3d.sensors.kernels import cone_cull, sphere_ray_ranges
 
 #: Per-laser firing offsets of the generator's sensor (used by ``synth.lidar``), degrees in [0, 0.045).
 GENERATOR_FIRING_OFFSETS_DEG = np.random.default_rng(64).uniform(0.0, AZIMUTH_QUANTUM_DEG / 2, 64)
@@ -99,11 +100,16 @@ class BeamPattern:
         """
         return self.cull_many(np.reshape(np.asarray(center, dtype=np.float64), (1, 3)), [radius], margin_deg)[0]
 
-    def cull_many(self, centers: np.ndarray, radii: np.ndarray, margin_deg: float = AZIMUTH_STEP_DEG
-                  ) -> list[np.ndarray]:
-        """:meth:`cull` of each sphere (``centers`` (M, 3), ``radii`` (M,)), all lasers of all spheres at once."""
+    def cull_many(self, centers: np.ndarray, radii: np.ndarray, margin_deg: float = AZIMUTH_STEP_DEG,
+                  compiled: bool = True) -> list[np.ndarray]:
+        """:meth:`cull` of each sphere (``centers`` (M, 3), ``radii`` (M,)), all lasers of all spheres at once.
+        ``compiled=False``: the numpy code (the reference of the compiled
+        :func:`robustbench3d.sensors.kernels.cone_cull`, which gives the same rays)."""
         s = self.sensor
         c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+        if compiled:  # the same arithmetic, sphere by sphere and laser by laser (the numpy code below)
+            return cone_cull(c, np.asarray(radii, dtype=np.float64).reshape(-1), np.radians(s.elevation_deg),
+                             s.origin_z, margin_deg, self._keys, _BAND)
         r = np.asarray(radii, dtype=np.float64).reshape(-1) * (1 + 1e-9) + 1e-9
         cz = c[:, 2:3] - s.origin_z[None, :]
         rho = np.hypot(c[:, 0], c[:, 1])[:, None]
@@ -135,20 +141,24 @@ class BeamPattern:
         rays = key - np.repeat(np.arange(len(c)) * n_rays, np.diff(bounds))
         return [rays[bounds[i]:bounds[i + 1]] for i in range(len(c))]
 
-    def sphere_rays(self, centers: np.ndarray, radii: np.ndarray, first_laser: np.ndarray, last_laser: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
+    def sphere_rays(self, centers: np.ndarray, radii: np.ndarray, first_laser: np.ndarray, last_laser: np.ndarray,
+                    compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """(sphere (K,), ray (K,)) int64 pairs: for each sphere (``centers`` (M, 3), ``radii``
         (M,)) the rays of lasers ``first_laser[m]``..``last_laser[m]`` that can pass through it.
 
         The lasers are first narrowed to those whose elevation is within the sphere's angular radius of the
         centre's elevation seen from some laser origin; then per laser the azimuths within its cone's reach of the
         sphere (:meth:`cull`'s test, without its margin). The tests keep margins (1e-9, 1e-7 deg) far above their
-        rounding: a superset of those rays; cheaper than :meth:`cull` for many small spheres on few lasers."""
+        rounding: a superset of those rays; cheaper than :meth:`cull` for many small spheres on few lasers.
+        ``compiled=False``: the numpy code (the reference of the compiled
+        :func:`robustbench3d.sensors.kernels.sphere_ray_ranges`, which gives the same pairs in the same order)."""
         s = self.sensor
         c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
         r = np.asarray(radii, dtype=np.float64).reshape(-1)
         first = np.asarray(first_laser, dtype=np.int64).reshape(-1)
         last = np.asarray(last_laser, dtype=np.int64).reshape(-1)
+        if compiled:  # the same arithmetic, sphere by sphere and laser by laser (the numpy code below)
+            return sphere_ray_ranges(c, r, first, last, np.radians(s.elevation_deg), s.origin_z, self._keys, _BAND)
         rho = np.hypot(c[:, 0], c[:, 1])
         phi = np.radians(s.elevation_deg)
         if np.all(np.diff(phi) < 0):  # lasers top down: keep those within the sphere's reach from any apex height

@@ -77,8 +77,8 @@ def icosphere(level: int, radius: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
 
 def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise a x b of (N, 3) arrays: np.cross's components (the same bits), without its per-call overhead
-    (two float32 or float64 arrays of one dtype: compiled, :func:`robustbench3d.sensors.kernels.cross_rows_same`)."""
-    if a.dtype == b.dtype and a.dtype in _FLOATS and a.shape == b.shape and a.ndim == 2 and a.shape[1] == 3:
+    (float32 or float64 arrays: compiled, :func:`robustbench3d.sensors.kernels.cross_rows_same`)."""
+    if a.dtype in _FLOATS and b.dtype in _FLOATS and a.shape == b.shape and a.ndim == 2 and a.shape[1] == 3:
         return cross_rows_same(a, b)
     return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
                      a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)

@@ -42,7 +42,15 @@ from functools import lru_cache
 import numpy as np
 import torch
 
-from robustbench3d.sensors.kernels import scatter_pair_grads, scatter_rows, star_faces
+from robustbench3d.sensors.kernels import (
+    face_rows,
+    face_test_table,
+    nearest_of_pairs,
+    pair_tuv,
+    scatter_pair_grads,
+    scatter_rows,
+    star_faces,
+)
 from robustbench3d.sensors.mesh import cross_rows
 
 #: Rays x faces per chunk of the no-grad search (bounds its memory to about 150 MB even if every pair is tested).
@@ -57,7 +65,7 @@ _BARY_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 
 __all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "FaceRows", "PairCaster", "PairTUV", "PairTable", "RayHits",
            "back_faces", "cast_ray_pair_chunks", "cast_ray_pairs", "cast_rays", "face_slots", "face_test_geometry",
-           "hit_pairs_np", "nearest_np", "scatter_rows", "search_pairs_np"]
+           "hit_pairs_np", "nearest_np", "scatter_rows", "search_pairs", "search_pairs_np"]
 
 
 @dataclass(frozen=True)
@@ -202,6 +210,13 @@ def _nearest_t(ray: torch.Tensor, face: torch.Tensor, t: torch.Tensor, n_rays: i
     return torch.where(first < n_faces, first, torch.full_like(first, -1)), best
 
 
+def _one_float_dtype(*arrays: np.ndarray | None) -> bool:
+    """Whether the arrays (None skipped) share one float32 or float64 dtype (the compiled kernels' case; numpy's
+    promotion of mixed dtypes stays with the numpy code)."""
+    dts = {a.dtype for a in arrays if a is not None}
+    return len(dts) == 1 and dts.pop() in (np.dtype(np.float32), np.dtype(np.float64))
+
+
 @dataclass(frozen=True, eq=False)
 class FaceRows:
     """Möller–Trumbore's per-face rows of the faces ``faces`` (U, 3) of float ``vertices`` (numpy, their dtype):
@@ -221,6 +236,9 @@ class FaceRows:
     @classmethod
     def of(cls, vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, axis: np.ndarray | None = None
            ) -> FaceRows:
+        if _one_float_dtype(vertices, origin, axis):  # compiled, the same arithmetic (the numpy code below)
+            e1, e2, t0, q0, q1, rows = face_rows(vertices, faces, origin, axis)
+            return cls(faces, e1, e2, t0, q0, axis, q1, rows)
         a0 = vertices[faces[:, 0]]
         e1, e2 = vertices[faces[:, 1]] - a0, vertices[faces[:, 2]] - a0
         t0 = origin - a0
@@ -237,6 +255,8 @@ class FaceRows:
         """t, u, v of rays (unit directions ``d`` (K, 3), offsets ``h`` (K,) with an axis) against the faces
         ``slot`` (K,) (positions in :attr:`faces`): t*det / det etc., the division guarded by
         ``where(det != 0, det, 1)``."""
+        if _one_float_dtype(self.rows, d, h):  # compiled, the same arithmetic (the numpy code below)
+            return PairTUV(slot, d, h, *pair_tuv(self.rows, slot, d, h))
         g = self.rows.take(slot, axis=1)
         d0, d1, d2 = d.T
         det = g[0] * d0 + g[1] * d1 + g[2] * d2
@@ -526,6 +546,9 @@ def face_test_geometry(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarr
     by the caller), in their dtype; a face that is a sliver (:data:`_SLIVER`) or in the mask ``skip`` (F,) is
     never hit. ``cos_min`` as in :func:`cast_rays`."""
     vd = vertices
+    if _one_float_dtype(vd, origin, axis):  # compiled, the same arithmetic (the numpy code below)
+        return face_test_table(vd, faces, origin, cos_min, axis, skip,
+                               _SLIVER[torch.float32 if vd.dtype == np.float32 else torch.float64])
     v0, v1, v2 = vd[faces[:, 0]], vd[faces[:, 1]], vd[faces[:, 2]]
     e1, e2 = v1 - v0, v2 - v0
     c = cross_rows(e1, e2)
@@ -769,9 +792,31 @@ def search_pairs_np(table: np.ndarray | None, d_cols: np.ndarray, h: np.ndarray 
     return face, best, tests
 
 
+def search_pairs(table: np.ndarray | None, d_cols: np.ndarray, h: np.ndarray | None,
+                 chunks: Iterable[tuple[torch.Tensor | np.ndarray, torch.Tensor | np.ndarray]], t_min: float,
+                 tol: float, name: str = "search_pairs", check: bool = True) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`search_pairs_np` (same arguments and result, the same bits) with each chunk tested and reduced to
+    each ray's nearest hit by the compiled kernel :func:`robustbench3d.sensors.kernels.nearest_of_pairs`."""
+    n_rays, n_faces = d_cols.shape[1], 0 if table is None else table.shape[1]
+    face = np.full(n_rays, -1, np.int64)
+    best = np.full(n_rays, np.inf, d_cols.dtype)
+    tests = 0
+    for ray_index, face_index in chunks:
+        ray, fc = _as_index(ray_index), _as_index(face_index)
+        if len(ray) != len(fc):
+            raise ValueError(f"{name}: field 'face_index': {len(fc)} faces for {len(ray)} rays")
+        if len(ray) and (check or table is None) and (int(ray.min()) < 0 or int(ray.max()) >= n_rays
+                                                      or int(fc.min()) < 0 or int(fc.max()) >= n_faces):
+            raise ValueError(f"{name}: field 'ray_index': pairs must index {n_rays} rays and {n_faces} faces")
+        tests += len(ray)
+        if len(ray):
+            nearest_of_pairs(table, d_cols, h, ray, fc, t_min, tol, face, best)
+    return face, best, tests
+
+
 def _pair_search(p: _Prepared, table: torch.Tensor | None, chunks: Iterable[tuple[torch.Tensor, torch.Tensor]],
                  t_min: float, name: str, check: bool = True) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """:func:`search_pairs_np` of the prepared cast's rays, as tensors."""
-    face, best, tests = search_pairs_np(None if table is None else table.numpy(), p.d.numpy().T.copy(),
-                                        None if p.h is None else p.h.numpy(), chunks, t_min, p.tol, name, check)
+    """:func:`search_pairs` of the prepared cast's rays, as tensors."""
+    face, best, tests = search_pairs(None if table is None else table.numpy(), p.d.numpy().T.copy(),
+                                     None if p.h is None else p.h.numpy(), chunks, t_min, p.tol, name, check)
     return torch.from_numpy(face), torch.from_numpy(best), tests
