@@ -1035,6 +1035,35 @@ def test_compiled_face_cull_equals_the_numpy_reference_bit_for_bit(dtype):
             assert plain.unreachable[:-2].all() and not plain.unreachable[-2:].any()
 
 
+def test_compiled_touching_equals_its_numpy_reference():
+    """_FaceCull.touching (compiled) against ``compiled=False`` (the summed-area table in numpy) on sparse and
+    dense masks of two deformed objects, near (faces crossing the camera plane) and far, and a one-pixel mask
+    at the region's corner."""
+    from robustbench3d.attacks.object import random_shape
+    from robustbench3d.sensors.camera_render import _check_meshes, _Geometry, _pixel_set, _Region
+
+    calib = DAY_0926.calib
+    w, h = DAY_0926.image_size
+    rng = np.random.default_rng(12)
+    for k, z in enumerate([0.3, 3.0, 10.0, 40.0]):
+        obj = random_shape(seed=30 + k, amplitude=0.4)
+        v = obj.vertices() + np.array([0.2, 0.1, z])
+        meshes = _check_meshes([(torch.tensor(v), obj.faces, np.full_like(v, 0.5)),
+                                (torch.tensor(v + np.array([1.5, 0.2, 3.0])), obj.faces, np.full_like(v, 0.5))])
+        region = _pixel_set(calib, meshes, (w, h), False)[0]
+        g = _Geometry.of(meshes, calib)
+        for share in (0.002, 0.05, 0.5, 1.0):
+            mask = region.mask & (rng.random(region.mask.shape) < share)
+            sub = _Region(region.rect, mask, np.zeros(int(mask.sum()), np.int64))
+            got, want = g.cull.touching(sub), g.cull.touching(sub, compiled=False)
+            assert got.dtype == bool and np.array_equal(got, want)
+            assert got.any() or not mask.any()
+    corner = np.zeros_like(region.mask)
+    corner[0, 0] = True
+    sub = _Region(region.rect, corner, np.zeros(1, np.int64))
+    assert np.array_equal(g.cull.touching(sub), g.cull.touching(sub, compiled=False))
+
+
 def _face_cull_reference(calib, vertices, faces, skip, dtype, centre):
     """The numpy _FaceCull.of that kernels.face_cull replaced (its arithmetic, array by array)."""
     from robustbench3d.sensors.camera_render import _NEAR, BOX_MARGIN_PX, SPAN_DEPTH_RATIO, SPAN_MARGIN

@@ -59,7 +59,8 @@ pixel is
     out = photo + sum_visible w_k (colour_k - photo) = alpha * mean_visible(colour) + (1 - alpha) * photo,
 
 in display values (the photo's [0, 1] values); the recompute of t, u, v, the shading and the compositing run
-fused in numpy with a hand-written backward (:class:`_ShadeHits`; a crop's few thousand samples cost torch's
+fused with a hand-written backward (:class:`_ShadeHits`: numpy and the compiled kernels of
+:mod:`robustbench3d.sensors.kernels`, with numpy's arithmetic; a crop's few thousand samples cost torch's
 per-op overhead). Gradients: to the colours through the barycentric
 interpolation, to the vertices through u, v (interpolation), the face normal (shading) and t (haze).
 The silhouette has **no** gradient: hit/miss, visibility and the nearest-face choice are piecewise
@@ -87,6 +88,7 @@ from robustbench3d.sensors.kernels import (
     shade_exposure,
     shade_grads,
     shade_tone,
+    touching_faces,
 )
 from robustbench3d.sensors.mesh import cross_rows
 from robustbench3d.sensors.raycast import (
@@ -261,7 +263,9 @@ class _HitSet:
 
 
 class _ShadeHits(torch.autograd.Function):
-    """The differentiable part of a render, fused, in numpy with a hand-written backward: per face hit,
+    """The differentiable part of a render, fused, in numpy with a hand-written backward (the per-hit loops
+    compiled: :func:`~robustbench3d.sensors.kernels.shade_exposure`, ``shade_tone``, ``shade_grads``, the same
+    arithmetic; exp and the tone curve's power stay numpy's): per face hit,
     Möller–Trumbore's rows (:class:`~robustbench3d.sensors.raycast.FaceRows`, the core's recompute) and
     the flat shading (unit normal of e1 x e2 turned towards the camera, :func:`irradiance`, lit colours
     L_j = exposure * c_j * irradiance); per hit t, u, v (division guarded by ``where(det != 0, det, 1)``) and
@@ -426,9 +430,12 @@ class _FaceCull:
         box[self.unreachable] = 0
         return box.astype(np.int64)
 
-    def touching(self, region: _Region) -> np.ndarray:
+    def touching(self, region: _Region, compiled: bool = True) -> np.ndarray:
         """(F,) bool: the faces whose box overlaps the footprint [c - 0.5, c + 0.5]^2 of a pixel of ``region``'s
-        mask (so they may hit one of its samples, at any supersampling)."""
+        mask (so they may hit one of its samples, at any supersampling). Compiled
+        (:func:`~robustbench3d.sensors.kernels.touching_faces`); ``compiled=False`` is its numpy reference."""
+        if compiled:
+            return touching_faces(self.lo, self.hi, self.crossing, self.unreachable, region.mask, region.rect[:2])
         u0, v0 = region.rect[0], region.rect[1]
         mh, mw = region.mask.shape
         with np.errstate(invalid="ignore"):

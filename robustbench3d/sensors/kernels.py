@@ -31,6 +31,8 @@ references.
   reference is :func:`robustbench3d.sensors.camera_render.face_cull_np`).
 * :func:`scatter_pair_grads` is :meth:`robustbench3d.sensors.raycast.FaceRows.edge_grads`' per-pair products
   summed by face (``scatter_rows`` of the stacked columns).
+* :func:`touching_faces` is :meth:`robustbench3d.sensors.camera_render._FaceCull.touching` (its numpy code is
+  the reference).
 * :func:`star_faces` is the per-face part of :func:`robustbench3d.sensors.raycast.back_faces`.
 * :func:`cross_rows_same` is :func:`robustbench3d.sensors.mesh.cross_rows` of two float32 / float64 arrays.
 """
@@ -204,11 +206,11 @@ def _cross_rows(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:  # pragm
 
 
 def cross_rows_same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise a x b of two (N, 3) float32 or float64 arrays (any strides), in numpy's result dtype (a float32
-    operand of a float64 product is widened first, as numpy does): the components of np.cross, the same bits (the
-    caller checks the shapes and dtypes)."""
+    """Row-wise a x b of two (N, 3) float32 or float64 arrays (any strides: copied contiguous), in numpy's result
+    dtype (a float32 operand of a float64 product is widened first, as numpy does): the components of np.cross,
+    the same bits (the caller checks the shapes and dtypes)."""
     out = np.empty(a.shape, np.result_type(a.dtype, b.dtype))
-    _cross_rows(a, b, out)
+    _cross_rows(np.ascontiguousarray(a), np.ascontiguousarray(b), out)  # one compiled layout per dtype pair
     return out
 
 
@@ -814,3 +816,40 @@ def shade_grads(gn: np.ndarray, owner: np.ndarray, slope_w: np.ndarray, fade: np
                         np.ascontiguousarray(dl1), np.ascontiguousarray(dl2), np.ascontiguousarray(u),
                         np.ascontiguousarray(v), np.ascontiguousarray(slot, np.int64), n_faces,
                         dt(-1.0 / haze_distance), dt(1.0))
+
+
+@njit(cache=True, nogil=True)
+def _touching_faces(lo: np.ndarray, hi: np.ndarray, crossing: np.ndarray, unreachable: np.ndarray,
+                    mask: np.ndarray, u0: int, v0: int) -> np.ndarray:  # pragma: no cover - compiled
+    mh, mw = mask.shape
+    area = np.zeros((mh + 1, mw + 1), np.int64)  # summed-area table of the mask
+    for i in range(mh):
+        row = 0
+        for j in range(mw):
+            row += mask[i, j]
+            area[i + 1, j + 1] = area[i, j + 1] + row
+    n = lo.shape[0]
+    out = np.zeros(n, np.bool_)
+    for f in range(n):
+        if unreachable[f]:
+            continue
+        if crossing[f]:
+            b0, b1, b2, b3 = 0, 0, mw, mh
+        else:
+            b0 = int(np.minimum(np.maximum(np.ceil(lo[f, 0] - 0.5) - u0, 0.0), mw))
+            b1 = int(np.minimum(np.maximum(np.ceil(lo[f, 1] - 0.5) - v0, 0.0), mh))
+            b2 = int(np.minimum(np.maximum(np.floor(hi[f, 0] + 0.5) + 1 - u0, 0.0), mw))
+            b3 = int(np.minimum(np.maximum(np.floor(hi[f, 1] + 0.5) + 1 - v0, 0.0), mh))
+        if b2 > b0 and b3 > b1:
+            out[f] = area[b3, b2] - area[b1, b2] - area[b3, b0] + area[b1, b0] > 0
+    return out
+
+
+def touching_faces(lo: np.ndarray, hi: np.ndarray, crossing: np.ndarray, unreachable: np.ndarray,
+                   mask: np.ndarray, origin: tuple[int, int]) -> np.ndarray:
+    """(F,) bool: the faces (pixel boxes ``lo``, ``hi`` (F, 2), flags ``crossing`` (whole region) and
+    ``unreachable`` (none)) whose box overlaps the footprint [c - 0.5, c + 0.5]^2 of a True pixel of ``mask``
+    (H', W'), whose pixel (0, 0) is image pixel ``origin`` (u0, v0)."""
+    return _touching_faces(np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
+                           np.ascontiguousarray(crossing, np.bool_), np.ascontiguousarray(unreachable, np.bool_),
+                           np.ascontiguousarray(mask, np.bool_), int(origin[0]), int(origin[1]))

@@ -15,16 +15,19 @@ Numerically safe form (performance-notes.md §2):
    makes t > 0 is folded in per face for a shared origin (t*det is then per face), per pair with offsets;
    the nearest face per ray is kept. Optional back-face culling (:func:`back_faces`, ``skip_faces``).
 2. Recompute, with grad, on the (ray, nearest face) pairs only; divisions by ``where(ok, det, 1)``. In numpy
-   (:class:`FaceRows`: per-face rows of the faces hit, then per pair) with a hand-written backward: a car's
-   or a crop's few hundred to few thousand pairs would otherwise cost torch's per-op overhead.
+   (:class:`FaceRows`: per-face rows of the faces hit, then per pair; compiled for one float dtype by
+   :mod:`robustbench3d.sensors.kernels`, the same arithmetic) with a hand-written backward: a car's or a crop's
+   few hundred to few thousand pairs would otherwise cost torch's per-op overhead.
 
 Two entry points share the per-face table (:func:`_face_tables`) and the recompute (:func:`_recompute`):
 :func:`cast_rays` builds the candidate pairs itself (bounding spheres, above) and tests them in torch
 (:func:`_test_pairs`, :func:`_nearest`: large dense casts), and :func:`cast_ray_pairs` (and
 :class:`PairCaster`) takes candidate (ray, face) pairs from the caller's own cull (the LiDAR's per-face
-bounding spheres, the camera's per-face screen boxes) and tests them with the numpy twin of the same kernel
-(:func:`hit_pairs_np`, :func:`nearest_np`: a car's few thousand pairs cost torch's per-op overhead; the same
-element-wise IEEE operations in the same order and dtype, so the same verdicts and t bit for bit). Both test
+bounding spheres, the camera's per-face screen boxes) and tests them with a compiled twin of the same kernel
+(:func:`search_pairs`: :func:`robustbench3d.sensors.kernels.nearest_of_pairs`; its numpy reference
+:func:`search_pairs_np` is :func:`hit_pairs_np` and :func:`nearest_np`: a car's few thousand pairs cost torch's
+per-op overhead; the same element-wise IEEE operations in the same order and dtype, so the same verdicts and t
+bit for bit). Both test
 a pair element-wise, so its verdict and t do not depend on the other pairs, and keep the nearest hit per ray
 (equal t: the smallest face index).
 
