@@ -257,3 +257,20 @@ def test_cross_rows_equals_np_cross_bit_for_bit(da, db):
     assert cross_rows(a[:0], a[:0]).shape == (0, 3)
     ints = rng.integers(-5, 5, (20, 3))
     assert np.array_equal(cross_rows(ints, ints[::-1]), np.cross(ints, ints[::-1]))
+
+
+def test_kernels_refuse_faces_out_of_range_instead_of_reading_past_the_vertices():
+    """The compiled kernels do not check bounds, so their wrappers do: a face index outside the vertices is a
+    ValueError naming the field from FaceRows.of, the test table (PairTable.of) and star_faces."""
+    from robustbench3d.sensors.kernels import star_faces
+    from robustbench3d.sensors.raycast import FaceRows, PairTable
+
+    v = np.eye(3)
+    bad = np.array([[0, 1, 3]])
+    with pytest.raises(ValueError, match=r"face_rows: field 'faces': indices must lie in \[0, 3\)"):
+        FaceRows.of(v, bad, np.zeros(3))
+    with pytest.raises(ValueError, match=r"face_test_table: field 'faces': indices must lie in \[0, 3\)"):
+        PairTable.of(v, bad, np.zeros(3))
+    tetra = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+    with pytest.raises(ValueError, match=r"star_faces: field 'faces': indices must lie in \[0, 3\)"):
+        star_faces(v, tetra, v.mean(axis=0), np.full(3, 5.0))  # vertex 3 does not exist

@@ -172,6 +172,16 @@ def _scatter_add(index: np.ndarray, values: np.ndarray, out: np.ndarray) -> None
             out[c, i] += values[c, k]
 
 
+def _checked_faces(faces: np.ndarray, n_vertices: int, name: str) -> np.ndarray:
+    """(F, 3) int64 contiguous ``faces``, every index in [0, n_vertices) (the kernels read vertices by them)."""
+    faces = np.ascontiguousarray(faces, np.int64)
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"{name}: field 'faces': expected (F, 3), got {faces.shape}")
+    if faces.size and (int(faces.min()) < 0 or int(faces.max()) >= n_vertices):
+        raise ValueError(f"{name}: field 'faces': indices must lie in [0, {n_vertices})")
+    return faces
+
+
 def _checked_index(index: np.ndarray, k: int, n: int, name: str) -> np.ndarray:
     index = np.ascontiguousarray(index, np.int64)
     if index.ndim != 1 or len(index) != k:
@@ -327,7 +337,7 @@ def star_faces(vertices: np.ndarray, faces: np.ndarray, centroid: np.ndarray, or
     (origin - centroid - a) . ((b - a) x (c - a)) <= 0) (the arithmetic of
     :func:`robustbench3d.sensors.raycast.back_faces`: the mask bit for bit, the sum up to its order)."""
     positive, angle, mask = _star_faces(np.ascontiguousarray(vertices, np.float64),
-                                        np.ascontiguousarray(faces, np.int64),
+                                        _checked_faces(faces, len(vertices), "star_faces"),
                                         np.ascontiguousarray(centroid, np.float64),
                                         np.ascontiguousarray(origin, np.float64))
     return bool(positive), float(angle), mask
@@ -449,7 +459,7 @@ def face_rows(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, axis:
     range (the caller checks)."""
     offsets = axis is not None
     ax = np.zeros(3, vertices.dtype) if axis is None else np.ascontiguousarray(axis)
-    e1, e2, t0, q0, q1, rows = _face_rows(vertices, np.ascontiguousarray(faces, np.int64),
+    e1, e2, t0, q0, q1, rows = _face_rows(vertices, _checked_faces(faces, len(vertices), "face_rows"),
                                           np.ascontiguousarray(origin), ax, offsets)
     return e1, e2, t0, q0, q1 if offsets else None, rows
 
@@ -542,7 +552,7 @@ def face_test_table(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray,
     offsets = axis is not None
     ax = np.zeros(3, vertices.dtype) if axis is None else np.ascontiguousarray(axis)
     sk = np.zeros(len(faces), np.bool_) if skip is None else np.ascontiguousarray(skip, np.bool_)
-    return _face_test_table(np.ascontiguousarray(vertices), np.ascontiguousarray(faces, np.int64),
+    return _face_test_table(np.ascontiguousarray(vertices), _checked_faces(faces, len(vertices), "face_test_table"),
                             np.ascontiguousarray(origin), ax, offsets, sk, dt(sliver), dt(cos_min))
 
 
@@ -620,6 +630,11 @@ def sphere_ray_ranges(centers: np.ndarray, radii: np.ndarray, first: np.ndarray,
     """(sphere (K,), ray (K,)) of :meth:`robustbench3d.sensors.lidar_beams.BeamPattern.sphere_rays` (its
     docstring) for float64 ``centers`` (M, 3), ``radii`` (M,), int64 laser bounds (M,), the lasers' elevations
     ``phi`` (L,) (rad) and apex heights ``origin_z`` (L,) (m), the pattern's sorted ray ``keys`` and ``band``."""
+    if len(first) != len(radii) or len(last) != len(radii) or len(centers) != len(radii):
+        raise ValueError(f"sphere_ray_ranges: {len(centers)} centres, {len(radii)} radii, {len(first)} / {len(last)} "
+                         "laser bounds")
+    # the lasers that exist (the numpy code's reach test clips them so for lasers ordered top down)
+    first, last = np.maximum(first, 0), np.minimum(last, len(phi) - 1)
     top_down = bool(np.all(np.diff(phi) < 0))
     h_lo, h_hi = float(origin_z.min()), float(origin_z.max())
     return _sphere_ray_ranges(np.ascontiguousarray(centers, np.float64), np.ascontiguousarray(radii, np.float64),
