@@ -1,40 +1,41 @@
-"""Compiled (numba) kernels of the renderers: the camera's candidate search and the scatter-adds of the backwards.
+"""Compiled (numba) kernels of the renderers' hot loops, each with the arithmetic of the numpy code it replaced.
 
-A crop render tests a few thousand (sample, face) pairs and scatters a few thousand hits; in numpy each step
+A render of one car tests a few thousand (ray, face) pairs and shades a few thousand hits; in numpy each step
 costs tens of operations on small arrays, which was most of a render's time. Each kernel here does exactly the
 arithmetic of the numpy code it replaces, in the same order and dtype (numba compiles without fast-math: no
-operation is reassociated or fused), so the results are the same bits; tests compare them with the numpy
-references.
+operation is reassociated or contracted; constants are cast to the arrays' dtype as numpy casts Python floats;
+exp, power and matrix products stay numpy's), so the results are the same bits; ``tests/test_sensors_kernels.py``
+and the camera tests compare each with its numpy reference. Compiled code does not check bounds: the Python
+wrappers check the indices they pass (pairs, owners, slots, faces). Kernels compile on first use and are cached
+(``cache=True``: the package's ``__pycache__``, or numba's user cache directory).
 
-* :func:`nearest_in_region` walks each face's sample box and scanline spans
-  (:meth:`robustbench3d.sensors.camera_render._FaceCull.boxes` / ``spans``, the numpy reference) and tests every
-  sample there with the Möller–Trumbore test of :func:`robustbench3d.sensors.raycast.hit_pairs_np` (shared
-  origin), keeping the choice of :func:`~robustbench3d.sensors.raycast.nearest_np` (the nearest t, equal t to the
-  smallest face index), without materialising the pairs.
-* :func:`nearest_of_pairs` tests explicit (ray, face) pairs (shared origin or per-ray offsets along an axis) with
-  :func:`~robustbench3d.sensors.raycast.hit_pairs_np`'s arithmetic and keeps each ray's nearest hit as
-  :func:`~robustbench3d.sensors.raycast.nearest_np` (together the numpy reference
-  :func:`~robustbench3d.sensors.raycast.search_pairs_np`).
-* :func:`face_test_table` is :func:`robustbench3d.sensors.raycast.face_test_geometry` (edges, sliver test and the
-  per-face table of the no-grad test; its numpy code is the reference).
-* :func:`face_rows` and :func:`pair_tuv` are :class:`robustbench3d.sensors.raycast.FaceRows`' rows and t, u, v
-  (its numpy code is the reference).
-* :func:`cone_cull` is :meth:`robustbench3d.sensors.lidar_beams.BeamPattern.cull_many`'s per-(sphere, laser)
-  test and its sorted union of rays (its numpy code is the reference).
-* :func:`sphere_ray_ranges` is the per-(sphere, laser) part of
-  :meth:`robustbench3d.sensors.lidar_beams.BeamPattern.sphere_rays` (its numpy code is the reference).
-* :func:`shade_exposure`, :func:`shade_tone` and :func:`shade_grads` are the per-hit arithmetic of the camera's
-  fused shading (:class:`robustbench3d.sensors.camera_render._ShadeHits`; its exp and power stay in numpy).
+Camera (:mod:`robustbench3d.sensors.camera_render`):
+
+* :func:`nearest_in_region` walks each face's sample box and scanline spans (``_FaceCull.boxes`` / ``spans``
+  and ``_candidate_pairs``, the numpy reference) and tests every sample there with the Möller–Trumbore test of
+  :func:`robustbench3d.sensors.raycast.hit_pairs_np` (shared origin), keeping the choice of
+  :func:`~robustbench3d.sensors.raycast.nearest_np` (the nearest t, equal t to the smallest face index), without
+  materialising the pairs.
+* :func:`face_cull` is the per-face part of ``_FaceCull.of`` (the numpy reference is ``_face_cull_reference`` of
+  ``tests/test_sensors_camera_render.py``); :func:`touching_faces` is ``_FaceCull.touching``.
+* :func:`shade_exposure`, :func:`shade_tone` and :func:`shade_grads` are the per-hit arithmetic of the fused
+  shading ``_ShadeHits`` (forward and backward).
+
+LiDAR (:mod:`robustbench3d.sensors.lidar_beams`): :func:`cone_cull` is ``BeamPattern.cull_many`` and
+:func:`sphere_ray_ranges` the per-(sphere, laser) part of ``BeamPattern.sphere_rays`` (``compiled=False`` runs
+their numpy code).
+
+Shared (:mod:`robustbench3d.sensors.raycast`, :mod:`robustbench3d.sensors.mesh`):
+
+* :func:`nearest_of_pairs` tests explicit (ray, face) pairs (shared origin or per-ray offsets along an axis) and
+  keeps each ray's nearest hit: :func:`~robustbench3d.sensors.raycast.search_pairs_np`'s arithmetic.
+* :func:`face_test_table` is ``face_test_geometry`` (edges, sliver test and the per-face table of the no-grad
+  test); :func:`face_rows` and :func:`pair_tuv` are ``FaceRows``' rows and t, u, v; :func:`scatter_pair_grads`
+  is ``FaceRows.edge_grads``' per-pair products summed by face; :func:`star_faces` is the per-face part of
+  ``back_faces``.
 * :func:`scatter_rows` sums rows by an index in float64, in order (``np.bincount``'s arithmetic);
-  :func:`scatter_add` in the values' dtype, in order (``np.add.at``'s).
-* :func:`face_cull` is the per-face part of :meth:`robustbench3d.sensors.camera_render._FaceCull.of` (its numpy
-  reference is :func:`robustbench3d.sensors.camera_render.face_cull_np`).
-* :func:`scatter_pair_grads` is :meth:`robustbench3d.sensors.raycast.FaceRows.edge_grads`' per-pair products
-  summed by face (``scatter_rows`` of the stacked columns).
-* :func:`touching_faces` is :meth:`robustbench3d.sensors.camera_render._FaceCull.touching` (its numpy code is
-  the reference).
-* :func:`star_faces` is the per-face part of :func:`robustbench3d.sensors.raycast.back_faces`.
-* :func:`cross_rows_same` is :func:`robustbench3d.sensors.mesh.cross_rows` of two float32 / float64 arrays.
+  :func:`scatter_add` in the values' dtype, in order (``np.add.at``'s); :func:`cross_rows_same` is
+  ``mesh.cross_rows`` of float32 / float64 rows.
 """
 
 from __future__ import annotations
