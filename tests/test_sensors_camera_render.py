@@ -392,7 +392,8 @@ def test_numpy_pair_search_equals_the_pair_casters_bit_for_bit(dtype):
             meshes = _check_meshes([(torch.as_tensor(verts, dtype=dtype), faces, np.full_like(verts, 0.5))])
             region = _pixel_set(calib, meshes, DAY_0926.image_size, False)[0]
             g = _Geometry.of(meshes, calib)
-            caster = PairCaster(g.verts, g.faces_t, torch.as_tensor(camera_centre_rect(calib), dtype=dtype))
+            caster = PairCaster(g.verts, torch.from_numpy(g.faces),
+                                torch.as_tensor(camera_centre_rect(calib), dtype=dtype))
             table = PairTable.of(g.verts.numpy(), g.faces, camera_centre_rect(calib))
             assert np.array_equal(table.table, caster.table.numpy()) and table.tol == caster.tol
             s = 3
@@ -490,7 +491,7 @@ def test_visible_hits_search_in_the_geometry_dtype_like_a_brute_force_cast(dtype
     w = DAY_0926.image_size[0]
     region = _pixel_set(calib, meshes, DAY_0926.image_size, False)[0]
     g = _Geometry.of(meshes, calib)
-    caster = PairCaster(g.verts, g.faces_t, torch.as_tensor(camera_centre_rect(calib), dtype=dtype))
+    caster = PairCaster(g.verts, torch.from_numpy(g.faces), torch.as_tensor(camera_centre_rect(calib), dtype=dtype))
     hits = _visible_hits(calib, g, PairTable.of(g.verts.numpy(), g.faces, camera_centre_rect(calib)), region, w, 2,
                          None, False)
     pv, pu = np.divmod(region.pixels, w)

@@ -568,18 +568,16 @@ def _check_meshes(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.nd
 @dataclass(frozen=True, eq=False)
 class _Geometry:
     """The meshes of a render, concatenated: vertices (V, 3) and colours (V, 3) in the geometry dtype, faces
-    (F, 3) (numpy and torch), float64 vertices, the culled back faces (F,) bool, each face's mesh (F,), the
-    camera centre (rect, float64 and as a tensor)."""
+    (F, 3), float64 vertices, the culled back faces (F,) bool, each face's mesh (F,), the camera centre (rect,
+    float64) and the faces' cull (:class:`_FaceCull`)."""
 
     verts: torch.Tensor
     colors: torch.Tensor
     faces: np.ndarray
-    faces_t: torch.Tensor
     vnp: np.ndarray
     culled: np.ndarray
     mesh_of_face: np.ndarray
     centre: np.ndarray
-    origin: torch.Tensor
     cull: _FaceCull
 
     @property
@@ -604,8 +602,8 @@ class _Geometry:
         culled = _culled_faces(meshes, centre, vnp if own else None)
         mesh_of_face = (np.zeros(len(faces), np.int64) if len(meshes) == 1
                         else np.repeat(np.arange(len(meshes)), [len(m[1]) for m in meshes]))
-        return cls(verts, colors, faces, torch.from_numpy(faces), vnp, culled, mesh_of_face, centre,
-                   torch.from_numpy(centre).to(dtype), _FaceCull.of(calib, vnp, faces, culled, dtype, centre))
+        return cls(verts, colors, faces, vnp, culled, mesh_of_face, centre,
+                   _FaceCull.of(calib, vnp, faces, culled, dtype, centre))
 
 
 @dataclass(frozen=True, eq=False)
