@@ -34,7 +34,7 @@ Shared (:mod:`robustbench3d.sensors.raycast`, :mod:`robustbench3d.sensors.mesh`)
   is ``FaceRows.edge_grads``' per-pair products summed by face; :func:`star_faces` is the per-face part of
   ``back_faces``.
 * :func:`scatter_rows` sums rows by an index in float64, in order (``np.bincount``'s arithmetic);
-  :func:`scatter_add` in the values' dtype, in order (``np.add.at``'s); :func:`cross_rows_same` is
+  :func:`scatter_add` in the values' dtype, in order (``np.add.at``'s); :func:`cross_rows_float` is
   ``mesh.cross_rows`` of float32 / float64 rows.
 """
 
@@ -47,6 +47,21 @@ from numba import njit
 
 if TYPE_CHECKING:
     from robustbench3d.sensors.camera_render import _FaceCull as FaceCullArrays
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _keep_if_nearer(det: float, un: float, vn: float, tn: float, floor: float, t_min: float, tol: float, r: int,
+                    f: int, best_face: np.ndarray, best_t: np.ndarray) -> None:  # pragma: no cover - compiled
+    """The verdict of :func:`robustbench3d.sensors.raycast.hit_pairs_np` on one pair (det, u*det, v*det, t*det with
+    t*det's sign folded in, the face's grazing floor), and the choice of
+    :func:`~robustbench3d.sensors.raycast.nearest_np`: ray r keeps face f if it is hit nearer, or as near by a
+    smaller face index."""
+    slack = tol * det
+    if det > floor and un >= -slack and vn >= -slack and un + vn <= det + slack and tn > t_min * det:
+        t = tn / det
+        if t < best_t[r] or (t == best_t[r] and f < best_face[r]):
+            best_t[r] = t
+            best_face[r] = f
 
 
 @njit(cache=True, nogil=True)
@@ -108,12 +123,7 @@ def _walk_faces(lo: np.ndarray, hi: np.ndarray, crossing: np.ndarray, skip: np.n
                 det = g0 * d0 + g1 * d1 + g2 * d2
                 un = g3 * d0 + g4 * d1 + g5 * d2
                 vn = g6 * d0 + g7 * d1 + g8 * d2
-                slack = tol * det
-                if det > floor and un >= -slack and vn >= -slack and un + vn <= det + slack and tn > t_min * det:
-                    t = tn / det
-                    if t < best_t[r] or (t == best_t[r] and f < best_face[r]):
-                        best_t[r] = t
-                        best_face[r] = f
+                _keep_if_nearer(det, un, vn, tn, floor, t_min, tol, r, f, best_face, best_t)
     return tests
 
 
@@ -216,7 +226,7 @@ def _cross_rows(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:  # pragm
         out[i, 2] = a[i, 0] * b[i, 1] - a[i, 1] * b[i, 0]
 
 
-def cross_rows_same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross_rows_float(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise a x b of two (N, 3) float32 or float64 arrays (any strides: copied contiguous), in numpy's result
     dtype (a float32 operand of a float64 product is widened first, as numpy does): the components of np.cross,
     the same bits (the caller checks the shapes and dtypes)."""
@@ -393,12 +403,7 @@ def _nearest_of_pairs(table: np.ndarray, d_cols: np.ndarray, h: np.ndarray, offs
             tn = tn + hr * table[17, f]
             sign = np.sign(tn)
             det, un, vn, tn = det * sign, un * sign, vn * sign, np.abs(tn)
-        slack = tol * det
-        if det > table[10, f] and un >= -slack and vn >= -slack and un + vn <= det + slack and tn > t_min * det:
-            t = tn / det
-            if t < best_t[r] or (t == best_t[r] and f < best_face[r]):
-                best_t[r] = t
-                best_face[r] = f
+        _keep_if_nearer(det, un, vn, tn, table[10, f], t_min, tol, r, f, best_face, best_t)
     return -1
 
 

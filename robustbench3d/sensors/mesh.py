@@ -10,7 +10,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from robustbench3d.sensors.kernels import cross_rows_same
+from robustbench3d.sensors.kernels import cross_rows_float
 
 _FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
 
@@ -77,9 +77,9 @@ def icosphere(level: int, radius: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
 
 def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise a x b of (N, 3) arrays: np.cross's components (the same bits), without its per-call overhead
-    (float32 or float64 arrays: compiled, :func:`robustbench3d.sensors.kernels.cross_rows_same`)."""
+    (float32 or float64 arrays: compiled, :func:`robustbench3d.sensors.kernels.cross_rows_float`)."""
     if a.dtype in _FLOATS and b.dtype in _FLOATS and a.shape == b.shape and a.ndim == 2 and a.shape[1] == 3:
-        return cross_rows_same(a, b)
+        return cross_rows_float(a, b)
     return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
                      a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
 

@@ -38,7 +38,7 @@ Barycentric tolerance 1e-6 (float64) / 1e-5 (float32) so rays through edges and 
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from functools import lru_cache
 
@@ -761,6 +761,20 @@ def _as_index(x: torch.Tensor | np.ndarray) -> np.ndarray:
     return np.asarray(x.numpy() if isinstance(x, torch.Tensor) else x, np.int64).reshape(-1)
 
 
+def _checked_pairs(chunks: Iterable[tuple[torch.Tensor | np.ndarray, torch.Tensor | np.ndarray]], n_rays: int,
+                   n_faces: int, name: str, check: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """The (ray, face) int64 index arrays of each chunk, refused (ValueError naming the field) when their lengths
+    differ or, with ``check``, when a pair does not index ``n_rays`` rays and ``n_faces`` faces."""
+    for ray_index, face_index in chunks:
+        ray, fc = _as_index(ray_index), _as_index(face_index)
+        if len(ray) != len(fc):
+            raise ValueError(f"{name}: field 'face_index': {len(fc)} faces for {len(ray)} rays")
+        if check and len(ray) and (int(ray.min()) < 0 or int(ray.max()) >= n_rays or int(fc.min()) < 0
+                                   or int(fc.max()) >= n_faces):
+            raise ValueError(f"{name}: field 'ray_index': pairs must index {n_rays} rays and {n_faces} faces")
+        yield ray, fc
+
+
 def search_pairs_np(table: np.ndarray | None, d_cols: np.ndarray, h: np.ndarray | None,
                     chunks: Iterable[tuple[torch.Tensor | np.ndarray, torch.Tensor | np.ndarray]], t_min: float,
                     tol: float, name: str = "search_pairs_np", check: bool = True
@@ -772,13 +786,7 @@ def search_pairs_np(table: np.ndarray | None, d_cols: np.ndarray, h: np.ndarray 
     n_rays, n_faces = d_cols.shape[1], 0 if table is None else table.shape[1]
     rays, faces_hit, ts = [], [], []
     tests = 0
-    for ray_index, face_index in chunks:
-        ray, fc = _as_index(ray_index), _as_index(face_index)
-        if len(ray) != len(fc):
-            raise ValueError(f"{name}: field 'face_index': {len(fc)} faces for {len(ray)} rays")
-        if check and len(ray) and (int(ray.min()) < 0 or int(ray.max()) >= n_rays or int(fc.min()) < 0
-                         or int(fc.max()) >= n_faces):
-            raise ValueError(f"{name}: field 'ray_index': pairs must index {n_rays} rays and {n_faces} faces")
+    for ray, fc in _checked_pairs(chunks, n_rays, n_faces, name, check):
         tests += len(ray)
         if len(ray) == 0:
             continue
@@ -804,13 +812,7 @@ def search_pairs(table: np.ndarray | None, d_cols: np.ndarray, h: np.ndarray | N
     face = np.full(n_rays, -1, np.int64)
     best = np.full(n_rays, np.inf, d_cols.dtype)
     tests = 0
-    for ray_index, face_index in chunks:
-        ray, fc = _as_index(ray_index), _as_index(face_index)
-        if len(ray) != len(fc):
-            raise ValueError(f"{name}: field 'face_index': {len(fc)} faces for {len(ray)} rays")
-        if len(ray) and (check or table is None) and (int(ray.min()) < 0 or int(ray.max()) >= n_rays
-                                                      or int(fc.min()) < 0 or int(fc.max()) >= n_faces):
-            raise ValueError(f"{name}: field 'ray_index': pairs must index {n_rays} rays and {n_faces} faces")
+    for ray, fc in _checked_pairs(chunks, n_rays, n_faces, name, check or table is None):
         tests += len(ray)
         if len(ray):
             nearest_of_pairs(table, d_cols, h, ray, fc, t_min, tol, face, best)
