@@ -24,10 +24,12 @@ the batch's cars only:
   proposal index the victim's ``detect`` gives it, so the frustum resampling is the scored one), or from
   the victim's own 2D detection on the attacked image that overlaps the car's box most (image IoU >= 0.5;
   ``lidar_boxes="detector"``, reference §1.12; a car the 2D detector misses gets no LiDAR term).
-  ``IoU_k`` is the BEV IoU of the victim's best detection of the car on the attacked frame from the
-  same proposals (``detect``, detached);
   With ``lidar_loss="box"`` the term is ``lambda_box`` x the BEV IoU of the box the victim regresses from
-  the same frustum with the car's ground truth (``"seed+box"``: both terms);
+  that frustum with the car's ground truth (``"seed+box"``: both terms). ``IoU_k`` (detached) is that
+  IoU when a box term is on (the box ``detect`` reports for the car's proposal, from the same forward
+  pass; ``detect``'s proposal filters, e.g. its minimum 2D height, do not apply); with ``"seed"`` alone
+  the BEV IoU of the victim's best detection of the car on the attacked frame from the same proposals
+  (one ``detect`` of the whole frame). A car without a frustum has 0;
 * image: the objectness candidates around the car's ground-truth 2D box.
 
 The loss of a step is the mean over its cars of each term (plus the Laplacian). Randomness comes only
@@ -40,8 +42,8 @@ The progress line shows the step's losses and a running estimate of the drop: 1 
 :data:`DROP_WINDOW` steps' cars detected on the attacked frames) / (share of a reference sample detected
 clean); the sample is the first :data:`CLEAN_SAMPLE` cars of the epoch-0 permutation, i.e. the first
 steps' cars, so the clean detections cost one extra victim call per frame of those steps only. A car
-counts as detected by the LiDAR branch if the victim's box from its GT 2D box has BEV IoU >= 0.7, by the
-image branch if a candidate with IoU >= 0.5 scores objectness x class >= 0.5 (adv-object: both).
+counts as detected by the LiDAR branch if its ``IoU_k`` is >= 0.7 (clean: the best BEV IoU of ``detect``'s
+rows), by the image branch if a candidate with IoU >= 0.5 scores objectness x class >= 0.5 (adv-object: both).
 """
 from __future__ import annotations
 
@@ -333,15 +335,17 @@ class UniversalTrainer:
             if cfg.lidar_boxes == "detector":
                 props = self.victim.proposals([attacked], "detector")[0]
                 index = _matched_index(props.boxes, targets)
-                det = self.victim.detect([attacked], [props])[0]
             else:
                 props = self._proposals(frame)
                 index = _proposal_index(props.boxes, targets)
-                det = self.victim.detect([attacked], [gt_proposals(frame.labels)])[0]
-        iou = _bev_iou_per_target(det, targets)[chosen]
+            if cfg.lidar_loss == "seed":  # the box terms regress each car's box themselves (module doc)
+                source = [props] if cfg.lidar_boxes == "detector" else [gt_proposals(frame.labels)]
+                iou = _bev_iou_per_target(self.victim.detect([attacked], source)[0], targets)[chosen]
+            else:
+                iou = np.zeros(len(chosen))
         gt_boxes = gt_bev_boxes(targets)
         terms = []
-        for t, car_iou in zip(chosen, iou, strict=True):
+        for n, t in enumerate(chosen):
             j = index[t]
             if j is None:
                 continue
@@ -349,14 +353,16 @@ class UniversalTrainer:
             if cfg.lidar_loss == "seed":
                 fl = self.victim.frustum_logits(points, calib, frame.image_size, props.boxes[j], **where)
                 if fl is not None:
-                    terms.append(lidar_car_loss(fl.logits.to(torch.float64), float(car_iou), cfg.iou_floor))
+                    terms.append(lidar_car_loss(fl.logits.to(torch.float64), float(iou[n]), cfg.iou_floor))
                 continue
             fb = self.victim.frustum_box(points, calib, frame.image_size, props.boxes[j], **where)
             if fb is None:
                 continue
-            term = cfg.lambda_box * box_car_loss(fb.center, fb.size_lwh, fb.heading, gt_boxes[t])
+            box_iou = box_car_loss(fb.center, fb.size_lwh, fb.heading, gt_boxes[t])
+            iou[n] = box_iou.item()
+            term = cfg.lambda_box * box_iou
             if cfg.lidar_loss == "seed+box":
-                term = term + lidar_car_loss(fb.logits.to(torch.float64), float(car_iou), cfg.iou_floor)
+                term = term + lidar_car_loss(fb.logits.to(torch.float64), float(iou[n]), cfg.iou_floor)
             terms.append(term)
         return terms, iou
 

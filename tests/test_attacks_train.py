@@ -258,6 +258,66 @@ def test_box_term_trains_the_regressed_boxes_iou(victim, data, tmp_path):
         train(as_class(victim, NoBoxOracle), data, tmp_path / "x.ply", **kw, lidar_loss="box")
 
 
+@pytest.mark.parametrize("boxes", ["gt", "detector"])
+def test_box_terms_weight_the_seed_term_by_the_box_detect_reports_for_the_car(victim, data, boxes):
+    """With the box term on, ``IoU_k`` of each car is the BEV IoU (the evaluator's) with its label of the box
+    the victim regresses from the car's own frustum on the attacked frame (the row ``detect`` writes for that
+    proposal, where ``detect`` keeps it), and the car's term is ``lambda_box IoU_k + max(IoU_k, floor)
+    softplus(max margin)`` of that frustum's logits."""
+    from dataclasses import replace
+
+    import torch.nn.functional as F
+
+    from robustbench3d.attacks.placement import rect_to_velo
+    from robustbench3d.attacks.train import _matched_index, _proposal_index
+    from robustbench3d.eval.iou import bev_iou
+    from robustbench3d.sensors.lidar_render import render_lidar
+
+    resolved, gt = data
+    cfg = TrainConfig(**{**FAST, "mode": "adv-object", "lidar_loss": "seed+box", "lambda_box": 2.0,
+                         "lidar_boxes": boxes})
+    trainer = UniversalTrainer(victim, resolved.kitti(), gt.frame_ids, gt.labels, cfg)
+    frame = trainer._frame(trainer.frame_ids[0], with_image=True)
+    targets = target_cars(frame.labels)
+    chosen = list(range(len(targets)))
+    placed = [place_on_roof(trainer.vertices(), car)[0] for car in cars_of(targets)]
+    attacked_image = trainer._render_image(frame, targets, placed, trainer.colours())
+    terms, iou = trainer._lidar(frame, targets, chosen, placed, trainer.colours(), trainer.eot_rng(0), attacked_image)
+    # the reference: the attacked scan rendered again (no EOT noise in this config), the victim's own proposals
+    albedo = trainer.colours().detach().numpy()
+    scan = render_lidar(frame.scan, [(rect_to_velo(p, frame.calib), trainer._faces, albedo) for p in placed]).scan
+    seen = replace(frame, scan=np.ascontiguousarray(scan, dtype=np.float32), labels=None, image=attacked_image)
+    props = victim.proposals([seen], "detector")[0] if boxes == "detector" else trainer._proposals(frame)
+    index = (_matched_index if boxes == "detector" else _proposal_index)(props.boxes, targets)
+    rows = victim.detect([seen], [props])[0]
+    points = torch.from_numpy(np.concatenate([frame.calib.velo_to_rect_points(scan[:, :3].astype(np.float64)),
+                                              scan[:, 3:4].astype(np.float64)], axis=1))
+    k = against_detect = 0
+    for t in chosen:
+        j = index[t]
+        fb = None if j is None else victim.frustum_box(points, frame.calib, frame.image_size, props.boxes[j],
+                                                       frame_id=frame.frame_id, proposal=j)
+        if fb is None:
+            assert iou[t] == 0.0
+            continue
+        c, (length, width, _), ry = fb.center.detach().numpy(), fb.size_lwh.detach().numpy(), fb.heading.item()
+        label = np.array([[*targets.dimensions[t], *targets.location[t], targets.rotation_y[t]]])
+        box = np.array([[0.0, width, length, c[0], 0.0, c[2], ry]])  # h, w, l, x, y, z, ry
+        want = bev_iou(label, box)[0, 0]
+        assert iou[t] == pytest.approx(want, abs=1e-3)
+        row = np.flatnonzero(np.all(rows.bbox == props.boxes[j], axis=1))
+        if len(row):  # detect kept the proposal: the same box
+            r = int(row[0])
+            det = np.column_stack([rows.dimensions, rows.location, rows.rotation_y])[r:r + 1]
+            assert iou[t] == pytest.approx(bev_iou(label, det)[0, 0], abs=1e-3)
+            against_detect += 1
+        margin = (fb.logits[:, 1] - fb.logits[:, 0]).max().double()
+        assert terms[k].item() == pytest.approx(2.0 * iou[t] + max(iou[t], 0.1) * F.softplus(margin).item(),
+                                                rel=1e-4, abs=1e-4)
+        k += 1
+    assert k == len(terms) and against_detect >= 3 and (iou >= 0.7).sum() >= 3
+
+
 def test_image_loss_summed_over_the_candidates_that_can_still_detect_a_car(victim, data, tmp_path):
     """``image_loss="sum"`` (``--image-loss sum``): per car the sum of -log(1 - o c) over its candidates of IoU
     >= 0.5, not the mean over all of them; the same cars and object at step 0, so the summed loss equals the

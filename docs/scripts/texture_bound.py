@@ -13,12 +13,19 @@ for each frame instead of 162 vertex colours shared by all cars. The masks:
 * ``bounds``: every pixel the bounds' box (0.8 m cube, an 8-vertex mesh) placed the same way covers;
 * both rendered without scene occlusion, so also the pixels a nearer object would hide (a superset);
 * ``box``: each car's whole ground-truth 2D box (a control: the optimiser can remove a car when it may
-  repaint all of it).
+  repaint all of it);
+* ``vertex``: the 162 vertex colours of the undeformed sphere (the issue's parametrisation), shaded and
+  rendered; ``vertex-shape``: those and the shape (the tanh box parametrisation's displacements, Adam lr
+  :data:`LR_SHAPE`), adv-object's image branch.
+
+The loss (``LOSS``, default ``sum``) can instead be, per car, ``lse``: the log-sum-exp over its candidates of
+``log(o c)`` (the log of the summed scores, pushed down without saturating), or ``hinge``: ``softplus`` of that
+minus ``log`` :data:`HINGE_SCORE` (no more push once the car's scores sum below the hinge).
 
 Each attacked image (rounded to 8 bits, the clean scan) goes through the whole victim with its own 2D
 detections, and Car BEV AP @0.7 (R40, easy / moderate / hard) is computed over the N frames.
 
-Usage: python docs/scripts/texture_bound.py [N] [STEPS] [MASKS]   (default 20 50 object,bounds,box)
+Usage: python docs/scripts/texture_bound.py [N] [STEPS] [MASKS] [LOSS]   (default 20 50 object,bounds,box sum)
 """
 
 from __future__ import annotations
@@ -30,10 +37,11 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from robustbench3d.attacks.base import target_cars
 from robustbench3d.attacks.losses import neg_log_one_minus_product
-from robustbench3d.attacks.object import BOUNDS, benign_sphere, template_faces
+from robustbench3d.attacks.object import BOUNDS, benign_sphere, tanh_vertices, template_faces
 from robustbench3d.attacks.placement import cars_of, place_on_roof
 from robustbench3d.datasets import load_ground_truth, resolve_dataset
 from robustbench3d.eval.kitti_eval import evaluate
@@ -47,6 +55,9 @@ CUBE_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0
                        [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
 LR = 0.1
 LR_VERTEX = 0.5
+LR_SHAPE = 0.05
+LOSSES = ("sum", "lse", "hinge")
+HINGE_SCORE = 0.02
 
 
 def free_pixels(frame, cars, kind: str) -> tuple[np.ndarray, np.ndarray]:
@@ -85,45 +96,72 @@ def attack_frame(victim, frame, cars, mask: np.ndarray, start: np.ndarray, steps
     alpha = torch.from_numpy(mask)[..., None]
     p = np.clip(start, 0.01, 0.99)
     logit = torch.tensor(np.log(p / (1 - p)), dtype=torch.float64, requires_grad=True)
-    return optimise(victim, cars, logit, LR, steps, lambda: photo * (1 - alpha) + alpha * torch.sigmoid(logit))
+    return optimise(victim, cars, [{"params": [logit], "lr": LR}], steps,
+                    lambda: photo * (1 - alpha) + alpha * torch.sigmoid(logit), "sum")
 
 
-def attack_frame_vertices(victim, frame, cars, steps: int) -> tuple[np.ndarray, float, float]:
+def attack_frame_vertices(victim, frame, cars, steps: int, loss: str, shape: bool = False
+                          ) -> tuple[np.ndarray, float, float]:
     """As :func:`attack_frame`, but the free parameters are the 162 vertex colours of the undeformed sphere on
-    every car of the frame (the issue's parametrisation, one colour set per frame), rendered with
-    :func:`render_camera_torch` (shading, 3 x 3 edge samples, no scene occlusion); Adam lr :data:`LR_VERTEX`
-    on the colour logits, starting at the grey."""
+    every car of the frame (the issue's parametrisation, one colour set per frame; with ``shape`` also the
+    vertex displacements of the tanh box parametrisation), rendered with :func:`render_camera_torch` (shading,
+    3 x 3 edge samples, no scene occlusion); Adam lr :data:`LR_VERTEX` on the colour logits, starting at the
+    grey, and :data:`LR_SHAPE` on the displacements, starting at the sphere."""
     photo = torch.from_numpy(frame.image.astype(np.float64) / 255.0)
-    verts, faces = benign_sphere().vertices(), template_faces()
-    placed = [torch.from_numpy(place_on_roof(verts, car)[0]) for car in cars_of(cars)]
-    logit = torch.zeros((len(verts), 3), dtype=torch.float64, requires_grad=True)
-    return optimise(victim, cars, logit, LR_VERTEX, steps, lambda: render_camera_torch(
-        photo, frame.calib, [(p, faces, torch.sigmoid(logit)) for p in placed]))
+    faces = template_faces()
+    logit = torch.zeros((162, 3), dtype=torch.float64, requires_grad=True)
+    delta = torch.zeros((162, 3), dtype=torch.float64, requires_grad=True)
+    groups = [{"params": [logit], "lr": LR_VERTEX}] + ([{"params": [delta], "lr": LR_SHAPE}] if shape else [])
+    fixed = [torch.from_numpy(place_on_roof(benign_sphere().vertices(), car)[0]) for car in cars_of(cars)]
+
+    def image() -> torch.Tensor:
+        placed = [place_on_roof(tanh_vertices(delta), car)[0] for car in cars_of(cars)] if shape else fixed
+        return render_camera_torch(photo, frame.calib, [(p, faces, torch.sigmoid(logit)) for p in placed])
+
+    return optimise(victim, cars, groups, steps, image, loss)
 
 
-def optimise(victim, cars, param: torch.Tensor, lr: float, steps: int, image_of: Callable[[], torch.Tensor]
+def car_losses(cands, n: int, loss: str) -> torch.Tensor:
+    """The loss of :data:`LOSSES` (module doc) summed over the ``n`` cars, from the candidates of IoU >= 0.5."""
+    keep = cands.iou >= 0.5
+    a, b = cands.objectness_logit[keep], cands.class_logit[keep]
+    if loss == "sum":
+        return neg_log_one_minus_product(a, b).sum()
+    a, b = a.double(), b.double()
+    log_score = -F.softplus(-a) - F.softplus(-b)  # log(o c) from the logits
+    per_car = [torch.logsumexp(log_score[cands.target_index[keep] == k], 0)
+               for k in range(n) if bool((cands.target_index[keep] == k).any())]
+    if not per_car:
+        return torch.zeros((), dtype=torch.float64)
+    lse = torch.stack(per_car)
+    return (lse if loss == "lse" else F.softplus(lse - float(np.log(HINGE_SCORE)))).sum()
+
+
+def optimise(victim, cars, groups: list[dict], steps: int, image_of: Callable[[], torch.Tensor], loss: str
              ) -> tuple[np.ndarray, float, float]:
-    """``steps`` Adam steps on ``param``, the (H, W, 3) image in [0, 1] being ``image_of()``, minimising the sum
-    over the cars' candidates of IoU >= 0.5 of ``-log(1 - o c)``: (last image as uint8, first loss, last loss)."""
-    opt = torch.optim.Adam([param], lr=lr)
+    """``steps`` Adam steps on the parameter ``groups``, the (H, W, 3) image in [0, 1] being ``image_of()``,
+    minimising :func:`car_losses`: (last image as uint8, first loss, last loss)."""
+    opt = torch.optim.Adam(groups)
     boxes = [np.asarray(cars.bbox, np.float64)]
     first = last = float("nan")
     for step in range(steps + 1):
         image = image_of()
         if step == steps:
             break
-        cands = victim.objectness(image.permute(2, 0, 1)[None].float(), boxes)
-        keep = cands.iou >= 0.5
-        loss = neg_log_one_minus_product(cands.objectness_logit[keep], cands.class_logit[keep]).sum()
-        first = loss.item() if step == 0 else first
-        last = loss.item()
+        value = car_losses(victim.objectness(image.permute(2, 0, 1)[None].float(), boxes), len(cars), loss)
+        first = value.item() if step == 0 else first
+        last = value.item()
+        if not value.requires_grad:
+            break
         opt.zero_grad()
-        loss.backward()
+        value.backward()
         opt.step()
     return np.clip(np.round(image.detach().numpy() * 255.0), 0, 255).astype(np.uint8), first, last
 
 
-def main(n: int, steps: int, kinds: list[str]) -> None:
+def main(n: int, steps: int, kinds: list[str], loss: str = "sum") -> None:
+    if loss not in LOSSES:
+        raise SystemExit(f"unknown loss {loss!r}: expected one of {', '.join(LOSSES)}")
     torch.manual_seed(0)
     victim = create_victim("fpointnet-v1-lite")
     dataset = resolve_dataset(None, "val", progress=False)
@@ -138,9 +176,9 @@ def main(n: int, steps: int, kinds: list[str]) -> None:
         attacked, first, last, share = [], [], [], []
         for f in frames:
             cars = target_cars(f.labels)
-            if kind == "vertex":
+            if kind in ("vertex", "vertex-shape"):
                 m = masks_of_object(f, cars)
-                image, a, b = attack_frame_vertices(victim, f, cars, steps)
+                image, a, b = attack_frame_vertices(victim, f, cars, steps, loss, shape=kind == "vertex-shape")
             else:
                 m, start = free_pixels(f, cars, kind)
                 image, a, b = attack_frame(victim, f, cars, m, start, steps)
@@ -154,7 +192,7 @@ def main(n: int, steps: int, kinds: list[str]) -> None:
         rows.append((kind, evaluate(labels, dets), float(np.mean(first)), float(np.mean(last)),
                      sum(share) / box_px, time.time() - t0))
     n_cars = sum(len(target_cars(lab)) for lab in labels)
-    print(f"{len(frames)} val frames, {n_cars} target cars, {steps} Adam steps per frame (lr {LR})")
+    print(f"{len(frames)} val frames, {n_cars} target cars, {steps} Adam steps per frame, loss {loss}")
     print(f"{'mask':10} {'free px / box px':>16} {'loss first':>10} {'loss last':>10} "
           f"{'BEV R40 E / M / H':>22} {'rel. drop M':>11} {'s':>6}")
     ref = rows[0][1]["Car"]["bev"]["R40"]
@@ -167,4 +205,5 @@ def main(n: int, steps: int, kinds: list[str]) -> None:
 
 if __name__ == "__main__":
     main(int(sys.argv[1]) if len(sys.argv) > 1 else 20, int(sys.argv[2]) if len(sys.argv) > 2 else 50,
-         (sys.argv[3] if len(sys.argv) > 3 else "object,bounds,box").split(","))
+         (sys.argv[3] if len(sys.argv) > 3 else "object,bounds,box").split(","),
+         sys.argv[4] if len(sys.argv) > 4 else "sum")
