@@ -129,8 +129,8 @@ def car_losses(cands, n: int, loss: str) -> torch.Tensor:
         return neg_log_one_minus_product(a, b).sum()
     a, b = a.double(), b.double()
     log_score = -F.softplus(-a) - F.softplus(-b)  # log(o c) from the logits
-    per_car = [torch.logsumexp(log_score[cands.target_index[keep] == k], 0)
-               for k in range(n) if bool((cands.target_index[keep] == k).any())]
+    owner = cands.target_index[keep]
+    per_car = [torch.logsumexp(log_score[owner == k], 0) for k in range(n) if bool((owner == k).any())]
     if not per_car:
         return torch.zeros((), dtype=torch.float64)
     lse = torch.stack(per_car)
