@@ -20,12 +20,19 @@ for each frame instead of 162 vertex colours shared by all cars. The masks:
 
 The loss (``LOSS``, default ``sum``) can instead be, per car, ``lse``: the log-sum-exp over its candidates of
 ``log(o c)`` (the log of the summed scores, pushed down without saturating), or ``hinge``: ``softplus`` of that
-minus ``log`` :data:`HINGE_SCORE` (no more push once the car's scores sum below the hinge).
+minus ``log`` :data:`HINGE_SCORE` (no more push once the car's scores sum below the hinge), or ``iou``: the sum
+over its candidates of ``-log(1 - o c IoU)`` with the candidate box's IoU with the car differentiable (the
+decoded box of the detector's prior, :func:`box_candidates`), so that the boxes that survive may also be moved
+off the car instead of only scored down.
+
+``START`` (vertex masks only, default ``grey``): the colours the per-frame optimisation starts from, ``grey``,
+``adv-texture`` (the shipped universal object's) or ``rand:S`` (colour logits drawn from N(0, 2^2), seed S).
 
 Each attacked image (rounded to 8 bits, the clean scan) goes through the whole victim with its own 2D
 detections, and Car BEV AP @0.7 (R40, easy / moderate / hard) is computed over the N frames.
 
-Usage: python docs/scripts/texture_bound.py [N] [STEPS] [MASKS] [LOSS]   (default 20 50 object,bounds,box sum)
+Usage: python docs/scripts/texture_bound.py [N] [STEPS] [MASKS] [LOSS] [START]
+       (default 20 50 object,bounds,box sum grey)
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -42,11 +50,14 @@ import torch.nn.functional as F
 from robustbench3d.attacks.base import target_cars
 from robustbench3d.attacks.losses import neg_log_one_minus_product
 from robustbench3d.attacks.object import BOUNDS, benign_sphere, tanh_vertices, template_faces
+from robustbench3d.attacks.objectfile import load_object
 from robustbench3d.attacks.placement import cars_of, place_on_roof
 from robustbench3d.datasets import load_ground_truth, resolve_dataset
 from robustbench3d.eval.kitti_eval import evaluate
 from robustbench3d.sensors.camera_render import render_camera, render_camera_torch
 from robustbench3d.victims import create_victim
+from robustbench3d.victims.base import ObjectnessCandidates
+from robustbench3d.victims.yolo.boxes import box_iou, cxcywh_to_xyxy
 
 GREY = 0.5
 #: The unit cube [-1, 1]^3 as 12 outward triangles.
@@ -56,7 +67,7 @@ CUBE_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0
 LR = 0.1
 LR_VERTEX = 0.5
 LR_SHAPE = 0.05
-LOSSES = ("sum", "lse", "hinge")
+LOSSES = ("sum", "lse", "hinge", "iou")
 HINGE_SCORE = 0.02
 
 
@@ -100,16 +111,28 @@ def attack_frame(victim, frame, cars, mask: np.ndarray, start: np.ndarray, steps
                     lambda: photo * (1 - alpha) + alpha * torch.sigmoid(logit), "sum")
 
 
-def attack_frame_vertices(victim, frame, cars, steps: int, loss: str, shape: bool = False
+def start_logits(start: str) -> np.ndarray:
+    """(162, 3) colour logits the vertex masks start from (``START``, module doc)."""
+    if start == "grey":
+        return np.zeros((162, 3))
+    if start == "adv-texture":
+        c = np.clip(load_object(Path(__file__).parents[2] / "attacks/objects/adv-texture.ply").colors, 1e-3, 1 - 1e-3)
+        return np.log(c / (1 - c))
+    if start.startswith("rand:"):
+        return np.random.default_rng(int(start[5:])).normal(0.0, 2.0, (162, 3))
+    raise SystemExit(f"unknown start {start!r}: expected grey, adv-texture or rand:SEED")
+
+
+def attack_frame_vertices(victim, frame, cars, steps: int, loss: str, shape: bool = False, start: str = "grey"
                           ) -> tuple[np.ndarray, float, float]:
     """As :func:`attack_frame`, but the free parameters are the 162 vertex colours of the undeformed sphere on
     every car of the frame (the issue's parametrisation, one colour set per frame; with ``shape`` also the
     vertex displacements of the tanh box parametrisation), rendered with :func:`render_camera_torch` (shading,
-    3 x 3 edge samples, no scene occlusion); Adam lr :data:`LR_VERTEX` on the colour logits, starting at the
-    grey, and :data:`LR_SHAPE` on the displacements, starting at the sphere."""
+    3 x 3 edge samples, no scene occlusion); Adam lr :data:`LR_VERTEX` on the colour logits, starting at
+    :func:`start_logits`, and :data:`LR_SHAPE` on the displacements, starting at the sphere."""
     photo = torch.from_numpy(frame.image.astype(np.float64) / 255.0)
     faces = template_faces()
-    logit = torch.zeros((162, 3), dtype=torch.float64, requires_grad=True)
+    logit = torch.tensor(start_logits(start), dtype=torch.float64, requires_grad=True)
     delta = torch.zeros((162, 3), dtype=torch.float64, requires_grad=True)
     groups = [{"params": [logit], "lr": LR_VERTEX}] + ([{"params": [delta], "lr": LR_SHAPE}] if shape else [])
     fixed = [torch.from_numpy(place_on_roof(benign_sphere().vertices(), car)[0]) for car in cars_of(cars)]
@@ -121,12 +144,28 @@ def attack_frame_vertices(victim, frame, cars, steps: int, loss: str, shape: boo
     return optimise(victim, cars, groups, steps, image, loss)
 
 
+def box_candidates(victim, images: torch.Tensor, targets: np.ndarray) -> ObjectnessCandidates:
+    """The cascade's candidates of IoU >= 0.5 with each (T, 4) target of the one image in ``images``, their decoded
+    boxes and IoUs differentiable (the victim's oracle detaches them); the shipped detector has no flip TTA."""
+    if victim.yolo.cfg.flip_tta:
+        raise SystemExit("loss iou: the detector's flip TTA priors are not handled here")
+    pred, geo = victim.yolo.predictions(images)
+    boxes = geo.to_image(cxcywh_to_xyxy(pred.boxes[0]))
+    iou = box_iou(boxes, torch.as_tensor(targets, dtype=boxes.dtype))
+    prior, target = torch.nonzero(iou.detach() >= 0.5, as_tuple=True)
+    return ObjectnessCandidates(pred.obj_logit[0, prior], pred.cls_logit[0, prior, victim.car_class], boxes[prior],
+                                iou[prior, target], torch.zeros_like(prior), target)
+
+
 def car_losses(cands, n: int, loss: str) -> torch.Tensor:
     """The loss of :data:`LOSSES` (module doc) summed over the ``n`` cars, from the candidates of IoU >= 0.5."""
     keep = cands.iou >= 0.5
     a, b = cands.objectness_logit[keep], cands.class_logit[keep]
     if loss == "sum":
         return neg_log_one_minus_product(a, b).sum()
+    if loss == "iou":  # -log(1 - o c IoU); o c IoU < 1 wherever the logits are finite
+        score = torch.sigmoid(a.double()) * torch.sigmoid(b.double()) * cands.iou[keep].double()
+        return -torch.log1p(-score.clamp(max=1.0 - 1e-9)).sum()
     a, b = a.double(), b.double()
     log_score = -F.softplus(-a) - F.softplus(-b)  # log(o c) from the logits
     owner = cands.target_index[keep]
@@ -148,7 +187,9 @@ def optimise(victim, cars, groups: list[dict], steps: int, image_of: Callable[[]
         image = image_of()
         if step == steps:
             break
-        value = car_losses(victim.objectness(image.permute(2, 0, 1)[None].float(), boxes), len(cars), loss)
+        batch = image.permute(2, 0, 1)[None].float()
+        cands = box_candidates(victim, batch, boxes[0]) if loss == "iou" else victim.objectness(batch, boxes)
+        value = car_losses(cands, len(cars), loss)
         first = value.item() if step == 0 else first
         last = value.item()
         if not value.requires_grad:
@@ -159,7 +200,7 @@ def optimise(victim, cars, groups: list[dict], steps: int, image_of: Callable[[]
     return np.clip(np.round(image.detach().numpy() * 255.0), 0, 255).astype(np.uint8), first, last
 
 
-def main(n: int, steps: int, kinds: list[str], loss: str = "sum") -> None:
+def main(n: int, steps: int, kinds: list[str], loss: str = "sum", start: str = "grey") -> None:
     if loss not in LOSSES:
         raise SystemExit(f"unknown loss {loss!r}: expected one of {', '.join(LOSSES)}")
     torch.manual_seed(0)
@@ -178,7 +219,8 @@ def main(n: int, steps: int, kinds: list[str], loss: str = "sum") -> None:
             cars = target_cars(f.labels)
             if kind in ("vertex", "vertex-shape"):
                 m = masks_of_object(f, cars)
-                image, a, b = attack_frame_vertices(victim, f, cars, steps, loss, shape=kind == "vertex-shape")
+                image, a, b = attack_frame_vertices(victim, f, cars, steps, loss, shape=kind == "vertex-shape",
+                                                    start=start)
             else:
                 m, start = free_pixels(f, cars, kind)
                 image, a, b = attack_frame(victim, f, cars, m, start, steps)
@@ -192,7 +234,7 @@ def main(n: int, steps: int, kinds: list[str], loss: str = "sum") -> None:
         rows.append((kind, evaluate(labels, dets), float(np.mean(first)), float(np.mean(last)),
                      sum(share) / box_px, time.time() - t0))
     n_cars = sum(len(target_cars(lab)) for lab in labels)
-    print(f"{len(frames)} val frames, {n_cars} target cars, {steps} Adam steps per frame, loss {loss}")
+    print(f"{len(frames)} val frames, {n_cars} target cars, {steps} Adam steps per frame, loss {loss}, start {start}")
     print(f"{'mask':10} {'free px / box px':>16} {'loss first':>10} {'loss last':>10} "
           f"{'BEV R40 E / M / H':>22} {'rel. drop M':>11} {'s':>6}")
     ref = rows[0][1]["Car"]["bev"]["R40"]
@@ -206,4 +248,4 @@ def main(n: int, steps: int, kinds: list[str], loss: str = "sum") -> None:
 if __name__ == "__main__":
     main(int(sys.argv[1]) if len(sys.argv) > 1 else 20, int(sys.argv[2]) if len(sys.argv) > 2 else 50,
          (sys.argv[3] if len(sys.argv) > 3 else "object,bounds,box").split(","),
-         sys.argv[4] if len(sys.argv) > 4 else "sum")
+         sys.argv[4] if len(sys.argv) > 4 else "sum", sys.argv[5] if len(sys.argv) > 5 else "grey")
