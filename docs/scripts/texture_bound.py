@@ -163,7 +163,7 @@ def car_losses(cands, n: int, loss: str) -> torch.Tensor:
     a, b = cands.objectness_logit[keep], cands.class_logit[keep]
     if loss == "sum":
         return neg_log_one_minus_product(a, b).sum()
-    if loss == "iou":  # -log(1 - o c IoU); o c IoU < 1 wherever the logits are finite
+    if loss == "iou":  # -log(1 - o c IoU), clamped: o c rounds to 1 in float64 for logits above about 37
         score = torch.sigmoid(a.double()) * torch.sigmoid(b.double()) * cands.iou[keep].double()
         return -torch.log1p(-score.clamp(max=1.0 - 1e-9)).sum()
     a, b = a.double(), b.double()
@@ -222,8 +222,8 @@ def main(n: int, steps: int, kinds: list[str], loss: str = "sum", start: str = "
                 image, a, b = attack_frame_vertices(victim, f, cars, steps, loss, shape=kind == "vertex-shape",
                                                     start=start)
             else:
-                m, start = free_pixels(f, cars, kind)
-                image, a, b = attack_frame(victim, f, cars, m, start, steps)
+                m, colours = free_pixels(f, cars, kind)
+                image, a, b = attack_frame(victim, f, cars, m, colours, steps)
             attacked.append(replace(f, image=image, labels=None))
             first.append(a)
             last.append(b)
