@@ -18,9 +18,10 @@ for each frame instead of 162 vertex colours shared by all cars. The masks:
   rendered; ``vertex-shape``: those and the shape (the tanh box parametrisation's displacements, Adam lr
   :data:`LR_SHAPE`), adv-object's image branch.
 
-The loss (``LOSS``, default ``sum``) can instead be, per car, ``lse``: the log-sum-exp over its candidates of
-``log(o c)`` (the log of the summed scores, pushed down without saturating), or ``hinge``: ``softplus`` of that
-minus ``log`` :data:`HINGE_SCORE` (no more push once the car's scores sum below the hinge), or ``iou``: the sum
+The loss of the vertex masks (``LOSS``, default ``sum``; the pixel masks always use ``sum``) can instead be, per
+car, ``lse``: the log-sum-exp over its candidates of ``log(o c)`` (the log of the summed scores, pushed down
+without saturating), or ``hinge``: ``softplus`` of that minus ``log`` :data:`HINGE_SCORE` (no more push once the
+car's scores sum below the hinge), or ``iou``: the sum
 over its candidates of ``-log(1 - o c IoU)`` with the candidate box's IoU with the car differentiable (the
 decoded box of the detector's prior, :func:`box_candidates`), so that the boxes that survive may also be moved
 off the car instead of only scored down.
