@@ -335,12 +335,13 @@ class UniversalTrainer:
             if cfg.lidar_boxes == "detector":
                 props = self.victim.proposals([attacked], "detector")[0]
                 index = _matched_index(props.boxes, targets)
+                scored = props
             else:
                 props = self._proposals(frame)
                 index = _proposal_index(props.boxes, targets)
+                scored = gt_proposals(frame.labels)
             if cfg.lidar_loss == "seed":  # the box terms regress each car's box themselves (module doc)
-                source = [props] if cfg.lidar_boxes == "detector" else [gt_proposals(frame.labels)]
-                iou = _bev_iou_per_target(self.victim.detect([attacked], source)[0], targets)[chosen]
+                iou = _bev_iou_per_target(self.victim.detect([attacked], [scored])[0], targets)[chosen]
             else:
                 iou = np.zeros(len(chosen))
         gt_boxes = gt_bev_boxes(targets)
