@@ -21,10 +21,10 @@ for each frame instead of 162 vertex colours shared by all cars. The masks:
 The loss of the vertex masks (``LOSS``, default ``sum``; the pixel masks always use ``sum``) can instead be, per
 car, ``lse``: the log-sum-exp over its candidates of ``log(o c)`` (the log of the summed scores, pushed down
 without saturating), or ``hinge``: ``softplus`` of that minus ``log`` :data:`HINGE_SCORE` (no more push once the
-car's scores sum below the hinge), or ``iou``: the sum
-over its candidates of ``-log(1 - o c IoU)`` with the candidate box's IoU with the car differentiable (the
-decoded box of the detector's prior, :func:`box_candidates`), so that the boxes that survive may also be moved
-off the car instead of only scored down.
+car's scores sum below the hinge), or ``iou``: the sum over its candidates of ``-log(1 - o c IoU)`` with the
+candidate box's IoU with the car differentiable (the decoded box of the detector's prior; the loss and candidates
+of ``train_iou_loss.py``), so that the boxes that survive may also be moved off the car instead of only scored
+down.
 
 ``START`` (vertex masks only, default ``grey``): the colours the per-frame optimisation starts from, ``grey``,
 ``adv-texture`` (the shipped universal object's) or ``rand:S`` (colour logits drawn from N(0, 2^2), seed S).
@@ -47,7 +47,9 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from train_iou_loss import candidates_with_box_gradients, iou_weighted_losses
 
+import robustbench3d.victims.cascade as cascade
 from robustbench3d.attacks.base import target_cars
 from robustbench3d.attacks.losses import neg_log_one_minus_product
 from robustbench3d.attacks.object import BOUNDS, benign_sphere, tanh_vertices, template_faces
@@ -57,8 +59,6 @@ from robustbench3d.datasets import load_ground_truth, resolve_dataset
 from robustbench3d.eval.kitti_eval import evaluate
 from robustbench3d.sensors.camera_render import render_camera, render_camera_torch
 from robustbench3d.victims import create_victim
-from robustbench3d.victims.base import ObjectnessCandidates
-from robustbench3d.victims.yolo.boxes import box_iou, cxcywh_to_xyxy
 
 GREY = 0.5
 #: The unit cube [-1, 1]^3 as 12 outward triangles.
@@ -145,28 +145,14 @@ def attack_frame_vertices(victim, frame, cars, steps: int, loss: str, shape: boo
     return optimise(victim, cars, groups, steps, image, loss)
 
 
-def box_candidates(victim, images: torch.Tensor, targets: np.ndarray) -> ObjectnessCandidates:
-    """The cascade's candidates of IoU >= 0.5 with each (T, 4) target of the one image in ``images``, their decoded
-    boxes and IoUs differentiable (the victim's oracle detaches them); the shipped detector has no flip TTA."""
-    if victim.yolo.cfg.flip_tta:
-        raise SystemExit("loss iou: the detector's flip TTA priors are not handled here")
-    pred, geo = victim.yolo.predictions(images)
-    boxes = geo.to_image(cxcywh_to_xyxy(pred.boxes[0]))
-    iou = box_iou(boxes, torch.as_tensor(targets, dtype=boxes.dtype))
-    prior, target = torch.nonzero(iou.detach() >= 0.5, as_tuple=True)
-    return ObjectnessCandidates(pred.obj_logit[0, prior], pred.cls_logit[0, prior, victim.car_class], boxes[prior],
-                                iou[prior, target], torch.zeros_like(prior), target)
-
-
 def car_losses(cands, n: int, loss: str) -> torch.Tensor:
     """The loss of :data:`LOSSES` (module doc) summed over the ``n`` cars, from the candidates of IoU >= 0.5."""
     keep = cands.iou >= 0.5
     a, b = cands.objectness_logit[keep], cands.class_logit[keep]
     if loss == "sum":
         return neg_log_one_minus_product(a, b).sum()
-    if loss == "iou":  # -log(1 - o c IoU), clamped: o c rounds to 1 in float64 for logits above about 37
-        score = torch.sigmoid(a.double()) * torch.sigmoid(b.double()) * cands.iou[keep].double()
-        return -torch.log1p(-score.clamp(max=1.0 - 1e-9)).sum()
+    if loss == "iou":
+        return iou_weighted_losses(cands, n).sum()
     a, b = a.double(), b.double()
     log_score = -F.softplus(-a) - F.softplus(-b)  # log(o c) from the logits
     owner = cands.target_index[keep]
@@ -188,9 +174,7 @@ def optimise(victim, cars, groups: list[dict], steps: int, image_of: Callable[[]
         image = image_of()
         if step == steps:
             break
-        batch = image.permute(2, 0, 1)[None].float()
-        cands = box_candidates(victim, batch, boxes[0]) if loss == "iou" else victim.objectness(batch, boxes)
-        value = car_losses(cands, len(cars), loss)
+        value = car_losses(victim.objectness(image.permute(2, 0, 1)[None].float(), boxes), len(cars), loss)
         first = value.item() if step == 0 else first
         last = value.item()
         if not value.requires_grad:
@@ -204,6 +188,8 @@ def optimise(victim, cars, groups: list[dict], steps: int, image_of: Callable[[]
 def main(n: int, steps: int, kinds: list[str], loss: str = "sum", start: str = "grey") -> None:
     if loss not in LOSSES:
         raise SystemExit(f"unknown loss {loss!r}: expected one of {', '.join(LOSSES)}")
+    if loss == "iou":  # the candidates' boxes and IoUs keep their gradients (train_iou_loss.py)
+        cascade.candidates_for_targets = candidates_with_box_gradients
     torch.manual_seed(0)
     victim = create_victim("fpointnet-v1-lite")
     dataset = resolve_dataset(None, "val", progress=False)

@@ -25,11 +25,11 @@ from robustbench3d.victims.yolo.detector import candidates_for_targets
 def candidates_with_box_gradients(pred, geo, target_boxes: torch.Tensor, iou_threshold: float,
                                   image_index: int) -> dict[str, torch.Tensor]:
     """The candidates of ``victims.yolo.detector.candidates_for_targets``, their boxes and IoUs recomputed from the
-    predictions without detaching (the same arithmetic on the selected priors)."""
+    predictions without detaching (the same arithmetic: every prior decoded, its IoU with every target)."""
     chosen = candidates_for_targets(pred, geo, target_boxes, iou_threshold, image_index)
-    boxes = geo.to_image(cxcywh_to_xyxy(pred.boxes[image_index][chosen["prior"]]))
-    tgt = target_boxes.to(boxes.dtype).reshape(-1, 4)[chosen["target"]]
-    return {**chosen, "boxes": boxes, "iou": box_iou(boxes, tgt).diagonal()}
+    boxes = geo.to_image(cxcywh_to_xyxy(pred.boxes[image_index]))
+    iou = box_iou(boxes, target_boxes.to(boxes.dtype).reshape(-1, 4))
+    return {**chosen, "boxes": boxes[chosen["prior"]], "iou": iou[chosen["prior"], chosen["target"]]}
 
 
 def iou_weighted_losses(cands, n_targets: int, image_index: int = 0, use_class: bool = True,
@@ -37,6 +37,7 @@ def iou_weighted_losses(cands, n_targets: int, image_index: int = 0, use_class: 
     """(n_targets,) sum over each target's candidates of IoU >= 0.5 of ``-log(1 - o c IoU)``."""
     keep = (cands.image_index == image_index) & (cands.iou.detach() >= SUM_MIN_IOU)
     score = torch.sigmoid(cands.objectness_logit[keep].double()) * torch.sigmoid(cands.class_logit[keep].double())
+    # clamped: o c rounds to 1 in float64 for logits above about 37
     per = -torch.log1p(-(score * cands.iou[keep].double()).clamp(max=1.0 - 1e-9))
     return torch.zeros(n_targets, dtype=per.dtype).index_add(0, cands.target_index[keep], per)
 
