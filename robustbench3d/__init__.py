@@ -7,3 +7,14 @@ imported by the modules that need them.
 """
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    if name == "benchmark":
+        from robustbench3d.api import benchmark
+
+        return benchmark
+    raise AttributeError(f"module 'robustbench3d' has no attribute {name!r}")
+
+
+__all__ = ["__version__", "benchmark"]

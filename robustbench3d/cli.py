@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "attack apply": ("robustbench3d.attack_apply", "write an attacked copy of a dataset split (KITTI layout + meshes)"),
     "attack check": ("robustbench3d.attack_check", "check an attacked dataset geometrically against its clean one"),
     "attack train": ("robustbench3d.attack_train", "optimise a universal roof object against a white-box victim"),
+    "attack list": ("robustbench3d.attack_list", "list registered attacks: parameters, requirements, origin"),
     "victims list": ("robustbench3d.victims.list_command", "list registered victims and their capabilities"),
     "victims add-onnx": ("robustbench3d.victims.onnx.add_command", "register an ONNX victim directory under a name"),
     "victims remove": ("robustbench3d.victims.onnx.remove_command", "remove a victim added with victims add-onnx"),

@@ -13,6 +13,7 @@ import hashlib
 import json
 import os
 import tempfile
+import threading
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import IO, Any
@@ -22,12 +23,29 @@ from robustbench3d.errors import DataFormatError, RobustBenchError
 #: The problem reported for a user-supplied text file that starts with a UTF-8 byte-order mark.
 BOM_PROBLEM = "file starts with a UTF-8 byte-order mark; save it without BOM"
 
+_UMASK_LOCK = threading.Lock()
+
+
+def current_umask() -> int:
+    """The process's file-creation mask (read by setting it and restoring it at once, under a lock)."""
+    with _UMASK_LOCK:
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return mask
+
+
+def new_file_mode() -> int:
+    """The permission bits an ``open(path, "w")`` would give a new file: ``0o666`` less the umask."""
+    return 0o666 & ~current_umask()
+
 
 @contextlib.contextmanager
 def atomic_open(path: str | Path, mode: str = "w") -> Iterator[IO]:
     """Open a temporary file next to ``path``; on success fsync and rename it over ``path``.
 
-    On an exception the temporary file is removed and ``path`` is left as it was.
+    The file gets the permission bits a plain ``open`` would give it (``0o666`` less the umask;
+    ``mkstemp`` alone makes ``0o600``, unreadable to colleagues and web servers). On an exception the
+    temporary file is removed and ``path`` is left as it was.
     """
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_open supports modes 'w' and 'wb', not {mode!r}")
@@ -35,6 +53,7 @@ def atomic_open(path: str | Path, mode: str = "w") -> Iterator[IO]:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, new_file_mode())
         with os.fdopen(fd, mode, **({"encoding": "utf-8", "newline": "\n"} if mode == "w" else {})) as f:
             yield f
             f.flush()
@@ -134,19 +153,31 @@ def _probe_writable(directory: Path, path: Path, flag: str) -> None:
     os.unlink(tmp)
 
 
-def check_output_file(path: str | Path, flag: str) -> Path:
+def check_output_file(path: str | Path, flag: str, *, force: bool = True) -> Path:
     """Check, before any work, that ``path`` can be written as a file (given as option ``flag``).
 
-    It must not be a directory, its existing ancestors must be directories and the nearest one
+    It must not be a directory, a dangling symbolic link or (unless ``force``) an existing file: the
+    written-once rule, a command never replaces a file it did not create unless ``--force`` says so
+    (see :func:`replacing_note`). Its existing ancestors must be directories and the nearest one
     writable (missing directories are created at write time). Raises :class:`RobustBenchError`.
     """
     path = Path(path)
+    if path.is_symlink() and not path.exists():
+        raise RobustBenchError(f"{flag} {path}: is a broken symbolic link (to {os.readlink(path)})")
     if path.is_dir():
         raise RobustBenchError(f"{flag} {path}: is a directory; expected a file name")
     if path.exists() and not path.is_file():
         raise RobustBenchError(f"{flag} {path}: exists and is not a regular file")
+    if path.exists() and not force:
+        raise RobustBenchError(f"{flag} {path}: exists; pass --force to replace it (nothing was written)")
     _writable_ancestor(path, flag)
     return path
+
+
+def replacing_note(path: str | Path) -> str | None:
+    """The line a command prints before replacing an existing ``path`` under ``--force``, else None."""
+    path = Path(path)
+    return f"replacing {path} (--force)" if path.exists() else None
 
 
 def check_output_dir(path: str | Path, flag: str) -> Path:
@@ -156,6 +187,8 @@ def check_output_dir(path: str | Path, flag: str) -> Path:
     directory, or a directory we cannot create files in.
     """
     path = Path(path)
+    if path.is_symlink() and not path.exists():
+        raise RobustBenchError(f"{flag} {path}: is a broken symbolic link (to {os.readlink(path)})")
     if path.exists():
         if not path.is_dir():
             raise RobustBenchError(f"{flag} {path}: exists and is not a directory")
