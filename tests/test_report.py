@@ -221,7 +221,8 @@ def test_flags_and_confidence_intervals_are_shown_when_present(tiny_run, tmp_pat
     assert 'data-t40="[1.25, 17.50]" data-t11="[2.00, 3.00]"' in page
     assert 'data-t40="[-0.50, 4.00]" data-t11="–"' in page
     md = markdown(views, "t", [str(run)], [], "figures")
-    assert "attack-raises-ap: AP rose <by> 2 points" in md and "[1.25, 17.50]" in md and "[-0.50, 4.00]" in md
+    # the message's <by> as entities: shown as written, never a tag (tests/test_report_trust.py renders it)
+    assert "attack-raises-ap: AP rose &lt;by&gt; 2 points" in md and "[1.25, 17.50]" in md and "[-0.50, 4.00]" in md
 
 
 # ---------------------------------------------------------------- the transfer matrix on hand-made cells

@@ -1,9 +1,14 @@
 """``robustbench3d report RUN_DIR [RUN_DIR ...] --out DIR``: a leaderboard a person reads.
 
 Writes ``DIR/leaderboard.html`` (one self-contained file: sortable table with an R40/R11 toggle, figures,
-transfer heat-map, scene figures, each cell's provenance one click away), ``DIR/leaderboard.md`` and the
-figures as ``DIR/figures/*.png``. Runs on different datasets, protocols or package versions go to separate
-sections, each saying what differs; ``--strict`` refuses them instead (exit 2).
+transfer heat-map, scene figures, each cell's provenance one click away), ``DIR/leaderboard.md``, the
+figures as ``DIR/figures/*.png`` and ``DIR/report_manifest.json`` (the files written). Runs on different
+datasets, protocols or package versions go to separate sections, each saying what differs; ``--strict``
+refuses them instead (exit 2).
+
+``DIR`` must be new, empty or an earlier report's: a report there is replaced (one line says so), any other
+non-empty directory is refused unless ``--force`` (:mod:`robustbench3d.report.outdir`). Options, ``DIR`` and
+the input files are checked before any work; nothing is written until every figure is made.
 
 Standard library only at module level.
 """
@@ -18,6 +23,10 @@ from typing import Any
 HTML_FILE = "leaderboard.html"
 MD_FILE = "leaderboard.md"
 FIGURES = "figures"
+#: ``--scenes``: scene figures per section, 0..20. One is drawn per attack (a grid rarely has more than 20
+#: attacks), each takes seconds to render and adds about 1 MB to the self-contained HTML page; past 20 the
+#: page gets too heavy to open comfortably (``robustbench3d show`` draws any cell and frame instead).
+SCENES_RANGE = (0, 20)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,8 +39,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="refuse runs that are not comparable instead of separating them into sections")
     parser.add_argument("--scenes", type=int, default=3, metavar="N",
                         help="scene figures per section: the N attacked cells with the largest relative drop, one "
-                             "per attack, each on its worst frame (default 3; 0: none)")
+                             f"per attack, each on its worst frame ({SCENES_RANGE[0]}..{SCENES_RANGE[1]}; default 3; "
+                             "0: none)")
+    parser.add_argument("--force", action="store_true",
+                        help="write into a non-empty --out directory that holds no earlier report, replacing the "
+                             "files of the same names (each named in one line); an earlier report is replaced "
+                             "without it")
     parser.add_argument("--title", default="robustbench3d leaderboard", help="page title")
+
+
+def check_scenes(scenes: int) -> None:
+    """Refuse a ``--scenes`` outside :data:`SCENES_RANGE` (one line naming the option and the range)."""
+    from robustbench3d.errors import RobustBenchError
+
+    low, high = SCENES_RANGE
+    if not low <= scenes <= high:
+        raise RobustBenchError(f"--scenes must be in {low}..{high} (scene figures per section), got {scenes}")
 
 
 def _slug(text: str) -> str:
@@ -40,13 +63,11 @@ def _slug(text: str) -> str:
 
 def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = print) -> tuple[list[Any], list[str]]:
     """The report's section views (tables and figures) and page notes."""
-    from robustbench3d.errors import RobustBenchError
     from robustbench3d.report import data, figures
     from robustbench3d.report.page import Figure, SectionView
     from robustbench3d.report.scenes import SceneSource, scene
 
-    if scenes < 0:
-        raise RobustBenchError(f"--scenes must be 0 or more, got {scenes}")
+    check_scenes(scenes)
     secs = data.sections(data.read_runs(runs), strict=strict)
     notes = []
     if len(secs) > 1:
@@ -89,41 +110,53 @@ def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = pri
                     if sc.png is None:
                         view.scene_notes.append(sc.caption)
                     else:
-                        view.scenes.append(Figure(f"s{k + 1}_scene_{_slug(sc.cell.name)}_{sc.frame}.png", sc.png,
-                                                  sc.caption, f"scene {sc.cell.name} frame {sc.frame}"))
+                        name = f"s{k + 1}_scene_{_slug(sc.cell.name)}_{_slug(str(sc.frame))}.png"
+                        view.scenes.append(Figure(name, sc.png, sc.caption, f"scene {sc.cell.name} frame {sc.frame}"))
             else:
                 view.scene_notes.append("No attacked cell with a clean comparison: no scene figure.")
         views.append(view)
     return views, notes
 
 
-def run(args: argparse.Namespace) -> int:
-    from robustbench3d.errors import RobustBenchError
-    from robustbench3d.fileio import atomic_write_bytes, atomic_write_text, check_output_dir
+def _contents(views: list[Any], trades: list[Any], args: argparse.Namespace, notes: list[str]) -> dict[str, bytes]:
+    """Every file of the report (relative path -> bytes), made in memory before anything is written."""
     from robustbench3d.report.page import Figure, html_page, img_html, markdown
-    from robustbench3d.report.tradeoff_view import TradeoffView, tradeoff_html, tradeoff_markdown
+    from robustbench3d.report.tradeoff_view import tradeoff_html, tradeoff_markdown
 
-    if not args.runs and not args.tradeoff:
-        raise RobustBenchError("give at least one RUN_DIR or --tradeoff DIR")
-    out = check_output_dir(args.out, "--out")
-    trades = [TradeoffView.read(p) for p in args.tradeoff]  # bad files fail before any work
-    views, notes = build(args.runs, args.scenes, args.strict) if args.runs else ([], [])
-    (out / FIGURES).mkdir(parents=True, exist_ok=True)
+    out: dict[str, bytes] = {}
     for view in views:
         for fig in [*view.figures, *([view.transfer] if view.transfer else []), *view.scenes]:
-            atomic_write_bytes(out / FIGURES / fig.name, fig.png)
+            out[f"{FIGURES}/{fig.name}"] = fig.png
     html_extra, md_extra = [], []
     for k, trade in enumerate(trades):
-        atomic_write_bytes(out / FIGURES / trade.figure_name, trade.png)
+        out[f"{FIGURES}/{trade.figure_name}"] = trade.png
         fig = Figure(trade.figure_name, trade.png, "Wall time of the clean + attacked cell relative to the "
                      "default setting's on the same frames against |ΔAP| from each sweep's reference (left, Pareto "
                      "front dashed); frames evaluated against the interval width (right).", trade.title)
         html_extra.append(tradeoff_html(trade, k, img_html(fig)))
         md_extra.append(tradeoff_markdown(trade, FIGURES))
     runs = [str(Path(r)) for r in [*args.runs, *args.tradeoff]]
-    atomic_write_text(out / MD_FILE, markdown(views, args.title, runs, notes, FIGURES, md_extra))
-    atomic_write_text(out / HTML_FILE, html_page(views, args.title, runs, notes, html_extra))
+    out[MD_FILE] = markdown(views, args.title, runs, notes, FIGURES, md_extra).encode("utf-8")
+    out[HTML_FILE] = html_page(views, args.title, runs, notes, html_extra).encode("utf-8")
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from robustbench3d.errors import RobustBenchError
+    from robustbench3d.report.outdir import check_out_dir, plan_writes, write_report
+    from robustbench3d.report.tradeoff_view import TradeoffView
+
+    check_scenes(args.scenes)
+    if not args.runs and not args.tradeoff:
+        raise RobustBenchError("give at least one RUN_DIR or --tradeoff DIR")
+    out = check_out_dir(args.out, args.force)
+    trades = [TradeoffView.read(p) for p in args.tradeoff]  # bad files fail before any work
+    views, notes = build(args.runs, args.scenes, args.strict) if args.runs else ([], [])
+    contents = _contents(views, trades, args, notes)
+    for line in plan_writes(out, list(contents)):
+        print(f"report: {line}")
+    write_report(out, contents)
     for note in notes:
         print(f"report: {note}")
-    print(f"report: {out / HTML_FILE}, {out / MD_FILE} ({len(views)} section(s))")
+    print(f"report: {out.path / HTML_FILE}, {out.path / MD_FILE} ({len(views)} section(s))")
     return 0

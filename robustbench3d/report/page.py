@@ -13,6 +13,7 @@ import base64
 import html
 import json
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -301,46 +302,79 @@ def html_page(views: Sequence[SectionView], title: str, runs: Sequence[str], not
     return "\n".join(out)
 
 
-def _md_escape(text: str) -> str:
-    return text.replace("|", "\\|")
+#: Characters that start markdown markup anywhere in a line (code, emphasis, links and images, tables,
+#: strikethrough) and the backslash itself; each is written backslash-escaped (``_``: see below).
+_MD_INLINE = re.compile(r"([\\`*\[\]|~])")
+#: An underscore that could open or close emphasis: not between two letters or digits (``run_dir`` stays).
+_MD_UNDERSCORE = re.compile(r"(?<![^\W_])_|_(?![^\W_])")
+#: Markup that only counts at the start of a line: headings, list items, setext underlines, ordered lists.
+_MD_LINE_START = re.compile(r"^(\s*)(?:([#+=-])|(\d+)([.)]))")
+
+
+def md_text(value: Any) -> str:
+    """``value`` as inert markdown text on one line: HTML's ``& < >`` as entities (no tag, comment or entity of
+    the input survives), markdown punctuation backslash-escaped (no link, image, code span, emphasis or table
+    cell break), line-start markup escaped and line breaks as spaces. A renderer shows the text as given."""
+    text = " ".join(str(value).splitlines())
+    text = _MD_UNDERSCORE.sub(r"\\_", _MD_INLINE.sub(r"\\\1", html.escape(text, quote=False)))
+    return _MD_LINE_START.sub(lambda m: m[1] + ("\\" + m[2] if m[2] else m[3] + "\\" + m[4]), text)
+
+
+def md_code(value: Any) -> str:
+    """``value`` as an inline code span on one line in a table cell (shown literally): fenced by more backticks
+    than it holds in a row, ``|`` escaped as GitHub tables require."""
+    text = " ".join(str(value).splitlines()).replace("|", "\\|")
+    fence = "`" * (max((len(run) for run in re.findall("`+", text)), default=0) + 1)
+    pad = " " if text.startswith("`") or text.endswith("`") else ""
+    return f"{fence}{pad}{text}{pad}{fence}"
+
+
+def _md_row(row: Any, cols: Sequence[Column]) -> str:
+    """One table row (R40, R11 in parentheses); every string of the summary through :func:`md_text`."""
+    texts = []
+    for c in cols:
+        if c.kind == "flags":
+            texts.append(", ".join(f"{md_text(code)}: {md_text(msg)}" for code, msg in row["flags"]))
+        elif c.kind == "str":
+            texts.append(md_text(row[c.key]))
+        elif c.kind == "ci":
+            lo, hi = row[c.field("R40")], row[c.field("R40").replace("ci_low_", "ci_high_")]
+            texts.append("–" if math.isnan(lo) else f"[{lo:.2f}, {hi:.2f}]")
+        elif c.by_recall:
+            texts.append(f"{fmt(row[c.field('R40')], c.kind)} ({fmt(row[c.field('R11')], c.kind)})")
+        else:
+            texts.append(fmt(row[c.key], c.kind))
+    return "| " + " | ".join(texts) + f" | {md_code(row['source'])} |"
+
+
+def _md_figure(fig: Figure, figure_dir: str) -> list[str]:
+    return [f"![{md_text(fig.alt)}]({figure_dir}/{fig.name})", "", f"*{md_text(fig.caption)}*", ""]
 
 
 def markdown(views: Sequence[SectionView], title: str, runs: Sequence[str], notes: Sequence[str],
              figure_dir: str, extra: Sequence[str] = ()) -> str:
     """The leaderboard as markdown: per section the table (R40, R11 in parentheses) and the figures as links;
-    ``extra``: further markdown sections appended."""
-    lines = [f"# {title}", "", f"From {', '.join(runs)}. AP in % (R40, R11 in parentheses); drops and the "
-             "relative drop are BEV moderate against the clean cell with the same proposals; ASR in %.", ""]
-    lines += [f"> {n}" for n in notes] + ([""] if notes else [])
+    ``extra``: further markdown sections appended (already markdown). Every string that comes from a summary,
+    a path or the command line is written through :func:`md_text` or :func:`md_code`: inert as markdown and
+    as HTML. Figure file names are the report's own (``[A-Za-z0-9._-]``)."""
+    lines = [f"# {md_text(title)}", "", f"From {md_text(', '.join(runs))}. AP in % (R40, R11 in parentheses); drops "
+             "and the relative drop are BEV moderate against the clean cell with the same proposals; ASR in %.", ""]
+    lines += [f"> {md_text(n)}" for n in notes] + ([""] if notes else [])
     for k, view in enumerate(views):
-        df = view.df
         cols = _columns(view)
-        lines += [f"## {section_title(view, k)}", ""]
+        lines += [f"## {md_text(section_title(view, k))}", ""]
         if view.section.differs:
-            lines += ["Kept apart from section 1 because these differ: " + "; ".join(view.section.differs), ""]
-        lines += [section_facts(view), ""]
-        lines.append("| " + " | ".join(c.title for c in cols) + " | source |")
+            lines += ["Kept apart from section 1 because these differ: " + md_text("; ".join(view.section.differs)),
+                      ""]
+        lines += [md_text(section_facts(view)), ""]
+        lines.append("| " + " | ".join(md_text(c.title) for c in cols) + " | source |")
         lines.append("|" + "---|" * (len(cols) + 1))
-        for _, row in df.iterrows():
-            texts = []
-            for c in cols:
-                if c.kind == "flags":
-                    texts.append(", ".join(f"{code}: {msg}" for code, msg in row["flags"]))
-                elif c.kind == "str":
-                    texts.append(str(row[c.key]))
-                elif c.kind == "ci":
-                    lo, hi = row[c.field("R40")], row[c.field("R40").replace("ci_low_", "ci_high_")]
-                    texts.append("–" if math.isnan(lo) else f"[{lo:.2f}, {hi:.2f}]")
-                elif c.by_recall:
-                    texts.append(f"{fmt(row[c.field('R40')], c.kind)} ({fmt(row[c.field('R11')], c.kind)})")
-                else:
-                    texts.append(fmt(row[c.key], c.kind))
-            lines.append("| " + " | ".join(_md_escape(t) for t in texts) + f" | `{_md_escape(row['source'])}` |")
+        lines += [_md_row(row, cols) for _, row in view.df.iterrows()]
         lines.append("")
         for fig in [*view.figures, *([view.transfer] if view.transfer else []), *view.scenes]:
-            lines += [f"![{fig.alt}]({figure_dir}/{fig.name})", "", f"*{fig.caption}*", ""]
+            lines += _md_figure(fig, figure_dir)
         if not view.transfer:
-            lines += [view.transfer_note, ""]
-        lines += [*view.scene_notes, ""] if view.scene_notes else []
+            lines += [md_text(view.transfer_note), ""]
+        lines += [*map(md_text, view.scene_notes), ""] if view.scene_notes else []
     lines += [e.rstrip() + "\n" for e in extra]
     return "\n".join(lines).rstrip() + "\n"

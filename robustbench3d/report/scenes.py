@@ -8,9 +8,9 @@ drawn from the score threshold the attack success rate uses (the F1-optimal one 
 
 Frames are chosen where the attack hurt most: the most ground-truth Cars matched by a clean detection
 (BEV IoU >= 0.7 at that threshold) and by no attacked one; ties by more Cars, then by frame id.
-Before drawing, the dataset's label files are hashed and must give the cell's dataset sha256, and the
-attack rebuilt from its name must describe itself as the cell recorded, or no figure is made (the reason
-is returned instead).
+Before drawing, the label files of the frames the cell evaluated (the first ``frames`` of its split) are
+hashed as the runner hashed them and must give the cell's dataset sha256, and the attack rebuilt from its
+name must describe itself as the cell recorded, or no figure is made (the reason is returned instead).
 """
 
 from __future__ import annotations
@@ -63,34 +63,39 @@ def _matched(gt: Any, dets: Any) -> Any:
 
 
 class SceneSource:
-    """The dataset of a section, checked once against the cells' dataset sha256."""
+    """The frames a section's cells evaluated, checked once against the cells' dataset sha256.
+
+    The identity is the runner's own (:func:`robustbench3d.datasets.load_ground_truth`): the first
+    ``dataset["frames"]`` ids of the split and their label files, so a ``--max-frames`` run of a larger,
+    partly generated dataset is checked on exactly the frames it evaluated and needs no other file.
+    ``problem`` says why no figure can be drawn (dataset absent, a label file missing or changed).
+    """
 
     def __init__(self, dataset: dict[str, Any]):
-        from robustbench3d.kitti import KittiDataset
-        from robustbench3d.provenance import SplitDigest
+        from robustbench3d.datasets import ResolvedDataset, load_ground_truth
+        from robustbench3d.errors import RobustBenchError
 
         self.problem: str | None = None
         self.kitti = None
+        self.gt: dict[str, Any] = {}
+        self.frames: list[str] = []
         root = Path(dataset["root"])
         if not (root / "training").is_dir():
             self.problem = f"dataset {root} is not on this machine"
             return
-        kitti = KittiDataset(root, split=dataset["split"])
-        ids = kitti.frame_ids
-        digest = SplitDigest(ids)
-        self.gt: dict[str, Any] = {}
-        from robustbench3d.kitti.labels import parse_labels
-
-        for fid in ids:
-            path = kitti.path("labels", fid)
-            data = path.read_bytes()
-            digest.update(fid, data)
-            self.gt[fid] = parse_labels(data.decode("utf-8"), path, scored=False)
-        if digest.hexdigest() != dataset["sha256"]:
-            self.problem = f"dataset {root} split {dataset['split']} has changed since the run (labels sha256)"
+        resolved = ResolvedDataset(root=root, split=dataset["split"], embedded=None, manifest=None)
+        try:
+            truth = load_ground_truth(resolved, int(dataset["frames"]))
+        except RobustBenchError as exc:  # split file or an evaluated frame's label file missing or unreadable
+            self.problem = f"dataset {root} split {dataset['split']} cannot be read as the run read it ({exc})"
             return
-        self.kitti = kitti
-        self.frames = ids[: dataset["frames"]]
+        if truth.sha256 != dataset["sha256"]:
+            self.problem = (f"dataset {root} split {dataset['split']} has changed since the run (labels sha256 of "
+                            f"the {len(truth.frame_ids)} evaluated frames)")
+            return
+        self.kitti = resolved.kitti()
+        self.frames = truth.frame_ids
+        self.gt = dict(zip(truth.frame_ids, truth.labels, strict=True))
 
 
 def worst_frames(source: SceneSource, attacked_dir: Path, clean_dir: Path, threshold: float, count: int) -> list[str]:

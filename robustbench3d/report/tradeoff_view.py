@@ -55,8 +55,8 @@ def _td(row: dict[str, Any], key: str, kind: str) -> str:
         text = f"{v} (ref)" if row["reference"] else str(v)
         return f'<td data-v="{html.escape(str(v))}">{html.escape(text)}</td>'
     if kind == "num":
-        if v is None:
-            return '<td class="num" data-v="">–</td>'
+        if not isinstance(v, int | float) or isinstance(v, bool):  # None, or not a number: shown, never parsed
+            return f'<td class="num" data-v="">{"–" if v is None else html.escape(str(v))}</td>'
         text = f"{v:+.2f}" if key == "d_attacked" else (str(v) if key == "frames" else f"{v:.2f}")
         return f'<td class="num" data-v="{float(v)!r}">{text}</td>'
     return f'<td data-v="{html.escape(str(v))}">{html.escape(str(v))}</td>'
@@ -69,7 +69,8 @@ def tradeoff_html(view: TradeoffView, k: int, img: str) -> str:
     c, metric, r, d = doc["ap"]
     out = [f'<section id="tradeoff-{k}"><h2>{html.escape(view.title)}</h2>',
            f'<p class="note">From {html.escape(view.source)}. Machine: {html.escape(str(m.get("cpu")))} '
-           f'({m.get("cpu_count")} cores), measured {html.escape(doc["measured_at"])}, every point in one run. '
+           f'({html.escape(str(m.get("cpu_count")))} cores), measured {html.escape(str(doc["measured_at"]))}, '
+           "every point in one run. "
            f"AP: {html.escape(f'{c} {metric.upper()} {r} {d}')}; ΔAP against each sweep's reference (ref), "
            "|ΔAP| the larger of clean and attacked; time: the clean and the attacked cell together. ★: on the "
            "sweep's Pareto front.</p>", img,
@@ -85,9 +86,27 @@ def tradeoff_html(view: TradeoffView, k: int, img: str) -> str:
     return "\n".join(out)
 
 
+def _inert(tree: Any) -> Any:
+    """A copy of a tradeoff document with every string (keys too) through :func:`~robustbench3d.report.page.md_text`:
+    what ``tradeoff.md`` writes from it is inert as markdown and HTML (names a run writes have no markup
+    character and come out unchanged)."""
+    from robustbench3d.report.page import md_text
+
+    if isinstance(tree, str):
+        return md_text(tree)
+    if isinstance(tree, dict):
+        return {_inert(k): _inert(v) for k, v in tree.items()}
+    if isinstance(tree, list | tuple):
+        return [_inert(v) for v in tree]
+    return tree
+
+
 def tradeoff_markdown(view: TradeoffView, figure_dir: str) -> str:
-    """The run's ``tradeoff.md`` (headings one level down) and its figure."""
-    body = markdown(view.doc).split("\n", 1)[1]  # drop the run's own title
+    """The run's ``tradeoff.md`` (headings one level down; every string of the run escaped) and its figure."""
+    from robustbench3d.report.page import md_text
+
+    body = markdown(_inert(view.doc)).split("\n", 1)[1]  # drop the run's own title
     body = "\n".join("#" + line if line.startswith("## ") else line for line in body.split("\n"))
-    return (f"## {view.title}\n\nFrom `{view.source}`.\n\n![{view.title}]({figure_dir}/{view.figure_name})\n"
+    title = md_text(view.title)
+    return (f"## {title}\n\nFrom {md_text(view.source)}.\n\n![{title}]({figure_dir}/{view.figure_name})\n"
             + body.rstrip() + "\n")
