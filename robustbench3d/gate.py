@@ -1,7 +1,11 @@
 """``robustbench3d check``: the AP / AP-drop regression gate of a run against a recorded baseline.
 
-    robustbench3d check RUN_DIR --write-baseline FILE
+    robustbench3d check RUN_DIR --write-baseline FILE [--force]
     robustbench3d check RUN_DIR --baseline FILE [--tol-ap X] [--tol-drop Y]
+
+``--write-baseline`` writes a new FILE; an existing one is replaced only with ``--force`` (the command
+says so), never when it is the summary being read. Tolerances are percentage points in
+:data:`TOL_RANGE`.
 
 A **baseline** (:data:`FORMAT`, version :data:`VERSION`) is a small JSON file::
 
@@ -23,10 +27,11 @@ parameters (``root`` is recorded but not compared: the same dataset sits at anot
 ``check`` compares every AP and every AP drop of every baseline cell with the run's summary and
 **fails (exit 1) on any move past its tolerance**, in either direction: a lower AP or a larger drop is
 a *regression*; a higher AP or a smaller drop is an *improvement*, which fails too (the baseline is
-stale: record the new numbers with ``--write-baseline``) unless ``--allow-improvements``. It also
+stale: record the new numbers with ``--write-baseline FILE --force``) unless ``--allow-improvements``. It also
 fails when a baseline cell is missing from the run, the run has a cell the baseline lacks, a cell's
 status changed, or the dataset or protocol differs. Unreadable or malformed files exit 2
-(:class:`~robustbench3d.errors.DataFormatError`, naming the file and field); a passing check exits 0.
+(:class:`~robustbench3d.errors.DataFormatError`, naming the file and field; a directory given as a
+file, bad JSON with its line, a NaN or Infinity anywhere); a passing check exits 0.
 
 Standard library only.
 """
@@ -57,6 +62,11 @@ DATASET_KEYS: tuple[str, ...] = ("split", "frames", "split_frames", "sha256", "e
 #: Default tolerances, percentage points.
 DEFAULT_TOL_AP = 1.0
 DEFAULT_TOL_DROP = 1.0
+#: Range of ``--tol-ap`` and ``--tol-drop``, percentage points. AP lies in [0, 100] and a drop in
+#: [-100, 100], so a tolerance above 100 never fails anything: a typo such as ``--tol-ap 1e3`` would
+#: silently switch the gate off. 0 demands the exact numbers (a rerun of the same code, weights and
+#: seed reproduces them).
+TOL_RANGE = (0.0, 100.0)
 SUMMARY_FILE = "summary.json"
 CellId = tuple[str, str, str]
 
@@ -72,6 +82,8 @@ def summary_path(run: str | Path) -> Path:
 def read_run(run: str | Path) -> tuple[Path, list[dict[str, Any]]]:
     """The run's validated summary cells (:class:`DataFormatError` naming the file otherwise)."""
     path = summary_path(run)
+    if path.parent.exists() and not path.parent.is_dir():
+        raise DataFormatError(path.parent, "is a file; expected a run directory or its summary.json")
     if not path.parent.is_dir():
         raise DataFormatError(path.parent, "run directory not found")
     cells = read_json(path)
@@ -169,14 +181,20 @@ def baseline_from_run(run: str | Path) -> dict[str, Any]:
 
 
 def write_baseline(run: str | Path, out: str | Path) -> dict[str, Any]:
-    """Write the baseline of ``run`` to ``out`` (atomically, validated by reading it back); returns it."""
+    """Write the baseline of ``run`` to ``out`` (atomically, validated by reading it back); returns it.
+    ``out`` is replaced if it exists (the ``check`` command refuses that without ``--force``)."""
+    record = baseline_from_run(run)
+    _write_record(record, out)
+    return record
+
+
+def _write_record(record: dict[str, Any], out: str | Path) -> None:
+    """Serialise ``record``, validate what will land on disk, then write it atomically."""
     from robustbench3d.fileio import atomic_write_text
 
-    record = baseline_from_run(run)
     text = dumps(record)
     validate_baseline(json.loads(text), out)
     atomic_write_text(out, text)
-    return record
 
 
 # ---- reading a baseline ----------------------------------------------------------------------------
@@ -394,19 +412,22 @@ def format_report(report: GateReport, run_path: Path, baseline_path: Path) -> st
                      f"tolerance, {len(report.problems)} problem(s)")
         if improvements:
             lines.append("an improvement past tolerance fails too (the baseline is stale): accept the new numbers "
-                         "with --write-baseline, or pass --allow-improvements")
+                         f"with --write-baseline {baseline_path} --force, or pass --allow-improvements")
     return "\n".join(lines)
 
 
 # ---- command ---------------------------------------------------------------------------------------
 
 def _tolerance(text: str) -> float:
+    """A tolerance in percentage points, within :data:`TOL_RANGE` (argparse names the option)."""
+    lo, hi = TOL_RANGE
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of percentage points, got {text!r}") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a number of percentage points in [{lo:g}, {hi:g}], "
+                                         f"got {text!r}") from None
+    if not math.isfinite(value) or not lo <= value <= hi:
+        raise argparse.ArgumentTypeError(f"expected a number of percentage points in [{lo:g}, {hi:g}], got {text!r}")
     return value
 
 
@@ -415,23 +436,46 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                            "summary.json")
     group = parser.add_mutually_exclusive_group(required=True)
     group.add_argument("--baseline", metavar="FILE", help="compare the run with this baseline; exit 1 on a move")
-    group.add_argument("--write-baseline", metavar="FILE", help="record the run's numbers as a baseline")
+    group.add_argument("--write-baseline", metavar="FILE", help="record the run's numbers as a baseline (a new file "
+                                                                "unless --force)")
+    parser.add_argument("--force", action="store_true", help="let --write-baseline replace an existing FILE")
+    lo, hi = TOL_RANGE
     parser.add_argument("--tol-ap", type=_tolerance, default=DEFAULT_TOL_AP, metavar="X",
-                        help=f"tolerance of every AP, percentage points (default {DEFAULT_TOL_AP})")
+                        help=f"tolerance of every AP, percentage points in [{lo:g}, {hi:g}] (default {DEFAULT_TOL_AP})")
     parser.add_argument("--tol-drop", type=_tolerance, default=DEFAULT_TOL_DROP, metavar="Y",
-                        help=f"tolerance of every moderate AP drop, percentage points (default {DEFAULT_TOL_DROP})")
+                        help=f"tolerance of every moderate AP drop, percentage points in [{lo:g}, {hi:g}] "
+                             f"(default {DEFAULT_TOL_DROP})")
     parser.add_argument("--allow-improvements", action="store_true",
                         help="do not fail on a higher AP or a smaller drop past tolerance (they are still listed)")
 
 
+def _baseline_output(run_dir: str, out: str, force: bool) -> Path:
+    """``--write-baseline FILE`` checked before any work: writable, new unless ``force``, and not the
+    summary being read (which ``--force`` would otherwise replace)."""
+    from robustbench3d.fileio import check_output_file
+
+    path = check_output_file(out, "--write-baseline", force=force)
+    summary = summary_path(run_dir)
+    if path.exists() and summary.exists() and path.resolve() == summary.resolve():
+        raise RobustBenchError(f"--write-baseline {path}: is the run's summary being read; choose another file "
+                               "(nothing was written)")
+    return path
+
+
 def run(args: argparse.Namespace) -> int:
     if args.write_baseline is not None:
-        from robustbench3d.fileio import check_output_file
+        from robustbench3d.fileio import replacing_note
 
-        out = check_output_file(args.write_baseline, "--write-baseline")
-        record = write_baseline(args.run_dir, out)
+        out = _baseline_output(args.run_dir, args.write_baseline, args.force)
+        record = baseline_from_run(args.run_dir)  # before the note: a refused run replaces nothing
+        note = replacing_note(out)
+        if note:
+            print(note)
+        _write_record(record, out)
         print(f"baseline: {out} ({len(record['cells'])} cells of {record['source']['summary']})")
         return 0
+    if args.force:
+        raise RobustBenchError("--force: applies to --write-baseline only (check --baseline writes no file)")
     baseline_path = Path(args.baseline)
     baseline = read_baseline(baseline_path)
     run_path, cells = read_run(args.run_dir)

@@ -16,7 +16,9 @@ into a session temporary directory, and returns a :class:`BenchmarkResult`. Test
 arguments share one run. Marker keywords: ``victim`` (required), ``attacks`` (default none),
 ``frames`` (default 8), ``proposals`` (default ``("detector",)``), ``data`` (a KITTI-layout root),
 ``split`` ("val"), ``seed`` (0), ``victim_args`` / ``attack_args`` (factory keyword arguments,
-``{name: {key: value}}`` or for the victim just ``{key: value}``).
+``{name: {key: value}}`` or for the victim just ``{key: value}``). ``frames`` is an integer >= 1 and
+``seed`` one in [0, 2**63 - 1] (:data:`robustbench3d.victims.zoo.SEED_RANGE`); anything else is a usage
+error naming the keyword, raised before any run.
 
 Standard library and pytest only at import (pytest loads entry-point plugins in every session).
 """
@@ -97,6 +99,16 @@ def _names(value: str | Sequence[str] | None, default: tuple[str, ...]) -> tuple
     return (value,) if isinstance(value, str) else tuple(value)
 
 
+def _marker_int(kw: dict[str, Any], key: str, default: int, lo: int, hi: int | None = None) -> int:
+    """Pop the integer marker keyword ``key`` (``default`` if absent), refusing a non-integer (a bool, a
+    float that ``int()`` would truncate, a string) or one outside [lo, hi] (hi None: no upper bound)."""
+    value = kw.pop(key, default)
+    bounds = f"in [{lo}, {hi}]" if hi is not None else f">= {lo}"
+    if isinstance(value, bool) or not isinstance(value, int) or value < lo or (hi is not None and value > hi):
+        raise pytest.UsageError(f"@pytest.mark.{MARKER}: {key}={value!r} is not an integer {bounds}")
+    return value
+
+
 def _config_from_marker(marker: pytest.Mark, out: Path) -> Any:
     from robustbench3d.runner import RunConfig
 
@@ -109,9 +121,12 @@ def _config_from_marker(marker: pytest.Mark, out: Path) -> Any:
     victim_args = kw.pop("victim_args", None) or {}
     if victim_args and not all(isinstance(v, Mapping) for v in victim_args.values()):
         victim_args = {victim: victim_args}
+    from robustbench3d.victims.zoo import SEED_RANGE
+
+    frames = _marker_int(kw, "frames", DEFAULT_FRAMES, 1)
+    seed = _marker_int(kw, "seed", 0, *SEED_RANGE)
     config = RunConfig(victims=(victim,), attacks=attacks, proposals=_names(kw.pop("proposals", None), ("detector",)),
-                       out=out, data=kw.pop("data", None), split=kw.pop("split", "val"),
-                       max_frames=int(kw.pop("frames", DEFAULT_FRAMES)), seed=int(kw.pop("seed", 0)),
+                       out=out, data=kw.pop("data", None), split=kw.pop("split", "val"), max_frames=frames, seed=seed,
                        victim_args=victim_args, attack_args=kw.pop("attack_args", None) or {}, workers=1,
                        progress=False)
     if kw:

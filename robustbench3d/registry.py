@@ -348,10 +348,18 @@ class Registry(Generic[T]):
             if old is None:
                 self._entries[ep.name] = entry
             elif old.pending != entry.pending or old.loaded:
-                old.conflict = (
-                    f"{self.kind} name {ep.name!r} is claimed by both {old.origin} ({old.pending or 'loaded'}) "
-                    f"and {entry.origin} ({entry.pending}); uninstall one, or set {NO_PLUGINS_ENV}=1 to "
-                    "disable plugins")
+                old.conflict = self._clash(old, entry)
+
+    def _clash(self, old: Entry[T], new: Entry[T]) -> str:
+        """The error of a name claimed by an entry point (``new``) and by ``old``: another plugin, or an
+        in-tree / registered entry. It says who must act: a factory argument cannot resolve it."""
+        claim = f"{new.origin} (entry point '{new.name} = {new.pending}' of group {self.group})"
+        if old.dist is not None:
+            return (f"{self.kind} name {new.name!r} is claimed by both {old.origin} ({old.pending}) and {claim}; "
+                    f"uninstall one of {old.dist!r} and {new.dist!r}, or set {NO_PLUGINS_ENV}=1 to disable plugins")
+        return (f"{self.kind} name {new.name!r} is claimed by both the {old.origin} {self.kind} and {claim}, so "
+                f"neither is used; the plugin must rename its entry point: until it does, uninstall {new.dist!r} "
+                f"(or set {NO_PLUGINS_ENV}=1 to disable plugins)")
 
     def _rejection(self, name: str, value: str, dist_name: str, version: str) -> str:
         fixed = re.sub(r"[^a-z0-9._-]+", "-", name.lower()).strip("-._")

@@ -17,6 +17,7 @@ import contextlib
 import csv
 import io
 import json
+import math
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
@@ -26,7 +27,7 @@ from typing import Any, NamedTuple
 
 from robustbench3d.errors import DataFormatError
 from robustbench3d.eval.rules import DIFFICULTIES, RECALL_SAMPLES
-from robustbench3d.fileio import atomic_write_text
+from robustbench3d.fileio import atomic_write_text, read_data_text
 
 SCHEMA_VERSION = 1
 SCHEMA_RESOURCE = "summary.schema.json"
@@ -67,11 +68,31 @@ def schema_errors(summary: Any, cell_only: bool = False) -> list[str]:
     return [f"{_json_path(e.absolute_path)}: {e.message}" for e in errors]
 
 
+def non_finite_path(obj: Any, parts: tuple[Any, ...] = ()) -> tuple[tuple[Any, ...], float] | None:
+    """(JSON path parts, value) of the first NaN or infinite float in ``obj`` (lists and dicts walked in
+    order), or None. JSON has no such numbers, and JSON Schema cannot refuse them: ``NaN`` compares
+    false with every bound, so ``{"minimum": 0, "maximum": 100}`` lets a NaN AP through."""
+    if isinstance(obj, float):
+        return None if math.isfinite(obj) else (parts, obj)
+    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, list) else ()
+    for key, value in items:
+        found = non_finite_path(value, (*parts, key))
+        if found is not None:
+            return found
+    return None
+
+
 def validate_summary(summary: Any, source: str | Path = "summary.json", cell_only: bool = False) -> None:
     """Raise :class:`DataFormatError` naming ``source`` and the JSON path of the most relevant
-    violation unless ``summary`` (a list of cells, or one cell with ``cell_only``) is valid."""
+    violation unless ``summary`` (a list of cells, or one cell with ``cell_only``) is valid.
+
+    Every number must be finite (a NaN or infinite value is refused first, naming its path)."""
     from jsonschema.exceptions import best_match
 
+    bad = non_finite_path(summary)
+    if bad is not None:
+        raise DataFormatError(source, f"{bad[1]!r} is not a finite number (JSON has no NaN or Infinity)",
+                              field=_json_path(bad[0]))
     error = best_match(_validator(cell_only).iter_errors(summary))
     if error is not None:
         raise DataFormatError(source, error.message, field=_json_path(error.absolute_path))
@@ -101,15 +122,47 @@ def write_validated(path: str | Path, obj: Any, cell_only: bool = False) -> Any:
     return data
 
 
+class _NonFiniteToken:
+    """Stands in for a ``NaN`` / ``Infinity`` / ``-Infinity`` token while a file is parsed, so that
+    :func:`read_json` can name the field that holds it."""
+
+    def __init__(self, token: str):
+        self.token = token
+
+
+def _token_path(obj: Any, parts: tuple[Any, ...] = ()) -> tuple[tuple[Any, ...], str] | None:
+    """(JSON path parts, token) of the first :class:`_NonFiniteToken` in ``obj``, or None."""
+    if isinstance(obj, _NonFiniteToken):
+        return parts, obj.token
+    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, list) else ()
+    for key, value in items:
+        found = _token_path(value, (*parts, key))
+        if found is not None:
+            return found
+    return None
+
+
 def read_json(path: str | Path) -> Any:
-    """Parse a JSON file; :class:`DataFormatError` naming it on a missing file or bad JSON."""
+    """Parse a JSON file; :class:`DataFormatError` naming it on a missing or unreadable file (a
+    directory, no permission), bad JSON (the message gives line and column), or a ``NaN`` /
+    ``Infinity`` token (not JSON, though Python's parser accepts it; the error names the field)."""
     path = Path(path)
+    text = read_data_text(path)
+    tokens: list[str] = []
+
+    def refuse(token: str) -> _NonFiniteToken:
+        tokens.append(token)
+        return _NonFiniteToken(token)
+
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DataFormatError(path, "file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        data = json.loads(text, parse_constant=refuse)
+    except json.JSONDecodeError as exc:
         raise DataFormatError(path, f"not valid JSON ({exc})") from None
+    if tokens:
+        found = _token_path(data)
+        field = _json_path(found[0]) if found is not None else None
+        raise DataFormatError(path, f"{tokens[0]} is not JSON (numbers must be finite)", field=field)
+    return data
 
 
 def read_summary(path: str | Path) -> list[dict[str, Any]]:

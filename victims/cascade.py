@@ -86,6 +86,10 @@ PRECISIONS = ("float32", "bfloat16", "float64")
 #: bound keeps a typo from exhausting memory: the full config's segmentation pass holds about
 #: 4 x N x 1603 float32 per-point features per batch of 4 frustums (~1.7 GB at 65536).
 NUM_POINTS_RANGE = (1, 65536)
+#: Largest side, px, of the victim argument ``input_size``: over 3x KITTI's 1242 px image width (larger
+#: only upsamples the letterboxed image); the 2D stage's activations grow with W x H, so a typo such as
+#: 96000x288 would exhaust memory instead of failing.
+INPUT_SIDE_MAX = 4096
 
 
 class BFloat16FrustumStages(TorchFrustumStages):
@@ -122,8 +126,8 @@ def parse_num_points(value: object) -> int | None:
 
 def parse_input_size(value: object, max_stride: int) -> tuple[int, int] | None:
     """The victim argument ``input_size``: None (the trained size), ``"WxH"`` or a (W, H) pair of
-    positive multiples of ``max_stride`` (the network's largest downsampling); anything else raises
-    :class:`RobustBenchError` naming it."""
+    multiples of ``max_stride`` (the network's largest downsampling) in [1, :data:`INPUT_SIDE_MAX`];
+    anything else raises :class:`RobustBenchError` naming it."""
     if value is None:
         return None
     if isinstance(value, str):
@@ -135,6 +139,9 @@ def parse_input_size(value: object, max_stride: int) -> tuple[int, int] | None:
         raise RobustBenchError(f"victim argument 'input_size': {value!r} is not WxH with positive integers "
                                "(e.g. '640x192')")
     w, h = sides
+    if max(w, h) > INPUT_SIDE_MAX:
+        raise RobustBenchError(f"victim argument 'input_size': {w}x{h} has a side over {INPUT_SIDE_MAX} px "
+                               f"(sides are in [1, {INPUT_SIDE_MAX}])")
     if w % max_stride or h % max_stride:
         raise RobustBenchError(f"victim argument 'input_size': {w}x{h} is not a multiple of the 2D network's "
                                f"largest stride {max_stride} in both sides")

@@ -10,11 +10,19 @@ Both cascades take the fidelity knobs of :mod:`robustbench3d.victims.cascade` (d
 trained settings, results unchanged): ``num_points`` (points per frustum), ``input_size`` (the 2D
 stage's "WxH") and ``precision`` ("float32", "bfloat16" or "float64"), e.g.
 ``--victim-arg fpointnet-v1-lite:num_points=1024 --victim-arg fpointnet-v1-lite:input_size=640x192``.
+
+Every argument is checked before any weights load, each failure one line naming it: ``seed`` an
+integer in :data:`SEED_RANGE`, ``gather`` one of :data:`GATHER_MODES`, ``precision`` one of
+:data:`~robustbench3d.victims.cascade.PRECISIONS`, ``num_points`` in
+:data:`~robustbench3d.victims.cascade.NUM_POINTS_RANGE`, ``input_size`` "WxH" with sides up to
+:data:`~robustbench3d.victims.cascade.INPUT_SIDE_MAX` (multiples of the network's largest stride,
+checked once the network is built).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from numbers import Integral
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -28,6 +36,40 @@ if TYPE_CHECKING:
 
 CASCADE_CAPABILITIES = Capabilities(modalities=("camera", "lidar"), backend="torch", gradients=True,
                                     deterministic=True)
+#: Range of the victim argument ``seed`` (also ``parity --seed``): any non-negative 64-bit signed integer.
+#: numpy's ``default_rng`` refuses negative seeds (mid-run, at the first frustum) and torch's
+#: ``manual_seed`` takes up to 2**64 - 1; int64 keeps the value exact in every JSON reader.
+SEED_RANGE = (0, 2**63 - 1)
+#: Object-point gather modes of the victim argument ``gather``.
+GATHER_MODES = ("random", "topk")
+
+
+def int_arg(key: str, value: object, lo: int, hi: int) -> int:
+    """The victim argument ``key``: an integer (not a bool) in [lo, hi]; :class:`RobustBenchError`
+    naming it otherwise."""
+    if isinstance(value, bool) or not isinstance(value, Integral) or not lo <= int(value) <= hi:
+        raise RobustBenchError(f"victim argument {key!r}: {value!r} is not an integer in [{lo}, {hi}]")
+    return int(value)
+
+
+def gather_arg(value: object) -> str:
+    """The victim argument ``gather``: one of :data:`GATHER_MODES` (:class:`RobustBenchError` otherwise)."""
+    if value not in GATHER_MODES:
+        raise RobustBenchError(f"victim argument 'gather': {value!r} is not one of {', '.join(GATHER_MODES)}")
+    return str(value)
+
+
+def _check_cascade_args(seed: object, gather: object, precision: object, num_points: object,
+                        input_size: object) -> None:
+    """Check a cascade factory's arguments before any weights load (module doc)."""
+    from robustbench3d.victims.cascade import PRECISIONS, parse_input_size, parse_num_points
+
+    int_arg("seed", seed, *SEED_RANGE)
+    gather_arg(gather)
+    if precision not in PRECISIONS:
+        raise RobustBenchError(f"victim argument 'precision': {precision!r} is not one of {', '.join(PRECISIONS)}")
+    parse_num_points(num_points)
+    parse_input_size(input_size, 1)  # the form and the bounds; the stride once the network is built
 
 
 def _cascade(name: str, fpn_config: str, weights: str | Path | None, yolo_weights: str | Path | None,
@@ -64,6 +106,7 @@ def fpointnet_v1(weights: str | Path | None = None, *, yolo_weights: str | Path 
     frustum stages of ``detect`` under bfloat16 autocast, ``"float64"`` on a float64 copy of the network
     (the 2D stage stays float32); ``num_points`` resamples frustums to N points; ``input_size`` ("WxH")
     sets the 2D stage's input (multiples of its largest stride)."""
+    _check_cascade_args(seed, gather, precision, num_points, input_size)
     return _cascade("fpointnet-v1", "full", weights, yolo_weights, fpointnet_weights, allow_untrained, seed,
                     gather).with_precision(precision).with_num_points(num_points).with_input_size(input_size)
 
@@ -78,5 +121,6 @@ def fpointnet_v1_lite(weights: str | Path | None = None, *, yolo_weights: str | 
     """The cascade with the "lite" F-PN config (N = 512, global feature 256, seg head 128-64; shipped
     2D stage mini3 at 960x288). ``precision``, ``num_points`` and ``input_size`` as for
     :func:`fpointnet_v1`."""
+    _check_cascade_args(seed, gather, precision, num_points, input_size)
     return _cascade("fpointnet-v1-lite", "lite", weights, yolo_weights, fpointnet_weights, allow_untrained,
                     seed, gather).with_precision(precision).with_num_points(num_points).with_input_size(input_size)

@@ -185,10 +185,12 @@ def evaluate_cell(inputs: CellInputs, detections: Sequence[Labels]) -> dict[str,
 
 def victim_failure(name: str, exc: Exception) -> CellFailure:
     """The :class:`CellFailure` of a victim that could not be created (with a hint on factory arguments)."""
-    from robustbench3d.registry import PluginImportError
+    from robustbench3d.registry import RegistryError, UnknownNameError
 
+    # a registry error (a plugin that fails to import, a name clash) is not about factory arguments
     hint = (f" (factory arguments are given with --victim-arg {name}:KEY=VALUE)"
-            if isinstance(exc, RobustBenchError | TypeError) and not isinstance(exc, PluginImportError) else "")
+            if isinstance(exc, RobustBenchError | TypeError) and not isinstance(exc, RegistryError | UnknownNameError)
+            else "")
     failure = CellFailure(f"victim {name!r} could not be created: {type(exc).__name__}: {exc}{hint}")
     failure.__cause__ = exc
     return failure

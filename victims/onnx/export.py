@@ -83,8 +83,12 @@ class ExportOptions:
     def __post_init__(self) -> None:
         if self.exporter not in EXPORTERS:
             raise ValueError(f"exporter must be one of {EXPORTERS}, got {self.exporter!r}")
-        if self.batch_2d < 1 or self.batch_seg < 1:
-            raise ValueError("graph batch sizes must be at least 1")
+        from robustbench3d.victims.onnx.export_command import BATCH_2D_RANGE, BATCH_SEG_RANGE, OPSET_RANGE
+
+        for what, value, (lo, hi) in (("opset", self.opset, OPSET_RANGE), ("batch_2d", self.batch_2d, BATCH_2D_RANGE),
+                                      ("batch_seg", self.batch_seg, BATCH_SEG_RANGE)):
+            if not lo <= value <= hi:
+                raise ValueError(f"{what} must be an integer in [{lo}, {hi}], got {value}")
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,26 @@ from typing import Any
 DEFAULT_OPSET = 18
 DEFAULT_BATCH_2D = 1
 DEFAULT_BATCH_SEG = 4
+#: ``--opset`` range: 18 is the lowest opset the dynamo exporter builds, 23 the highest the supported
+#: torch (2.13) exporters write; onnxruntime runs both.
+OPSET_RANGE = (18, 23)
+#: ``--batch-2d`` range: the 2D graph's fixed batch of letterboxed frame images. Partial batches are
+#: zero-padded, so a batch larger than the frames a run evaluates together only wastes time and memory.
+BATCH_2D_RANGE = (1, 64)
+#: ``--batch-seg`` range: the segmentation graph's fixed batch of frustums (zero-padded likewise; a frame
+#: has a few dozen proposals). The full config holds 1024 x 1603 float32 per-point features per frustum
+#: (6.6 MB), so 256 frustums already take 1.7 GB.
+BATCH_SEG_RANGE = (1, 256)
+
+
+def check_int_option(option: str, value: int | None, lo: int, hi: int | None = None) -> None:
+    """Refuse (:class:`RobustBenchError`, naming ``option``) an integer option outside [lo, hi] (hi None:
+    no upper bound); None (not given) passes."""
+    from robustbench3d.errors import RobustBenchError
+
+    if value is not None and not (lo <= value and (hi is None or value <= hi)):
+        bounds = f"in [{lo}, {hi}]" if hi is not None else f">= {lo}"
+        raise RobustBenchError(f"{option}: {value} is out of range (an integer {bounds})")
 
 
 def parse_kwargs(items: list[str] | None) -> dict[str, Any]:
@@ -49,12 +69,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--share", metavar="DIR",
                         help="an ONNX victim directory beside --out: stages byte-identical to one of its stage files "
                              "are not written, the manifest names that file (two cascades with one 2D stage)")
-    parser.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
+    parser.add_argument("--opset", type=int, default=DEFAULT_OPSET,
+                        help=f"ONNX opset, {OPSET_RANGE[0]} to {OPSET_RANGE[1]} (default {DEFAULT_OPSET})")
     parser.add_argument("--batch-2d", type=int, default=DEFAULT_BATCH_2D, metavar="B",
-                        help=f"fixed batch of the 2D detector graph (default {DEFAULT_BATCH_2D})")
+                        help=f"fixed batch of the 2D detector graph, {BATCH_2D_RANGE[0]} to {BATCH_2D_RANGE[1]} "
+                             f"(default {DEFAULT_BATCH_2D})")
     parser.add_argument("--batch-seg", type=int, default=DEFAULT_BATCH_SEG, metavar="B",
-                        help=f"fixed batch of the segmentation graph (default {DEFAULT_BATCH_SEG}); the T-Net and "
-                             "box graphs always take one frustum")
+                        help=f"fixed batch of the segmentation graph, {BATCH_SEG_RANGE[0]} to {BATCH_SEG_RANGE[1]} "
+                             f"(default {DEFAULT_BATCH_SEG}); the T-Net and box graphs always take one frustum")
 
 
 def reproduce_command(args: argparse.Namespace, kwargs: dict[str, Any]) -> str:
@@ -71,12 +93,34 @@ def reproduce_command(args: argparse.Namespace, kwargs: dict[str, Any]) -> str:
     return " ".join(parts)
 
 
+def check_factory_kwargs(name: str, kwargs: dict[str, Any]) -> None:
+    """Refuse, before the victim is built, a ``--victim-arg`` key its factory does not take (one line
+    listing the keys it does take; a factory with ``**kwargs`` takes any)."""
+    import inspect
+
+    from robustbench3d.errors import RobustBenchError
+    from robustbench3d.victims import VICTIMS
+
+    try:
+        params = inspect.signature(VICTIMS.get(name).factory).parameters
+    except (TypeError, ValueError):  # no readable signature: the factory call says
+        return
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return
+    takes = [k for k, p in params.items() if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+    unknown = sorted(set(kwargs) - set(takes))
+    if unknown:
+        raise RobustBenchError(f"--victim-arg {unknown[0]}=...: victim {name!r} takes no argument {unknown[0]!r} "
+                               f"(it takes {', '.join(takes) or 'none'})")
+
+
 def create_cascade(name: str, kwargs: dict[str, Any]) -> Any:
     """The registered victim ``name``, which must be an F-PN cascade (torch)."""
     from robustbench3d.errors import RobustBenchError
     from robustbench3d.victims import create_victim
     from robustbench3d.victims.cascade import FPointNetCascade
 
+    check_factory_kwargs(name, kwargs)
     victim = create_victim(name, **kwargs)
     if not isinstance(victim, FPointNetCascade):
         raise RobustBenchError(f"victim {name!r} is a {type(victim).__name__}; only F-PN cascades "
@@ -89,6 +133,9 @@ def run(args: argparse.Namespace) -> int:
     from robustbench3d.fileio import check_output_dir
     from robustbench3d.victims.onnx import require
 
+    check_int_option("--opset", args.opset, *OPSET_RANGE)
+    check_int_option("--batch-2d", args.batch_2d, *BATCH_2D_RANGE)
+    check_int_option("--batch-seg", args.batch_seg, *BATCH_SEG_RANGE)
     check_output_dir(args.out, "--out")
     require("onnx")
     if args.exporter == "dynamo":

@@ -9,8 +9,9 @@ that fit the configuration), every stage file's sha256, that onnxruntime can loa
 protobuf fails here), and that the graph's inputs and outputs are the manifest's (names, fixed
 shapes, float32).
 
-Sessions use one intra-op thread by default (``threads``), sequential execution and
-onnxruntime's deterministic compute, so identical inputs give identical outputs.
+Sessions use one intra-op thread by default (``threads``, in :data:`THREADS_RANGE`), sequential
+execution and onnxruntime's deterministic compute, so identical inputs give identical outputs. The
+victim arguments ``seed``, ``gather`` and ``threads`` are checked before anything is read.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from robustbench3d.errors import DataFormatError, RobustBenchError
+from robustbench3d.errors import DataFormatError
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
 from robustbench3d.victims.base import PROPOSAL_SOURCES, Proposals, ProposalsArg
@@ -42,6 +43,11 @@ from robustbench3d.victims.yolo.config import YoloConfig
 from robustbench3d.victims.yolo.postprocess import Detections2D, detect_images, head_masks
 
 _ORT_FLOAT = "tensor(float)"
+#: Range of the victim argument ``threads`` (onnxruntime intra-op threads per session). onnxruntime
+#: reads 0 as "its own default" (every core: results no longer reproduce run to run in timing, and a
+#: worker pool oversubscribes the machine) and refuses negatives only when a session is built, with an
+#: error that reads like a corrupt stage file; 256 is past any core count a benchmark runs on.
+THREADS_RANGE = (1, 256)
 
 
 class OnnxStage:
@@ -132,6 +138,13 @@ class OnnxCascade:
 
     def __init__(self, directory: str | Path, *, seed: int | None = None, gather: str | None = None,
                  threads: int = 1):
+        from robustbench3d.victims.zoo import SEED_RANGE, gather_arg, int_arg
+
+        if seed is not None:
+            int_arg("seed", seed, *SEED_RANGE)
+        if gather is not None:
+            gather_arg(gather)
+        threads = int_arg("threads", threads, *THREADS_RANGE)
         self.directory = Path(directory)
         self.manifest: Manifest = read_manifest(self.directory)
         verify_files(self.directory, self.manifest)
@@ -146,8 +159,6 @@ class OnnxCascade:
         if seed is not None:
             overrides["seed"] = int(seed)
         if gather is not None:
-            if gather not in ("random", "topk"):
-                raise RobustBenchError(f"gather must be 'random' or 'topk', got {gather!r}")
             overrides["gather"] = gather
         self.settings = CascadeSettings.from_dict({**settings.to_dict(), **overrides})
         if "Car" not in self.yolo_cfg.class_names:
