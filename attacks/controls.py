@@ -2,7 +2,7 @@
 
 ``none`` places no object: frames reach the victim unchanged (the clean AP). ``benign-sphere``
 (the undeformed grey sphere) and ``random-shape`` (a seeded random smooth deformation with random
-colours, param ``seed``) put a physical but unoptimised object on every target car
+colours, param ``seed`` in [0, 2**32 - 1]) put a physical but unoptimised object on every target car
 (:class:`~robustbench3d.attacks.roof.RoofObjectAttack`): how much AP a mere object costs.
 ``object-file`` (param ``path``) applies any object file (:mod:`robustbench3d.attacks.objectfile`);
 :func:`resolve_attack_references` lets ``run --attacks`` name such a file directly. Every roof-object
@@ -22,7 +22,7 @@ import numpy as np
 from robustbench3d.attacks import ATTACKS, register_attack
 from robustbench3d.attacks.base import Attack
 from robustbench3d.attacks.roof import roof_settings, settings_parameters
-from robustbench3d.attacks.spec import AttackRequirements, AttackSpec, AttackSpecError
+from robustbench3d.attacks.spec import MAX_SEED, AttackRequirements, AttackSpec, AttackSpecError
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
@@ -61,6 +61,8 @@ def random_shape_attack(seed: int = 0, **settings: Any) -> RoofObjectAttack:
     from robustbench3d.attacks.object import random_shape
     from robustbench3d.attacks.roof import RoofObjectAttack
 
+    if not isinstance(seed, bool) and isinstance(seed, int) and seed > MAX_SEED:  # the rest: random_shape's check
+        raise AttackSpecError(f"field 'seed': expected an integer in [0, 2**32 - 1], got {seed!r}")
     try:
         obj = random_shape(seed)
     except ValueError as exc:

@@ -7,7 +7,8 @@ z along its width. The template is the level-2 icosphere of radius :data:`RADIUS
 vertex, with a per-vertex RGB colour in [0, 1].
 
 Box constraint: every vertex stays inside the axis-aligned box ``|v| <= bounds`` (default the
-initial sphere's bounding box, +-0.4 m). Two implementations:
+initial sphere's bounding box, +-0.4 m; each half extent in [1 mm, 1 m], :data:`MAX_BOUND_M`). Two
+implementations:
 
 * tanh reparametrisation (:func:`tanh_vertices`, :meth:`RoofObject.torch_vertices`), used by the
   optimisation and by :func:`random_shape`: ``v = b * tanh(atanh((1 - eps) * v0 / b) + delta)``,
@@ -39,6 +40,11 @@ N_VERTICES = 162
 N_FACES = 320
 #: Half extents (m) of the default box: the bounding box of the initial sphere.
 BOUNDS = (RADIUS, RADIUS, RADIUS)
+#: The range of each half extent of a box (m). At most 1 m: the object fits in a 2 m cube, about the size
+#: of a KITTI car's roof (a car is ~1.6 m wide and its roof ~1.3 m by ~1.8 m), so anything larger is no
+#: longer a roof object (and a 1e6 m box takes minutes and gigabytes to render, a 3e38 m one nothing at
+#: all). At least 1 mm: a smaller box holds no object the LiDAR (2 cm range noise) or a pixel can resolve.
+MIN_BOUND_M, MAX_BOUND_M = 1e-3, 1.0
 #: The (1 - eps) shrink inside atanh, so that template vertices on the box faces map to finite values.
 TANH_EPS = 1e-3
 #: The benign sphere's colour (8-bit mid grey).
@@ -79,10 +85,15 @@ def template_faces() -> np.ndarray:
 
 
 def check_bounds(bounds: object) -> np.ndarray:
-    """``bounds`` as a (3,) float64 array of finite positive half extents; ValueError otherwise."""
-    b = np.asarray(bounds, dtype=np.float64)
-    if b.shape != (3,) or not np.all(np.isfinite(b)) or np.any(b <= 0):
-        raise ValueError(f"field 'bounds': expected three finite half extents > 0 (m), got {bounds!r}")
+    """``bounds`` as a (3,) float64 array of half extents, each in [:data:`MIN_BOUND_M`, :data:`MAX_BOUND_M`]
+    m; ValueError ``field 'bounds': ...`` otherwise."""
+    try:
+        b = np.asarray(bounds, dtype=np.float64)
+    except (TypeError, ValueError):
+        b = np.full(1, np.nan)
+    if b.shape != (3,) or not np.all((b >= MIN_BOUND_M) & (b <= MAX_BOUND_M)):
+        raise ValueError(f"field 'bounds': expected three half extents in [{MIN_BOUND_M:g}, {MAX_BOUND_M:g}] m "
+                         f"(the object must fit in a {2 * MAX_BOUND_M:g} m cube on a car roof), got {bounds!r}")
     return b
 
 

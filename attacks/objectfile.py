@@ -7,7 +7,26 @@ order is the template's): float32 vertex positions in the object frame (m), ucha
 
 ``NAME.json`` (the sidecar, same stem) records the format (:data:`FORMAT`), the PLY's sha256, the
 template (icosphere level and radius), the object frame, the placement rule, the box bounds and how
-the object was made (``made_by``: attack, seed, config).
+the object was made (``made_by``: attack, seed, config). What reading accepts, field by field (anything
+else is refused with one line naming the sidecar and the field; other keys are ignored):
+
+=================  ==========================================================================================
+``format``         exactly :data:`FORMAT`
+``ply``            the PLY's file name when written: a string ending in ``.ply`` (a renamed pair keeps it)
+``ply_sha256``     64 lower-case hex digits, equal to the PLY's sha256
+``template``       ``{"kind": "icosphere", "level": 2, "radius": 0.4, "vertices": 162, "faces": 320}``
+                   (``kind``, ``vertices`` and ``faces`` may be absent)
+``frame``          optional; a string (the description of the object frame)
+``placement``      ``{"rule": "roof-centre", ...}``; its ``description``, if any, a string
+``bounds``         three numbers, each half extent in [0.001, 1] m (:data:`~robustbench3d.attacks.object.MAX_BOUND_M`:
+                   the object fits in a 2 m cube on a car roof)
+``box_constraint`` optional; a string
+``made_by``        optional; a JSON object
+=================  ==========================================================================================
+
+The PLY itself: at most :data:`MAX_FILE_BYTES` (so is the sidecar), exactly 162 finite vertices inside
+the bounds (within :data:`BOUNDS_TOLERANCE_M`), the template's 320 faces in template order, colours in
+[0, 1].
 
 :class:`~robustbench3d.attacks.object.RoofObject` keeps its arrays at exactly this precision, so
 ``load_object(save_object(path, obj))`` equals ``obj`` bit for bit. Both files are written
@@ -39,12 +58,22 @@ from robustbench3d.attacks.object import (
 )
 from robustbench3d.attacks.placement import PLACEMENT_RULE
 from robustbench3d.errors import DataFormatError
-from robustbench3d.fileio import atomic_write_bytes, atomic_write_text, read_data_bytes, read_data_text
+from robustbench3d.fileio import (
+    atomic_write_bytes,
+    atomic_write_text,
+    data_file_errors,
+    read_data_bytes,
+    read_data_text,
+)
 
 FORMAT = "robustbench3d.roof_object/1"
 #: Vertices may leave the box by this much in a file (m) and are clamped onto it: float32 rounds a
 #: coordinate of exactly 0.4 m (a sphere written by another tool) to 0.4 + 6e-9.
 BOUNDS_TOLERANCE_M = 1e-6
+#: The largest PLY or sidecar accepted (bytes): the binary PLY of a 162-vertex object is 7 KB, an ASCII one
+#: with float colours under 40 KB, a sidecar with its training record a few KB.
+MAX_FILE_BYTES = 1 << 20
+_TEMPLATE = {"kind": "icosphere", "level": LEVEL, "radius": RADIUS, "vertices": N_VERTICES, "faces": N_FACES}
 OBJECT_FRAME = ("object frame: centre at the origin; x along the car's length (heading), y down, z along its "
                 "width (the KITTI box's local frame); metres")
 PLACEMENT_DESCRIPTION = ("resting on the roof centre (label location - (0, h, 0), rect frame), yawed with the "
@@ -137,35 +166,67 @@ def save_object(path: str | Path, obj: RoofObject, made_by: Mapping[str, Any] | 
 
 
 def _read_sidecar(ply_path: Path) -> dict[str, Any]:
+    """The checked sidecar of ``ply_path`` (the module doc's table); ``bounds`` as a list of floats."""
     side = sidecar_path(ply_path)
-    text = read_data_text(side, missing=f"sidecar of {ply_path.name} not found; an object PLY needs its JSON "
-                                        "sidecar NAME.json (written by save_object)")
+    _check_size(side, missing=f"sidecar of {ply_path.name} not found; an object PLY needs its JSON sidecar "
+                              "NAME.json (written by save_object)")
+    text = read_data_text(side)
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise DataFormatError(side, f"not valid JSON ({exc.msg})", line=exc.lineno) from None
     if not isinstance(data, dict):
         raise DataFormatError(side, "expected a JSON object")
-    if data.get("format") != FORMAT:
-        raise DataFormatError(side, f"expected {FORMAT!r}, got {data.get('format')!r}", field="format")
-    sha = data.get("ply_sha256")
-    if not isinstance(sha, str) or len(sha) != 64:
-        raise DataFormatError(side, "expected the PLY's sha256 (64 hex digits)", field="ply_sha256")
-    template = data.get("template")
-    if not isinstance(template, dict) or template.get("level") != LEVEL or template.get("radius") != RADIUS:
-        raise DataFormatError(side, f"expected {{'level': {LEVEL}, 'radius': {RADIUS}, ...}} (the icosphere "
-                                    f"template), got {template!r}", field="template")
-    placement = data.get("placement")
-    if not isinstance(placement, dict) or placement.get("rule") != PLACEMENT_RULE:
-        raise DataFormatError(side, f"expected rule {PLACEMENT_RULE!r}, got {placement!r}", field="placement")
-    try:
-        data["bounds"] = check_bounds(data.get("bounds")).tolist()
-    except (ValueError, TypeError):
-        raise DataFormatError(side, f"expected three finite half extents > 0 (m), got {data.get('bounds')!r}",
-                              field="bounds") from None
-    if not isinstance(data.get("made_by", {}), dict):
-        raise DataFormatError(side, "expected a JSON object", field="made_by")
+    problems = _sidecar_problems(data)
+    if problems:
+        name, problem = problems[0]
+        raise DataFormatError(side, problem, field=name)
+    data["bounds"] = [float(b) for b in data["bounds"]]
     return data
+
+
+def _sidecar_problems(data: dict[str, Any]) -> list[tuple[str, str]]:
+    """(field, problem) of every sidecar field outside its range (the module doc's table), in file order."""
+    problems: list[tuple[str, str]] = []
+    if data.get("format") != FORMAT:
+        problems.append(("format", f"expected {FORMAT!r}, got {data.get('format')!r}"))
+    ply = data.get("ply")
+    if not isinstance(ply, str) or not ply.lower().endswith(".ply"):
+        problems.append(("ply", f"expected the PLY's file name (a string ending in .ply), got {ply!r}"))
+    sha = data.get("ply_sha256")
+    if not isinstance(sha, str) or len(sha) != 64 or any(c not in "0123456789abcdef" for c in sha):
+        problems.append(("ply_sha256", "expected the PLY's sha256 (64 lower-case hex digits)"))
+    template = data.get("template")
+    if (not isinstance(template, dict) or {"level", "radius"} - set(template)
+            or any(template[k] != v or isinstance(template[k], bool) for k, v in _TEMPLATE.items() if k in template)):
+        problems.append(("template", f"expected {_TEMPLATE} (the icosphere template), got {template!r}"))
+    placement = data.get("placement")
+    if (not isinstance(placement, dict) or placement.get("rule") != PLACEMENT_RULE
+            or not isinstance(placement.get("description", ""), str)):
+        problems.append(("placement", f"expected {{'rule': {PLACEMENT_RULE!r}, 'description': text}}, got "
+                                      f"{placement!r}"))
+    bounds = data.get("bounds")
+    try:
+        if not isinstance(bounds, list) or any(isinstance(b, bool) or not isinstance(b, (int, float)) for b in bounds):
+            raise ValueError(f"field 'bounds': expected a list of three numbers, got {bounds!r}")
+        check_bounds(bounds)
+    except ValueError as exc:
+        problems.append(("bounds", str(exc).removeprefix("field 'bounds': ")))
+    for name in ("frame", "box_constraint"):
+        if not isinstance(data.get(name, ""), str):
+            problems.append((name, f"expected a string, got {data[name]!r}"))
+    if not isinstance(data.get("made_by", {}), dict):
+        problems.append(("made_by", "expected a JSON object"))
+    return problems
+
+
+def _check_size(path: Path, missing: str) -> None:
+    """Refuse a file larger than :data:`MAX_FILE_BYTES` before reading it (a missing one: ``missing``)."""
+    with data_file_errors(path, missing):
+        size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise DataFormatError(path, f"{size} bytes; an object file or sidecar is at most {MAX_FILE_BYTES} bytes "
+                                    f"(a 162-vertex object is about 7 KB)")
 
 
 def _parse_ply(path: Path, raw: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -206,6 +267,7 @@ def _raw_colors(mesh: Any) -> np.ndarray | None:
 def read_object_file(path: str | Path) -> ObjectFile:
     """Load and check an object file and its sidecar (:class:`DataFormatError` naming the file)."""
     path = Path(path)
+    _check_size(path, missing="object file not found")
     raw = read_data_bytes(path, missing="object file not found")
     sidecar = _read_sidecar(path)
     sha = hashlib.sha256(raw).hexdigest()

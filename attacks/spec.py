@@ -20,6 +20,31 @@ if TYPE_CHECKING:
     from robustbench3d.attacks.base import Attack
 
 
+#: The largest seed the attack commands accept (``show``/``attack apply`` draw a frame's attack from ``(seed, frame
+#: id)`` as ``run`` does, ``attack train`` its batches and EOT): 32-bit, the range of ``run --seed``
+#: (``robustbench3d.run_cli.SEED_RANGE``: the seeds numpy's legacy API, torch and most tools take).
+MAX_SEED = 2**32 - 1
+#: The most frames ``--max-frames`` may ask for: KITTI frame ids have six digits, so no split holds more (the
+#: range of ``run --max-frames``).
+MAX_FRAMES = 1_000_000
+
+
+def check_seed(seed: object, option: str = "--seed") -> int:
+    """``seed`` if it is an integer in [0, :data:`MAX_SEED`]; else :class:`RobustBenchError` naming ``option``."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise RobustBenchError(f"{option} {seed}: expected an integer in [0, 2**32 - 1] (as run --seed)")
+    return seed
+
+
+def check_max_frames(max_frames: object, option: str = "--max-frames") -> None:
+    """Refuse a ``--max-frames`` that is not None nor an integer in [1, :data:`MAX_FRAMES`]."""
+    if max_frames is None:
+        return
+    if isinstance(max_frames, bool) or not isinstance(max_frames, int) or not 1 <= max_frames <= MAX_FRAMES:
+        raise RobustBenchError(f"{option} {max_frames}: expected an integer in [1, {MAX_FRAMES}] "
+                               "(or no --max-frames: every frame)")
+
+
 class AttackSpecError(RobustBenchError):
     """An attack factory refused its parameters or built something that is not an Attack."""
 

@@ -9,6 +9,8 @@ from typing import Any
 
 from robustbench3d.attacks.base import target_cars
 from robustbench3d.attacks.losses import IMAGE_LOSSES, IOU_FLOOR
+from robustbench3d.attacks.roof import SETTING_MAX
+from robustbench3d.attacks.spec import MAX_SEED
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.kitti.labels import Labels
 
@@ -36,6 +38,25 @@ DROP_WINDOW = 50
 CLEAN_SAMPLE = 64
 
 
+#: The range of each numeric field (inclusive; a learning rate must also be > 0). steps and checkpoint_every
+#: up to a million (the shipped objects took 75 to 600 steps; a million is weeks of CPU time); batch_cars up to
+#: 1024 (the shipped objects used 4 and 8; a step holds one frame's graph at a time, but a batch of 1024 cars
+#: takes minutes per step, and the embedded train split has ~11000 cars, so larger batches are epochs);
+#: zero_grad_patience up to 10000 steps. lr_shape and lr_color in (0, 10]: Adam steps in the tanh and logit
+#: parametrisations, where 10 already carries a vertex across its box or a colour from black to white in one
+#: step (the shipped objects used 0.02 and 0.2). The loss weights in [0, 1000]: relative weights, 1000 times
+#: the default of 1 makes the other terms noise (set a weight to 0 to drop its term instead). iou_floor is an
+#: IoU, in [0, 1]. supersample as the attack's (attacks.roof.SETTING_MAX, 1 to 16). seed in [0, 2**32 - 1]
+#: (attacks.spec.MAX_SEED, as run --seed).
+INT_RANGES = {"steps": (1, 1_000_000), "batch_cars": (1, 1024), "checkpoint_every": (1, 1_000_000),
+              "zero_grad_patience": (1, 10_000), "supersample": (1, SETTING_MAX["supersample"]),
+              "seed": (0, MAX_SEED)}
+FLOAT_RANGES = {"lr_shape": (0.0, 10.0), "lr_color": (0.0, 10.0), "lambda_lap": (0.0, 1000.0),
+                "lambda_img": (0.0, 1000.0), "lambda_box": (0.0, 1000.0), "iou_floor": (0.0, 1.0)}
+#: Float fields whose lower end is excluded.
+_POSITIVE = ("lr_shape", "lr_color")
+
+
 class TrainingError(RobustBenchError):
     """The optimisation cannot start or had to stop (the message says why)."""
 
@@ -48,6 +69,29 @@ def _field(name: str) -> str:
     """``field 'name'`` plus the command-line option that sets it."""
     flag = "" if name in _NO_FLAG or name == "mode" else f" (--{name.replace('_', '-')})"
     return f"field '{name}'{flag}"
+
+
+def _check_int(name: str, value: object) -> None:
+    """Refuse an integer field outside :data:`INT_RANGES` (one line naming the field and the range)."""
+    low, high = INT_RANGES[name]
+    span = f"(range [{low}, {high}])"
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise TrainingError(f"{_field(name)}: must be an integer >= {low}, got {value!r} {span}")
+    if value > high:
+        raise TrainingError(f"{_field(name)}: must be at most {high}, got {value!r} {span}")
+
+
+def _check_float(name: str, value: object) -> None:
+    """Refuse a number field outside :data:`FLOAT_RANGES` (one line naming the field and the range)."""
+    low, high = FLOAT_RANGES[name]
+    positive = name in _POSITIVE
+    span = f"(range {'(' if positive else '['}{low:g}, {high:g}])"
+    number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not number or value < low or (positive and value == low):
+        raise TrainingError(f"{_field(name)}: must be a finite number {'>' if positive else '>='} {low:g}, "
+                            f"got {value!r} {span}")
+    if value > high:
+        raise TrainingError(f"{_field(name)}: must be at most {high:g}, got {value!r} {span}")
 
 
 @dataclass(frozen=True)
@@ -94,18 +138,10 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise TrainingError(f"{_field('mode')}: expected one of {', '.join(MODES)}, got {self.mode!r}")
-        for name in ("steps", "batch_cars", "checkpoint_every", "zero_grad_patience", "supersample"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise TrainingError(f"{_field(name)}: must be an integer >= 1, got {value!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise TrainingError(f"{_field('seed')}: must be an integer >= 0, got {self.seed!r}")
-        for name, low in (("lr_shape", 0.0), ("lr_color", 0.0), ("lambda_lap", None), ("lambda_img", None),
-                          ("iou_floor", None)):
-            value = float(getattr(self, name))
-            if not math.isfinite(value) or (value <= 0 if low is not None else value < 0):
-                raise TrainingError(f"{_field(name)}: must be a finite number {'>' if low is not None else '>='} 0, "
-                                    f"got {getattr(self, name)!r}")
+        for name in INT_RANGES:
+            _check_int(name, getattr(self, name))
+        for name in FLOAT_RANGES:
+            _check_float(name, getattr(self, name))
         bad = sorted(set(self.eot) - set(EOT_CHOICES))
         if bad:
             raise TrainingError(f"{_field('eot')}: unknown {', '.join(bad)} (choose from {', '.join(EOT_CHOICES)})")

@@ -14,8 +14,10 @@
 Each frame is attacked exactly as in a benchmark cell (the same generator from (seed, frame id), the same
 object placements, exact occlusion on a generated dataset); a frame without target cars is copied byte for
 byte. Every file is written atomically and the ``.done`` marker last, so a rerun with the same arguments
-resumes: complete frames are kept, any other frame is rewritten. A rerun with another attack, seed or
-dataset into the same directory is refused.
+resumes: complete frames are kept (the command says how many), any other frame is rewritten. Nothing else
+is ever replaced: a rerun with another attack, seed or dataset into the same directory, a directory whose
+manifest is not an ``attack apply`` manifest and a non-empty directory without one are refused, before any
+frame is attacked. ``--seed`` is in [0, 2**32 - 1] and ``--max-frames`` in [1, 1000000], checked before any work.
 
 Standard library only at module level.
 """
@@ -31,6 +33,7 @@ MANIFEST = "attack_manifest.json"
 DONE = ".done"
 OBJECTS = "objects"
 COPIED = ("calib", "label_2")
+TOOL = "robustbench3d attack apply"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,8 +43,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--split", default="val", help="split name, ImageSets/<split>.txt (default: val)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory (resumes an interrupted run)")
     parser.add_argument("--seed", type=int, default=0, metavar="S",
-                        help="run seed: the per-frame attack randomness, as in `run --seed` (default 0)")
-    parser.add_argument("--max-frames", type=int, metavar="N", help="only the first N frames of the split")
+                        help="run seed: the per-frame attack randomness, as in `run --seed`, in [0, 2**32 - 1] "
+                             "(default 0)")
+    parser.add_argument("--max-frames", type=int, metavar="N",
+                        help="only the first N frames of the split (1 to 1000000)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
@@ -83,7 +88,7 @@ def _manifest(name: str, attack: Any, seed: int, identity: dict[str, Any], frame
     from robustbench3d import __version__
     from robustbench3d.runner.cell import ATTACK_STREAM
 
-    return {"tool": "robustbench3d attack apply", "package_version": __version__, "attack": name,
+    return {"tool": TOOL, "package_version": __version__, "attack": name,
             "object": attack.describe(), "object_sha256": getattr(attack, "sha256", None), "seed": seed,
             "attack_rng": f"numpy.random.default_rng([seed, int(frame_id), {ATTACK_STREAM:#x}])",
             "exact_occlusion": bool(getattr(attack, "exact_occlusion", False)),
@@ -91,20 +96,35 @@ def _manifest(name: str, attack: Any, seed: int, identity: dict[str, Any], frame
             "frames": frames}
 
 
-def _check_manifest(out: Path, want: dict[str, Any]) -> None:
-    from robustbench3d.errors import RobustBenchError
-    from robustbench3d.fileio import atomic_write_text
+def _existing_manifest(out: Path) -> dict[str, Any] | None:
+    """The ``attack apply`` manifest of an existing ``--out`` (None: ``out`` is missing or empty); refuses a
+    non-empty directory without one, and a manifest another tool wrote (the written-once rule, module doc)."""
+    from robustbench3d.errors import DataFormatError, RobustBenchError
     from robustbench3d.results import read_json
 
     path = out / MANIFEST
-    if path.is_file():
-        have = read_json(path)
-        for key in ("attack", "object", "seed", "dataset"):  # frames may differ: done frames stay valid
-            if have.get(key) != want[key]:
-                raise RobustBenchError(f"{path}: field '{key}': this directory holds another attacked dataset "
-                                       f"({key} differs); choose another --out")
-    elif out.is_dir() and any(out.iterdir()):
-        raise RobustBenchError(f"--out {out}: not empty and not an attacked dataset (no {MANIFEST})")
+    if not path.exists():
+        if out.is_dir() and any(out.iterdir()):
+            raise RobustBenchError(f"--out {out}: not empty and not an attacked dataset (no {MANIFEST}); "
+                                   "choose another --out (nothing was written)")
+        return None
+    have = read_json(path)
+    if not isinstance(have, dict) or have.get("tool") != TOOL:
+        raise DataFormatError(path, f"not a manifest of `attack apply` (expected a JSON object with tool {TOOL!r}); "
+                                    "choose another --out (nothing was written)", field="tool")
+    return have
+
+
+def _check_manifest(out: Path, want: dict[str, Any]) -> None:
+    from robustbench3d.errors import RobustBenchError
+    from robustbench3d.fileio import atomic_write_text
+
+    path = out / MANIFEST
+    have = _existing_manifest(out)
+    for key in ("attack", "object", "seed", "dataset") if have is not None else ():  # frames may differ
+        if have.get(key) != want[key]:
+            raise RobustBenchError(f"{path}: field '{key}': this directory holds another attacked dataset "
+                                   f"({key} differs); choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, json.dumps(want, indent=2, default=str) + "\n")
 
@@ -158,17 +178,18 @@ def apply_dataset(reference: str, data: str | Path | None, split: str, out: str 
 
     from tqdm import tqdm
 
+    from robustbench3d.attacks.spec import check_max_frames, check_seed
     from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
-    from robustbench3d.errors import RobustBenchError
-    from robustbench3d.fileio import atomic_write_text
+    from robustbench3d.fileio import atomic_write_text, check_output_dir
 
-    if seed < 0:
-        raise RobustBenchError(f"--seed must be non-negative, got {seed}")
+    out = check_output_dir(out, "--out")
+    check_seed(seed)
+    check_max_frames(max_frames)
+    _existing_manifest(out)  # refuses another's directory before the dataset is resolved (or generated)
     name, attack = resolve_attack(reference)
     dataset = resolve_dataset(data, split, progress=progress)
     gt = load_ground_truth(dataset, max_frames)
     kitti = dataset.kitti()
-    out = Path(out)
     attack.bind_dataset(kitti)
     _check_manifest(out, _manifest(name, attack, seed, dataset_identity(dataset, gt), gt.frame_ids))
     counts = {"written": 0, "kept": 0, "objects": 0}
@@ -187,9 +208,7 @@ def apply_dataset(reference: str, data: str | Path | None, split: str, out: str 
 
 
 def run(args: argparse.Namespace) -> int:
-    from robustbench3d.fileio import check_output_dir
-
-    out = check_output_dir(args.out, "--out")
+    out = Path(args.out)
     counts = apply_dataset(args.object, args.data, args.split, out, args.seed, args.max_frames,
                            progress=not args.no_progress)
     print(f"{out}: {counts['written']} frame(s) attacked ({counts['objects']} objects placed), "

@@ -21,13 +21,20 @@ on its own segment (or the reverse): such points are counted as ``edge`` cases (
 again with the two rays 0.09 deg to either side in azimuth, and holds if either agrees with the renderer)
 and reported, and only the points that fail this too count as violations.
 
+Before any frame is checked, every complete frame's files are read and checked (a damaged attacked dataset
+is one line naming the file and field, exit 2, not a violation): the manifest (a JSON object written by
+``attack apply``, its dataset's ``root`` and ``split``), each ``.done`` marker (a JSON object: ``frame`` the
+frame id, ``objects`` an integer >= 0, ``vertices_per_object`` and ``faces_per_object`` integers >= 1 when
+there are objects, else 0) and each objects PLY (a readable triangle mesh of exactly ``objects`` x those
+vertices and faces, finite positions). ``--max-frames`` is an integer in [1, 1000000].
+
     robustbench3d attack check ATTACKED_DIR [--clean DIR] [--max-frames N]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -146,11 +153,72 @@ def pixel_mask(vertices_velo: Any, blocks: int, calib: Any, size: tuple[int, int
     return mask
 
 
+def marker_path(attacked: Path, frame_id: str) -> Path:
+    return attacked / "training" / ".done" / f"{frame_id}.json"
+
+
+def read_marker(attacked: Path, frame_id: str) -> dict[str, int]:
+    """The checked ``.done`` marker of ``frame_id`` (module doc): objects, vertices and faces per object."""
+    from robustbench3d.errors import DataFormatError
+    from robustbench3d.results import read_json
+
+    path = marker_path(attacked, frame_id)
+    data = read_json(path)
+    if not isinstance(data, dict):
+        raise DataFormatError(path, "expected a JSON object (the frame's completion marker)")
+    if data.get("frame") != frame_id:
+        raise DataFormatError(path, f"expected the frame id {frame_id!r}, got {data.get('frame')!r}", field="frame")
+    out = {}
+    for key in ("objects", "vertices_per_object", "faces_per_object"):
+        value = data.get(key)
+        low = 0 if key == "objects" or not out["objects"] else 1
+        high = None if key == "objects" or out["objects"] else 0
+        if isinstance(value, bool) or not isinstance(value, int) or value < low or (high is not None and value > high):
+            want = f"an integer >= {low}" if high is None else "0 (no objects)"
+            raise DataFormatError(path, f"expected {want}, got {value!r}", field=key)
+        out[key] = value
+    return out
+
+
+def read_objects(attacked: Path, frame_id: str, marker: dict[str, int]) -> Any:
+    """The checked objects PLY of ``frame_id`` (module doc) as a trimesh mesh; ``marker``: its
+    :func:`read_marker`."""
+    import numpy as np
+    import trimesh
+
+    from robustbench3d.errors import DataFormatError
+    from robustbench3d.fileio import read_data_bytes
+
+    path = attacked / "training" / "objects" / f"{frame_id}.ply"
+    raw = read_data_bytes(path, missing=f"objects PLY not found (its marker {marker_path(attacked, frame_id).name} "
+                                        f"records {marker['objects']} objects)")
+    try:
+        mesh = trimesh.load(io.BytesIO(raw), file_type="ply", process=False)
+    except Exception as exc:  # trimesh raises many types on bad bytes
+        raise DataFormatError(path, f"not a readable PLY mesh ({type(exc).__name__}: {exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise DataFormatError(path, f"expected one triangle mesh, got a {type(mesh).__name__}")
+    n = marker["objects"]
+    for what, have, per in (("vertices", len(mesh.vertices), marker["vertices_per_object"]),
+                            ("faces", len(mesh.faces), marker["faces_per_object"])):
+        if have != n * per:
+            raise DataFormatError(path, f"{have} {what}; its marker records {n} objects of {per}", field=what)
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise DataFormatError(path, "non-finite vertex position (NaN or inf)", field="vertices")
+    return mesh
+
+
+def _same_bytes(a_ds: Any, c_ds: Any, kind: str, frame_id: str) -> bool:
+    """Whether the attacked and the clean file of ``kind`` are byte-identical (missing: DataFormatError)."""
+    from robustbench3d.fileio import read_data_bytes
+
+    return read_data_bytes(a_ds.path(kind, frame_id)) == read_data_bytes(c_ds.path(kind, frame_id))
+
+
 def check_frame(attacked: Path, clean: Path, frame_id: str, report: CheckReport, tol_on_mesh_m: float = 1e-4,
                 tol_depth_m: float = 1e-4) -> None:
     """Check one frame (module doc), adding its counts and violations to ``report``."""
     import numpy as np
-    import trimesh
 
     from robustbench3d.kitti import KittiDataset
     from robustbench3d.kitti.velodyne import scan_rows
@@ -160,20 +228,17 @@ def check_frame(attacked: Path, clean: Path, frame_id: str, report: CheckReport,
     bad = report.violations.append
     report.frames += 1
     for kind in ("calib", "labels"):
-        if a_ds.path(kind, frame_id).read_bytes() != c_ds.path(kind, frame_id).read_bytes():
+        if not _same_bytes(a_ds, c_ds, kind, frame_id):
             bad(f"{frame_id}: {kind} file differs from the clean one")
-    marker = json.loads((attacked / "training" / ".done" / f"{frame_id}.json").read_text(encoding="utf-8"))
-    n_obj = int(marker["objects"])
+    marker = read_marker(attacked, frame_id)
+    n_obj = marker["objects"]
     if n_obj == 0:
         for kind in ("scan", "image"):
-            if a_ds.path(kind, frame_id).read_bytes() != c_ds.path(kind, frame_id).read_bytes():
+            if not _same_bytes(a_ds, c_ds, kind, frame_id):
                 bad(f"{frame_id}: no object placed but the {kind} file changed")
         return
     report.frames_with_objects += 1
-    mesh = trimesh.load(attacked / "training" / "objects" / f"{frame_id}.ply", file_type="ply", process=False)
-    if len(mesh.vertices) != n_obj * int(marker["vertices_per_object"]):
-        bad(f"{frame_id}: the objects PLY has {len(mesh.vertices)} vertices for {n_obj} objects")
-        return
+    mesh = read_objects(attacked, frame_id, marker)
     c_scan, a_scan = c_ds.scan(frame_id), a_ds.scan(frame_id)
     c_rows, a_rows = scan_rows(c_scan), scan_rows(a_scan)
     kept = np.isin(c_rows, a_rows)
@@ -211,32 +276,60 @@ def check_frame(attacked: Path, clean: Path, frame_id: str, report: CheckReport,
 def check_attacked_dataset(attacked: str | Path, clean: str | Path | None = None, split: str | None = None,
                            max_frames: int | None = None) -> CheckReport:
     """Check every complete frame of the attacked dataset (module doc)."""
-    from robustbench3d.errors import DataFormatError
+    from robustbench3d.attacks.spec import check_max_frames
+    from robustbench3d.errors import DataFormatError, RobustBenchError
     from robustbench3d.kitti import read_split
-    from robustbench3d.results import read_json
 
+    check_max_frames(max_frames)
     attacked = Path(attacked)
-    manifest = read_json(attacked / "attack_manifest.json")
-    clean_root = Path(clean) if clean is not None else Path(manifest["dataset"]["root"])
-    split_name = split or manifest["dataset"]["split"]
-    split_file = attacked / "ImageSets" / f"{split_name}.txt"
+    root, split_name = _manifest_dataset(attacked)
+    clean_root = Path(clean) if clean is not None else root
+    if not (clean_root / "training").is_dir():
+        raise RobustBenchError(f"clean dataset {clean_root}: no training/ directory (pass the clean dataset's "
+                               "root with --clean)")
+    split_file = attacked / "ImageSets" / f"{split or split_name}.txt"
     if not split_file.is_file():
         raise DataFormatError(split_file, "split file not found")
     ids = read_split(split_file)[:max_frames]
+    complete = [fid for fid in ids if marker_path(attacked, fid).is_file()]
+    for fid in complete:  # up front: a damaged file stops the check before any frame is checked
+        marker = read_marker(attacked, fid)
+        if marker["objects"]:
+            read_objects(attacked, fid, marker)
     report = CheckReport()
     for fid in ids:
-        if not (attacked / "training" / ".done" / f"{fid}.json").is_file():
+        if fid not in complete:
             report.violations.append(f"{fid}: frame incomplete (no .done marker)")
             continue
         check_frame(attacked, clean_root, fid, report)
     return report
 
 
+def _manifest_dataset(attacked: Path) -> tuple[Path, str]:
+    """(clean dataset root, split) recorded in the attacked dataset's manifest (checked: module doc)."""
+    from robustbench3d.errors import DataFormatError
+    from robustbench3d.results import read_json
+
+    path = attacked / "attack_manifest.json"
+    manifest = read_json(path)
+    if not isinstance(manifest, dict):
+        raise DataFormatError(path, "expected a JSON object (the manifest `attack apply` writes)")
+    dataset = manifest.get("dataset")
+    if not isinstance(dataset, dict):
+        raise DataFormatError(path, f"expected a JSON object with root and split, got {dataset!r}", field="dataset")
+    for key in ("root", "split"):
+        if not isinstance(dataset.get(key), str) or not dataset[key]:
+            raise DataFormatError(path, f"expected a non-empty string, got {dataset.get(key)!r}",
+                                  field=f"dataset.{key}")
+    return Path(dataset["root"]), dataset["split"]
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("attacked", metavar="ATTACKED_DIR", help="output directory of `attack apply`")
     parser.add_argument("--clean", metavar="DIR", help="the clean dataset (default: the manifest's dataset root)")
     parser.add_argument("--split", help="split to check (default: the manifest's)")
-    parser.add_argument("--max-frames", type=int, metavar="N", help="only the first N frames of the split")
+    parser.add_argument("--max-frames", type=int, metavar="N",
+                        help="only the first N frames of the split (1 to 1000000)")
 
 
 def run(args: argparse.Namespace) -> int:

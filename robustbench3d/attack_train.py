@@ -2,11 +2,14 @@
 
     robustbench3d attack train adv-shape|adv-texture|adv-object --victim V --out OBJ.ply
         [--data DIR] [--split train] [--steps N] [--batch-cars B] [--seed S] [--eot jitter,range-noise,dropout]
-        [--resume]
+        [--resume] [--force]
 
 Writes the object file ``OBJ.ply`` and its sidecar (losses and weights, victim, training data, config,
 seed, steps, wall time); ``OBJ.train.pt`` beside it is the checkpoint ``--resume`` continues from. See
-:mod:`robustbench3d.attacks.train` for the optimisation.
+:mod:`robustbench3d.attacks.train` for the optimisation. None of the three files is replaced without
+``--force``, except by ``--resume`` continuing the training that wrote them
+(:mod:`robustbench3d.attacks.train_run`). Numeric options have ranges
+(:data:`robustbench3d.attacks.train_config.INT_RANGES`, ``FLOAT_RANGES``), checked before any work.
 
 Standard library only at module level.
 """
@@ -14,6 +17,7 @@ Standard library only at module level.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -33,7 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", metavar="DIR",
                         help="KITTI-layout dataset root (default: the embedded dataset, generated if missing)")
     parser.add_argument("--split", default="train", help="training split, ImageSets/<split>.txt (default: train)")
-    parser.add_argument("--max-frames", type=int, metavar="N", help="only the first N frames of the split")
+    parser.add_argument("--max-frames", type=int, metavar="N",
+                        help="only the first N frames of the split (1 to 1000000)")
     parser.add_argument("--out", required=True, metavar="OBJ.ply", help="the object file to write")
     parser.add_argument("--steps", type=int, default=300, metavar="N", help="optimisation steps (default 300)")
     parser.add_argument("--batch-cars", type=int, default=8, metavar="B", help="cars per step (default 8)")
@@ -61,7 +66,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint-every", type=int, default=25, metavar="K", help="steps per checkpoint (25)")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the checkpoint OBJ.train.pt if it exists (its configuration must match; "
-                             "--steps may grow); without it a run starts afresh and replaces the checkpoint")
+                             "--steps may grow), replacing OBJ.ply and OBJ.json if that training wrote them")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an existing OBJ.ply, its sidecar and (without --resume) its checkpoint; "
+                             "without it they are refused")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
@@ -96,14 +104,16 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 
 def run(args: argparse.Namespace) -> int:
-    from robustbench3d.attacks.train_run import data_identity, train_universal
+    from robustbench3d.attacks.spec import check_max_frames
+    from robustbench3d.attacks.train_run import check_outputs, data_identity, train_universal
     from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
     from robustbench3d.errors import RobustBenchError
-    from robustbench3d.fileio import check_output_file
     from robustbench3d.victims import VICTIMS, create_victim
 
-    out = check_output_file(args.out, "--out")
     config = config_from_args(args)
+    check_max_frames(args.max_frames)
+    check_outputs(args.out, force=args.force, resume=args.resume)  # again, with its notes, in train_universal
+    out = Path(args.out)
     kwargs = _victim_kwargs(args.victim_arg)
     spec = VICTIMS.get(args.victim)
     try:
@@ -116,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     gt = load_ground_truth(dataset, args.max_frames)
     made_by = train_universal(victim, info, dataset.kitti(), gt.frame_ids, gt.labels, config, out,
                               data_identity=data_identity(dataset_identity(dataset, gt), dataset.root),
-                              resume=args.resume, progress=not args.no_progress)
+                              resume=args.resume, force=args.force, progress=not args.no_progress, log=print)
     last = made_by["losses"]["last_step"] or {}
     drop = made_by["drop_estimate"]
     print(f"{out}: {args.mode} after {made_by['steps']} steps on {made_by['cars']} cars "

@@ -7,6 +7,9 @@ DontCare regions outlined. Bottom: a bird's-eye view of the scan in the velodyne
 With ``--attack OBJECT`` (a registered attack or an object file) the frame is drawn clean (left) and
 attacked (right), as ``attack apply`` attacks it (same seed and placement): in the attacked bird's-eye
 view the object's LiDAR returns are drawn in yellow (no class or height colour), enlarged to 3 x 3 px.
+
+``--out`` is never replaced without ``--force``. ``--bev-range`` is in [:data:`BEV_RANGE_M`] m and ``--seed``
+in [0, 2**32 - 1] (as ``run --seed``), both checked before the frame is read.
 """
 
 from __future__ import annotations
@@ -20,15 +23,33 @@ CLASS_COLOURS: dict[str, tuple[int, int, int]] = {
 }
 
 
+#: The range of ``--bev-range`` (m): from 5 m (the panel is (range + 2 m) / (1.6 range) image widths tall, so
+#: shorter ranges make ever taller pictures) to 200 m (beyond the HDL-64E's 120 m reach; a 1e9 m range would
+#: draw 1e8 range rings).
+BEV_RANGE_M = (5.0, 200.0)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("root", help="dataset root in KITTI layout (holds training/)")
     parser.add_argument("frame", help="frame id, e.g. 000001")
-    parser.add_argument("--out", required=True, help="PNG file to write")
+    parser.add_argument("--out", required=True, help="PNG file to write (an existing file only with --force)")
+    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
     parser.add_argument("--pred", help="optional result directory; its detections are drawn in red")
-    parser.add_argument("--bev-range", type=float, default=70.0, help="forward range of the BEV panel, m")
+    parser.add_argument("--bev-range", type=float, default=70.0,
+                        help=f"forward range of the BEV panel, m, in [{BEV_RANGE_M[0]:g}, {BEV_RANGE_M[1]:g}] "
+                             "(default 70)")
     parser.add_argument("--attack", metavar="OBJECT",
                         help="also draw the frame attacked by OBJECT (registered attack or NAME.ply), side by side")
-    parser.add_argument("--seed", type=int, default=0, help="attack seed, as in `run`/`attack apply` (default 0)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="attack seed, as in `run`/`attack apply`, in [0, 2**32 - 1] (default 0)")
+
+
+def bev_range_problem(bev_range: float) -> str | None:
+    """Why ``bev_range`` (m) is outside :data:`BEV_RANGE_M` (None: it is inside)."""
+    low, high = BEV_RANGE_M
+    if not low <= bev_range <= high:  # NaN fails too
+        return f"expected a range in [{low:g}, {high:g}] m"
+    return None
 
 #: Colour of the attack object's LiDAR returns in the bird's-eye view.
 OBJECT_POINT_COLOUR = (255, 255, 0)
@@ -42,6 +63,9 @@ def render(frame, detections=None, bev_range: float = 70.0, highlight=None):
 
     from robustbench3d.geometry import BOX_EDGES
 
+    problem = bev_range_problem(bev_range)
+    if problem is not None:
+        raise ValueError(f"render: field 'bev_range': {problem}, got {bev_range!r}")
     calib = frame.calib
     width, height = frame.image_size
     # (colour, corners (8, 3) rect) of every drawn box: labels in class colours, detections red.
@@ -125,11 +149,19 @@ def _clip_segment(a, b, near: float):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from robustbench3d.fileio import check_output_file
+    from robustbench3d.attack_apply import resolve_attack
+    from robustbench3d.attacks.spec import check_seed
+    from robustbench3d.errors import RobustBenchError
+    from robustbench3d.fileio import check_output_file, replacing_note
     from robustbench3d.kitti import KittiDataset, read_labels
     from robustbench3d.kitti.image import write_image
 
-    check_output_file(args.out, "--out")
+    check_output_file(args.out, "--out", force=args.force)
+    problem = bev_range_problem(args.bev_range)
+    if problem is not None:
+        raise RobustBenchError(f"--bev-range {args.bev_range}: {problem}")
+    check_seed(args.seed)
+    attack = resolve_attack(args.attack)[1] if args.attack else None
     ds = KittiDataset(args.root, split=None)
     frame = ds.frame(args.frame)
     dets = None
@@ -139,16 +171,20 @@ def run(args: argparse.Namespace) -> int:
         path = Path(args.pred) / f"{args.frame}.txt"
         dets = read_labels(path, scored=True) if path.exists() else None
     picture = render(frame, dets, args.bev_range)
-    if args.attack:
-        picture = np.concatenate([picture, _attacked_picture(ds, frame, args.attack, args.seed, dets,
+    if attack is not None:
+        picture = np.concatenate([picture, _attacked_picture(ds, frame, attack, args.seed, dets,
                                                              args.bev_range)], axis=1)
+    note = replacing_note(args.out)
+    if note:
+        print(note)
     write_image(args.out, picture)
     print(args.out)
     return 0
 
 
-def attacked_frame(ds, frame, reference: str, seed: int):
-    """(attacked frame, (K, 4) object LiDAR returns) of ``frame`` as ``attack apply`` makes it."""
+def attacked_frame(ds, frame, reference, seed: int):
+    """(attacked frame, (K, 4) object LiDAR returns) of ``frame`` as ``attack apply`` makes it; ``reference``
+    is a registered attack name, an object file ``NAME.ply`` or an attack instance."""
     import numpy as np
 
     from robustbench3d.attack_apply import resolve_attack
@@ -156,7 +192,7 @@ def attacked_frame(ds, frame, reference: str, seed: int):
     from robustbench3d.kitti.velodyne import scan_rows
     from robustbench3d.runner.cell import attack_rng
 
-    _, attack = resolve_attack(reference)
+    attack = resolve_attack(reference)[1] if isinstance(reference, str) else reference
     attack.bind_dataset(ds)
     targets = target_cars(frame.labels)
     if len(targets) == 0:
@@ -165,6 +201,6 @@ def attacked_frame(ds, frame, reference: str, seed: int):
     return attacked, attacked.scan[~np.isin(scan_rows(attacked.scan), scan_rows(frame.scan))]
 
 
-def _attacked_picture(ds, frame, reference: str, seed: int, dets, bev_range: float):
+def _attacked_picture(ds, frame, reference, seed: int, dets, bev_range: float):
     attacked, added = attacked_frame(ds, frame, reference, seed)
     return render(attacked, dets, bev_range, highlight=added)
