@@ -21,6 +21,12 @@ they hide nothing either way, and the files stay small (16 kB for a frame with 8
 atomically and read when present. A query outside every cached box (a car straddling the
 camera plane, an object larger than its bounds) is answered by the exact provider, built on demand:
 the cache changes speed, never values.
+
+An attacked frame does not keep such a source as it is (through the exact provider it reaches the dataset's
+path and the whole scene: a victim given the frame must find neither): :func:`depth_for_render` keeps its
+crops and, for the positions the camera render of the placed objects can query outside them
+(:func:`render_positions`; none for an odd supersample and an object within its bounds), the exact
+depths, asked when the frame is attacked (:class:`TabulatedDepth`) -- data only, the same values.
 """
 
 from __future__ import annotations
@@ -105,7 +111,8 @@ class CroppedDepth:
             box holding it).
         depths: per box a ((v1 - v0) * s, (u1 - u0) * s) float64 array: row v0 * s + i holds sample row i.
         lighting: the scene's lighting (used by the renderer for shading).
-        exact: builds the exact provider for queries outside the crops.
+        exact: builds the exact provider for queries outside the crops; None where ``_fallback`` is given
+            (:func:`depth_for_render`).
     """
 
     supersample: int
@@ -135,7 +142,7 @@ class CroppedDepth:
         missing = np.isnan(out)
         if missing.any():
             if self._fallback is None:
-                self._fallback = self.exact()
+                self._fallback = self.exact()  # None only with a _fallback (depth_for_render)
             out[missing] = self._fallback.depth(u[missing], v[missing])
         return out
 
@@ -213,6 +220,125 @@ def cached_scene_depth(root: Path, dataset_key: str, frame_id: str, calib: Calib
     return CroppedDepth(supersample, box_arr, depths, source.lighting, exact, source)
 
 
+def _box_pixels(calib: Calibration, vertices: list[np.ndarray],
+                image_size: tuple[int, int]) -> tuple[tuple[int, int], np.ndarray]:
+    """The pixels of the meshes' boxes (:func:`~robustbench3d.sensors.camera_render.mesh_box`): ((u0, v0), mask)
+    with mask (v1 - v0, u1 - u0) bool over the boxes' bounding box (u0, v0, u1, v1) (empty if no box)."""
+    from robustbench3d.sensors.camera_render import mesh_box
+
+    boxes = [b for b in (mesh_box(calib, v, image_size)[0] for v in vertices) if b is not None]
+    if not boxes:
+        return (0, 0), np.zeros((0, 0), bool)
+    u0, v0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
+    mask = np.zeros((max(b[3] for b in boxes) - v0, max(b[2] for b in boxes) - u0), bool)
+    for b in boxes:
+        mask[b[1] - v0:b[3] - v0, b[0] - u0:b[2] - u0] = True
+    return (u0, v0), mask
+
+
+def _positions(origin: tuple[int, int], centres: np.ndarray, samples: np.ndarray,
+               supersample: int) -> tuple[np.ndarray, np.ndarray]:
+    """(u, v) (N,) float64, computed as the camera renderer computes them: the centres of the pixels of mask
+    ``centres``, then the s x s sample positions (sample k = (row i, col j)) of those of mask ``samples`` (masks
+    of the same shape, pixel (0, 0) at image pixel ``origin`` (u, v))."""
+    cv, cu = np.nonzero(centres)
+    cu, cv = cu + origin[0], cv + origin[1]
+    us, vs = [cu.astype(np.float64)], [cv.astype(np.float64)]
+    if supersample > 1:
+        sv, su = np.nonzero(samples)
+        su, sv = su + origin[0], sv + origin[1]
+        off = sample_offsets(supersample)
+        us.append((su[:, None] + np.tile(off, supersample)[None, :]).reshape(-1))
+        vs.append((sv[:, None] + np.repeat(off, supersample)[None, :]).reshape(-1))
+    return np.concatenate(us), np.concatenate(vs)
+
+
+def render_positions(calib: Calibration, vertices: list[np.ndarray], image_size: tuple[int, int],
+                     supersample: int) -> tuple[np.ndarray, np.ndarray]:
+    """(u, v) (N,) float64: every image position at which :func:`~robustbench3d.sensors.camera_render.render_camera`
+    can ask its depth source about meshes with these rect vertices (each (V, 3)), computed as it computes them:
+    the centre and the s x s sample positions of each pixel of the meshes' boxes (a sample outside every box
+    hits no mesh, and the render asks the depth only where a sample hits one), with or without ``full_image``."""
+    origin, mask = _box_pixels(calib, vertices, image_size)
+    return _positions(origin, mask, mask, supersample)
+
+
+def _lattice_keys(scale: int, columns: int, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(keys (N,) int64, on the lattice (N,) bool) of positions u, v on the lattice of 1 / ``scale`` pixel
+    (shifted by one pixel so that every image position has a non-negative index), ``columns`` wide."""
+    gu, gv = (np.asarray(u, np.float64) + 1.0) * scale, (np.asarray(v, np.float64) + 1.0) * scale
+    iu, iv = np.rint(gu).astype(np.int64), np.rint(gv).astype(np.int64)
+    on = (np.abs(gu - iu) < 1e-6) & (np.abs(gv - iv) < 1e-6) & (iu >= 0) & (iu < columns) & (iv >= 0)
+    return iv * columns + iu, on
+
+
+@dataclass(frozen=True, eq=False)
+class TabulatedDepth:
+    """A :class:`DepthSource` holding another's depths at a fixed set of image positions: data only.
+
+    Positions are pixel centres and s x s sample positions (s = ``scale`` / 2), all on the lattice of
+    1 / ``scale`` pixel. A query elsewhere raises ValueError: the positions are all the render can ask.
+
+    Attributes:
+        scale: lattice steps per pixel.
+        columns: lattice columns (image width + 2 pixels).
+        keys: (K,) int64 sorted lattice indices of the positions.
+        depths: (K,) float64 camera-2 depths there (m, +inf for none).
+        lighting: the scene's lighting, if the source knew it (the renderer shades objects with it).
+    """
+
+    scale: int
+    columns: int
+    keys: np.ndarray
+    depths: np.ndarray
+    lighting: Lighting | None = None
+
+    @classmethod
+    def of(cls, source: DepthSource, u: np.ndarray, v: np.ndarray, supersample: int,
+           image_width: int) -> TabulatedDepth:
+        """``source``'s depths at positions u, v (N,) (centres and samples of ``supersample``), each asked once."""
+        scale = 2 * supersample
+        columns = (image_width + 2) * scale
+        keys, _ = _lattice_keys(scale, columns, u, v)
+        keys, first = np.unique(keys, return_index=True)  # an odd s's middle sample is the pixel centre
+        depths = np.asarray(source.depth(u[first], v[first]), np.float64) if len(first) else np.zeros(0)
+        return cls(scale, columns, keys, depths, getattr(source, "lighting", None))
+
+    def depth(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        keys, on = _lattice_keys(self.scale, self.columns, u, v)
+        at = np.minimum(np.searchsorted(self.keys, keys), max(len(self.keys) - 1, 0))
+        found = on & (self.keys[at] == keys) if len(self.keys) else np.zeros(len(keys), bool)
+        if not found.all():
+            raise ValueError(f"TabulatedDepth: {int((~found).sum())} of {len(found)} positions were not tabulated")
+        return self.depths[at]
+
+
+def depth_for_render(source: DepthSource | None, calib: Calibration, vertices: list[np.ndarray],
+                     image_size: tuple[int, int], supersample: int) -> DepthSource | None:
+    """What an attacked frame keeps of its occlusion depth ``source`` for the deferred camera render of meshes
+    with these rect vertices: data only, answering every query the render can make as ``source`` does (module
+    doc). None and a :class:`~robustbench3d.sensors.camera_depth.DepthMap` (an array) are kept; a
+    :class:`CroppedDepth` keeps its crops and gets the exact depths of the queries outside them now; any other
+    source is asked for every :func:`render_positions`."""
+    from robustbench3d.sensors.camera_depth import DepthMap
+
+    if source is None or isinstance(source, DepthMap):
+        return source
+    if not (isinstance(source, CroppedDepth) and source.supersample == supersample):
+        return TabulatedDepth.of(source, *render_positions(calib, vertices, image_size, supersample),
+                                 supersample, image_size[0])
+    (x0, y0), wanted = _box_pixels(calib, vertices, image_size)
+    outside = wanted.copy()  # pixels whose samples no crop holds
+    for (u0, v0, u1, v1), d in zip(source.boxes, source.depths, strict=True):
+        if not np.isnan(d).any():
+            outside[max(v0 - y0, 0):max(v1 - y0, 0), max(u0 - x0, 0):max(u1 - x0, 0)] = False
+    # an even s puts the pixel centre between samples: off the crops' grid, so the centres come from outside
+    centres = wanted if supersample % 2 == 0 else outside
+    rest = TabulatedDepth.of(source, *_positions((x0, y0), centres, outside, supersample), supersample,
+                             image_size[0])
+    return CroppedDepth(source.supersample, source.boxes, source.depths, source.lighting, None, rest)
+
+
 @dataclass(frozen=True)
 class _ExactFactory:
     """Builds the exact provider of one frame (a scene rebuild) when called."""
@@ -226,5 +352,5 @@ class _ExactFactory:
         return dataset_scene_depth(self.root, self.frame_id)
 
 
-__all__ = ["CACHE_VERSION", "CroppedDepth", "cached_scene_depth", "crop_key", "roof_crop", "sample_offsets",
-           "synth_key"]
+__all__ = ["CACHE_VERSION", "CroppedDepth", "TabulatedDepth", "cached_scene_depth", "crop_key",
+           "depth_for_render", "render_positions", "roof_crop", "sample_offsets", "synth_key"]

@@ -19,19 +19,23 @@ measured against, the same frame bit for bit at a far higher cost.
 Every roof-object factory of the registry takes the attack's settings (:data:`SETTINGS`) as keyword
 arguments, through one decorator (:func:`roof_settings`): ``run --attack-arg adv-object:dropout=0.05``.
 
-The attacked frame is a :class:`~robustbench3d.kitti.dataset.LazyImageFrame`: the LiDAR render is done in
-:meth:`RoofObjectAttack.apply`, the camera render (and the scene depth it needs) on the first read of its
-``image`` (the same bytes as rendering it at once), so a consumer that never reads the image (a victim
-given ground-truth 2D boxes) never pays for it.
+The attacked frame is a :class:`~robustbench3d.kitti.dataset.LazyImageFrame`: the LiDAR render and the
+camera's occlusion depth (which needs the target cars and the dataset) are done in :meth:`RoofObjectAttack.apply`,
+the camera render on the first read of its ``image`` (the same bytes as rendering it at once), so a consumer
+that never reads the image (a victim given ground-truth 2D boxes) never pays for it. What the deferred render
+holds (:class:`CameraRender`) is data a victim may see -- the clean image, the calibration, the placed
+objects' meshes and the occlusion depth at the positions the render can query -- never the labels, the
+target cars, a path or the attack: the victim is handed the frame.
 """
 
 from __future__ import annotations
 
-import copy
 import functools
 import inspect
+import math
 import numbers
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -53,6 +57,7 @@ from robustbench3d.kitti.dataset import Frame, KittiDataset, LazyImageFrame
 from robustbench3d.kitti.labels import Labels
 
 if TYPE_CHECKING:
+    from robustbench3d.kitti.calib import Calibration
     from robustbench3d.sensors.camera_depth import DepthSource
 
 OCCLUSION_MODES = ("scan", "none")
@@ -62,27 +67,55 @@ SETTINGS = ("eot", "position_jitter_m", "yaw_jitter_rad", "range_noise_m", "drop
             "cull")
 
 
+#: The upper end of each numeric setting's range (the lower end is 0, supersample's 1; dropout is in [0, 1)):
+#: position_jitter_m 0.5 m: the object's centre stays on the roof of a KITTI car (~1.3 m by ~1.8 m); at 1e9 m
+#: it is rendered nowhere near any car and the cell would report a clean result. yaw_jitter_rad pi: +-pi
+#: already covers every heading. range_noise_m 0.2 m (standard deviation, clipped at 3 sd): ten times the
+#: HDL-64E's 2 cm; more moves the object's returns by more than its own size. supersample 16: 16 x 16
+#: samples resolve an edge pixel's coverage to 1/256, the 8-bit image's own step; the cost grows as its
+#: square (a frame of 22 cars at 16: ~10 s and 1.4 GB; 100000 would ask for petabytes).
+SETTING_MAX = {"position_jitter_m": 0.5, "yaw_jitter_rad": math.pi, "range_noise_m": 0.2, "supersample": 16}
+#: (upper end, range) of each numeric setting as messages write them.
+_RANGE_TEXT = {"position_jitter_m": ("0.5 m", "[0, 0.5] m"), "yaw_jitter_rad": ("pi rad", "[0, pi] rad"),
+               "range_noise_m": ("0.2 m", "[0, 0.2] m"), "supersample": ("16", "[1, 16]")}
+
+
+def _number_problem(name: str, value: Any) -> str | None:
+    """What the numeric setting ``name`` should be when ``value`` is wrong (None: it is right), with its range
+    after the value: ``"<want>, got <value> (range [lo, hi] unit)"`` (:data:`SETTING_MAX`)."""
+    if name == "dropout":
+        return None if _is_real(value) and 0 <= value < 1 else f"a number in [0, 1), got {value!r}"
+    top, (top_text, span) = SETTING_MAX[name], _RANGE_TEXT[name]
+    if name == "supersample":
+        low = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_)) and value >= 1
+        want = "an integer >= 1"
+    else:
+        low, want = _is_real(value) and value >= 0, "a finite number >= 0"
+    if low and value <= top:
+        return None
+    return f"{f'at most {top_text}' if low else want}, got {value!r} (range {span})"
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)) and bool(np.isfinite(value))
+
+
 def check_settings(settings: dict[str, Any]) -> None:
-    """Raise ValueError ``field '<name>': <problem>`` for the first setting of ``settings`` (names of
-    :data:`SETTINGS`) of the wrong type or out of range (values as JSON gives them: true/false, numbers, strings)."""
+    """Raise ValueError ``field '<name>': expected <what>, got <value> (range ...)`` for the first setting of
+    ``settings`` (names of :data:`SETTINGS`) of the wrong type or out of its range (:data:`SETTING_MAX`; values
+    as JSON gives them: true/false, numbers, strings). Checked before any frame is rendered."""
     for name, value in settings.items():
         if name in ("eot", "cull"):
-            ok, want = isinstance(value, (bool, np.bool_)), "true or false"
-        elif name == "supersample":
-            ok = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_)) and value >= 1
-            want = "an integer >= 1"
+            problem = None if isinstance(value, (bool, np.bool_)) else f"true or false, got {value!r}"
         elif name == "occlusion":
-            ok, want = isinstance(value, str) and value in OCCLUSION_MODES, f"one of {', '.join(OCCLUSION_MODES)}"
+            ok = isinstance(value, str) and value in OCCLUSION_MODES
+            problem = None if ok else f"one of {', '.join(OCCLUSION_MODES)}, got {value!r}"
         elif name in SETTINGS:
-            real = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)) and np.isfinite(value)
-            if name == "dropout":
-                ok, want = real and 0 <= value < 1, "a number in [0, 1)"
-            else:
-                ok, want = real and value >= 0, "a finite number >= 0"
+            problem = _number_problem(name, value)
         else:
             raise ValueError(f"field {name!r}: not a setting of the roof-object attack ({', '.join(SETTINGS)})")
-        if not ok:
-            raise ValueError(f"field {name!r}: expected {want}, got {value!r}")
+        if problem is not None:
+            raise ValueError(f"field {name!r}: expected {problem}")
 
 
 class RoofObjectAttack(Attack):
@@ -93,10 +126,10 @@ class RoofObjectAttack(Attack):
         identity: how the object was made (e.g. ``{"attack": "random-shape", "seed": 0}`` or a file's
             sidecar ``made_by``); part of :meth:`describe`.
         sha256: the object's PLY sha256 (a loaded file's); default: that of its PLY bytes.
-        eot: jitter each placement (uniform +-``position_jitter_m`` along and across the car,
-            +-``yaw_jitter_rad``), drawn from the frame's generator.
-        range_noise_m, dropout: LiDAR realism passed to the renderer (off by default).
-        supersample: camera samples per pixel side.
+        eot: jitter each placement (uniform +-``position_jitter_m`` in [0, 0.5] m along and across the car,
+            +-``yaw_jitter_rad`` in [0, pi]), drawn from the frame's generator.
+        range_noise_m, dropout: LiDAR realism passed to the renderer (off by default; [0, 0.2] m and [0, 1)).
+        supersample: camera samples per pixel side, 1 to 16 (:data:`SETTING_MAX` says why).
         occlusion: camera occlusion source: "scan" (the clean scan's depth map) or "none".
         cull: render only the rays and pixels the objects can reach (default); False: the full-scene reference
             (module doc).
@@ -166,7 +199,7 @@ class RoofObjectAttack(Attack):
     def apply(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> Frame:
         if len(targets) == 0:
             return frame
-        from robustbench3d.sensors.camera_render import render_camera
+        from robustbench3d.attacks.depth_cache import depth_for_render
         from robustbench3d.sensors.lidar_render import render_lidar
         from robustbench3d.sensors.pattern_cache import default_pattern_cache
 
@@ -176,14 +209,16 @@ class RoofObjectAttack(Attack):
         lidar = render_lidar(frame.scan, velo, rng=rng, range_noise_m=self.range_noise_m, dropout=self.dropout,
                              patterns=default_pattern_cache(), cull=self.cull)
         scan = np.ascontiguousarray(lidar.scan, dtype=frame.scan.dtype)
-        rect = [(v, faces, colors) for v, _ in placed]
-        settings = copy.copy(self)  # the image is this call's, whatever changes the attack later
-
-        def camera_image() -> np.ndarray:
-            return render_camera(frame.image, frame.calib, rect, scene_depth=settings.scene_depth(frame, targets),
-                                 supersample=settings.supersample, full_image=not settings.cull).image
-
-        return LazyImageFrame(frame.frame_id, scan, frame.calib, frame.labels, frame.image_size, camera_image)
+        vertices = [v for v, _ in placed]
+        # The exact depth needs the targets and the dataset: fetched now (a cache file read once warm), and
+        # whatever the render can ask beyond its crops is asked now, so the deferred render holds data only.
+        depth = depth_for_render(self.scene_depth(frame, targets), frame.calib, vertices, frame.image_size,
+                                 self.supersample)
+        render = CameraRender(
+            photo=frame.make_image if isinstance(frame, LazyImageFrame) else frame.image, calib=frame.calib,
+            meshes=tuple((v, faces, colors) for v in vertices), scene_depth=depth, supersample=self.supersample,
+            full_image=not self.cull)
+        return LazyImageFrame(frame.frame_id, scan, frame.calib, frame.labels, frame.image_size, render)
 
     def describe(self) -> dict[str, Any]:
         """Object, placement and sensor settings; the jitter ranges appear with EOT on or when not the defaults,
@@ -199,6 +234,36 @@ class RoofObjectAttack(Attack):
             "camera": {"supersample": self.supersample, "occlusion": self.occlusion},
             **({} if self.cull else {"cull": False}),
         }
+
+
+@dataclass(frozen=True, eq=False)
+class CameraRender:
+    """The deferred camera render of an attacked frame (its ``make_image``), holding data only, fixed when the
+    frame is attacked (whatever changes the attack later): a victim given the frame can reach all of it.
+
+    Attributes:
+        photo: the clean (H, W, 3) uint8 image, or the clean frame's own deferred image (e.g. its
+            :class:`~robustbench3d.kitti.dataset.EncodedImage`).
+        calib: the frame's calibration.
+        meshes: per placed object its rect vertices (V, 3), faces (F, 3) and colours (V, 3).
+        scene_depth: the occlusion depth, data only (:func:`~robustbench3d.attacks.depth_cache.depth_for_render`),
+            or None (no occlusion).
+        supersample, full_image: as :func:`~robustbench3d.sensors.camera_render.render_camera` takes them.
+    """
+
+    photo: np.ndarray | Callable[[], np.ndarray]
+    calib: Calibration
+    meshes: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]
+    scene_depth: DepthSource | None
+    supersample: int
+    full_image: bool
+
+    def __call__(self) -> np.ndarray:
+        from robustbench3d.sensors.camera_render import render_camera
+
+        photo = self.photo() if callable(self.photo) else self.photo
+        return render_camera(photo, self.calib, list(self.meshes), scene_depth=self.scene_depth,
+                             supersample=self.supersample, full_image=self.full_image).image
 
 
 def settings_parameters() -> list[inspect.Parameter]:

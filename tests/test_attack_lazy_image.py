@@ -1,9 +1,11 @@
 """The roof attack's camera image is rendered only when read (:class:`LazyImageFrame`): a cell with
-ground-truth proposals never renders it, a detector cell does, and the image is the eager render's, bit for bit."""
+ground-truth proposals never renders it, a detector cell does, and the image is the eager render's, bit for bit
+(the occlusion depth, which needs the target cars, is fetched when the frame is attacked)."""
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +15,7 @@ import torch
 import robustbench3d.sensors.camera_render as camera_render
 from robustbench3d.attacks import create_attack
 from robustbench3d.attacks.base import target_cars
+from robustbench3d.attacks.depth_cache import CroppedDepth, TabulatedDepth, depth_for_render, render_positions
 from robustbench3d.attacks.roof import RoofObjectAttack
 from robustbench3d.datasets import GroundTruth
 from robustbench3d.kitti.dataset import DeferredImageError, KittiDataset, LazyImageFrame
@@ -71,9 +74,10 @@ def _run(victim, dataset: Path, proposals: str, out: Path) -> dict:
 
 def test_gt_proposal_cell_never_renders_the_camera(victim, dataset, tmp_path, calls):
     kitti = KittiDataset(dataset, split="val")
-    assert sum(len(target_cars(kitti.labels(f))) for f in kitti.frame_ids) > 0  # something is attacked
+    attacked = sum(len(target_cars(kitti.labels(f))) > 0 for f in kitti.frame_ids)
+    assert attacked > 0  # something is attacked
     _run(victim, dataset, "gt", tmp_path / "cell")
-    assert calls == {"render_camera": 0, "scene_depth": 0}
+    assert calls == {"render_camera": 0, "scene_depth": attacked}  # the depth is the attack's, fetched in apply
     assert len(list((tmp_path / "cell" / "data").iterdir())) == FRAMES
 
 
@@ -84,13 +88,20 @@ def test_detector_cell_renders_each_attacked_frame_once(victim, dataset, tmp_pat
     assert calls == {"render_camera": attacked, "scene_depth": attacked}
 
 
-def test_lazy_image_is_the_eager_render_bit_for_bit(dataset, calls):
+@pytest.mark.parametrize("settings", [{}, {"supersample": 2}, {"cull": False}, {"bound": False}],
+                         ids=["default", "even-supersample", "full-image", "lidar-depth"])
+def test_lazy_image_is_the_eager_render_bit_for_bit(dataset, calls, settings):
+    """Whatever the depth source (cached crops, crops missing the even supersample's pixel centres so that
+    the exact scene answers them, the full-image reference, the scan's depth map without a bound dataset)."""
     kitti = KittiDataset(dataset, split="val")
     fid = next(f for f in kitti.frame_ids if len(target_cars(kitti.labels(f))))
     frame = kitti.frame(fid)
     targets = target_cars(frame.labels)
-    attack = create_attack("random-shape", seed=0)
-    attack.bind_dataset(kitti)
+    settings = dict(settings)
+    bound = settings.pop("bound", True)
+    attack = create_attack("random-shape", seed=0, **settings)
+    if bound:
+        attack.bind_dataset(kitti)
     out = attack.apply(frame, targets, attack_rng(0, fid))
     assert isinstance(out, LazyImageFrame) and out.image_size == frame.image_size
     bare = dataclasses.replace(out, labels=None)  # what victim_inputs hands the victim
@@ -104,7 +115,7 @@ def test_lazy_image_is_the_eager_render_bit_for_bit(dataset, calls):
     eager = camera_render.render_camera(frame.image, frame.calib,
                                         [(v, attack.obj.faces, attack.obj.colors) for v, _ in placed],
                                         scene_depth=attack.scene_depth(frame, targets),
-                                        supersample=attack.supersample).image
+                                        supersample=attack.supersample, full_image=not attack.cull).image
     assert calls["render_camera"] == 1
     assert out.scan.tobytes() == lidar.scan.tobytes()
     assert bare.image.dtype == np.uint8 and bare.image.tobytes() == eager.tobytes()
@@ -148,3 +159,31 @@ def test_made_image_must_have_the_announced_size():
         _ = frame.image
     with pytest.raises(AttributeError, match="no attribute 'other'"):
         _ = frame.other
+
+
+@pytest.mark.parametrize(("supersample", "grow"), [(3, 1.0), (3, 3.0), (2, 1.0)],
+                         ids=["within-crops", "object-beyond-its-bounds", "even-supersample"])
+def test_the_kept_depth_answers_every_render_query_as_its_source_without_holding_it(dataset, supersample, grow):
+    """What an attacked frame keeps of the exact depth: the crops, and the exact depths of the render's queries
+    outside them (an object larger than the crops' bounds; pixel centres between an even supersample's samples),
+    asked at once -- the values of the source, which reaches the dataset's path and the rebuilt scene."""
+    kitti = KittiDataset(dataset, split="val")
+    fid = next(f for f in kitti.frame_ids if len(target_cars(kitti.labels(f))))
+    frame = kitti.frame(fid)
+    targets = target_cars(frame.labels)
+    attack = create_attack("random-shape", seed=0, supersample=supersample)
+    attack.bind_dataset(kitti)
+    source = attack.scene_depth(frame, targets)
+    assert isinstance(source, CroppedDepth) and isinstance(source.exact, Callable)
+    placed = []
+    for v, _ in attack.place(targets, attack_rng(0, fid)):
+        centre = v.mean(axis=0)
+        placed.append(centre + grow * (v - centre))
+    kept = depth_for_render(source, frame.calib, placed, frame.image_size, supersample)
+    assert isinstance(kept, CroppedDepth) and kept.exact is None and isinstance(kept._fallback, TabulatedDepth)
+    assert (len(kept._fallback.keys) > 0) == (grow > 1 or supersample % 2 == 0)
+    u, v = render_positions(frame.calib, placed, frame.image_size, supersample)
+    assert kept.depth(u, v).tobytes() == source.depth(u, v).tobytes()
+    assert np.isfinite(kept.depth(u, v)).any()  # the queries see the scene
+    with pytest.raises(ValueError, match="not tabulated"):  # only the render's queries were asked
+        kept.depth(u[:1] + 0.1234, v[:1])  # off every sample grid

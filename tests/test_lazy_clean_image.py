@@ -4,7 +4,6 @@ cannot be decoded is still bad input (the run exits 2), not a failed attack."""
 
 from __future__ import annotations
 
-import types
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +13,7 @@ from robustbench3d.attacks import create_attack
 from robustbench3d.datasets import GroundTruth
 from robustbench3d.errors import DataFormatError
 from robustbench3d.kitti import dataset as kitti_dataset
-from robustbench3d.kitti.dataset import FileImageFrame, KittiDataset
+from robustbench3d.kitti.dataset import EncodedImage, FileImageFrame, KittiDataset
 from robustbench3d.kitti.image import read_image_size, write_image
 from robustbench3d.kitti.labels import Labels
 from robustbench3d.runner.cell import CellInputs, run_cell
@@ -38,13 +37,13 @@ def kitti(tmp_path) -> KittiDataset:
 
 def count_decodes(monkeypatch) -> list[str]:
     calls: list[str] = []
-    real = kitti_dataset.read_image
+    real = kitti_dataset.decode_image
 
-    def counting(path):
+    def counting(data, path):
         calls.append(str(path))
-        return real(path)
+        return real(data, path)
 
-    monkeypatch.setattr(kitti_dataset, "read_image", counting)
+    monkeypatch.setattr(kitti_dataset, "decode_image", counting)
     return calls
 
 
@@ -53,9 +52,11 @@ def test_lazy_frame_has_the_eager_frame_and_decodes_once_on_first_read(kitti, mo
     calls = count_decodes(monkeypatch)
     frame = kitti.lazy_frame("000000", eager.labels)
     assert isinstance(frame, FileImageFrame) and calls == []
-    # a victim reaches nothing but the frame's data through it: the decoder is a plain function (no
-    # wrapper whose attributes hold names or paths), the other fields hold no string but the id
-    assert isinstance(frame.make_image, types.FunctionType)
+    # a victim reaches nothing but the frame's data through it: the decoder holds the file's bytes (no
+    # path; tests/test_trust_integrity.py walks everything reachable), the other fields hold no string but the id
+    assert isinstance(frame.make_image, EncodedImage)
+    assert frame.make_image.data == kitti.path("image", "000000").read_bytes()
+    assert not any(isinstance(v, str | Path) for v in vars(frame.make_image).values())
     assert [v for v in vars(frame).values() if isinstance(v, str | Path)] == ["000000"]
     assert frame.image_size == IMAGE_SIZE == read_image_size(kitti.path("image", "000000")) and calls == []
     np.testing.assert_array_equal(frame.scan, eager.scan)

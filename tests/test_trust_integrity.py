@@ -1,11 +1,15 @@
 """Benchmark integrity: a victim never receives labels, GT proposals are exactly the 2D label
-boxes, a cheating plugin scores nothing; the summary covers every comparable finished cell of
-the output directory; a rejected (NaN) result is reported without naming a file that is gone."""
+boxes, a cheating plugin scores nothing -- on clean and attacked frames, whose deferred images hold
+data, not closures over the harness, and on the frames ``attack train`` hands its victim; the summary
+covers every comparable finished cell of the output directory; a rejected (NaN) result is reported
+without naming a file that is gone."""
 
 from __future__ import annotations
 
+import copy
 import csv
 import dataclasses
+import functools
 import types
 from pathlib import Path
 from typing import Any
@@ -13,8 +17,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from robustbench3d.attacks.roof import CameraRender, RoofObjectAttack
 from robustbench3d.cli import main
 from robustbench3d.eval import evaluate
+from robustbench3d.kitti.dataset import FileImageFrame, KittiDataset, LazyImageFrame
 from robustbench3d.kitti.labels import Labels
 from robustbench3d.results import read_summary
 from robustbench3d.runner import RunConfig, run_benchmark
@@ -25,14 +31,33 @@ from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
 
 FRAMES = 4
 SNOOP = "test-trust-snoop"
+ATTACKS = ("benign-sphere", "adv-object")  # a registry shape and a shipped object file
 CAPS = Capabilities(modalities=("camera", "lidar"), backend="other", gradients=False, deterministic=True)
-_OPAQUE = (type, types.ModuleType, types.FunctionType, types.BuiltinFunctionType, types.MethodType)
+_OPAQUE = (type, types.ModuleType)
+_LEAVES = (str, bytes, int, float, complex, Path, type(None), np.generic)
+
+
+def _callable_parts(obj: Any) -> list[Any]:
+    """What a callable carries besides its ``__dict__``: closure cells, defaults, a bound method's
+    ``__self__`` and ``__func__``, a partial's function and arguments, ``__wrapped__`` (not ``__globals__``
+    or ``__code__``: module namespaces and code are the library, not the frame)."""
+    parts: list[Any] = []
+    if isinstance(obj, types.FunctionType):
+        parts += [*(obj.__closure__ or ()), obj.__defaults__, obj.__kwdefaults__]
+    if isinstance(obj, types.MethodType | types.BuiltinMethodType | types.MethodWrapperType):
+        parts += [obj.__self__, getattr(obj, "__func__", None)]
+    if isinstance(obj, functools.partial):
+        parts += [obj.func, obj.args, obj.keywords]
+    if callable(obj):
+        parts.append(getattr(obj, "__wrapped__", None))
+    return parts
 
 
 def reachable(*roots: Any) -> list[Any]:
     """Every object reachable from ``roots`` through containers, instance attributes (``__dict__``,
-    slots, cached properties), object arrays and array bases -- all a victim can get at from its
-    arguments without leaving them (classes, modules and functions are not followed)."""
+    slots, cached properties), object arrays and array bases, closure cells, ``__wrapped__``, bound
+    methods, partials and functions' defaults and ``__dict__`` -- all a victim can get at from its
+    arguments without leaving them (classes, modules and functions' globals are not followed)."""
     seen: set[int] = set()
     out: list[Any] = []
     stack = list(roots)
@@ -49,36 +74,57 @@ def reachable(*roots: Any) -> list[Any]:
         elif isinstance(obj, np.ndarray):
             stack += [obj.base] if obj.base is not None else []
             stack += list(obj.ravel()) if obj.dtype == object else []
-        elif not isinstance(obj, str | bytes | int | float | complex | Path | type(None) | np.generic):
+        elif isinstance(obj, types.CellType):
+            stack += [obj.cell_contents] if _cell_full(obj) else []
+        elif not isinstance(obj, _LEAVES):
+            stack += _callable_parts(obj)
             stack += list(vars(obj).values()) if hasattr(obj, "__dict__") else []  # values, not attribute names
             stack += [getattr(obj, s) for s in getattr(type(obj), "__slots__", ()) if hasattr(obj, s)]
     return out
+
+
+def _cell_full(cell: types.CellType) -> bool:
+    try:
+        cell.cell_contents  # noqa: B018 - an empty cell raises
+    except ValueError:
+        return False
+    return True
 
 
 RECORD: list[dict[str, Any]] = []
 
 
 class SnoopingVictim:
-    """TEST ONLY: a cheating plugin. Records what ``detect`` is given, hunts it for labels (the
-    frames' ``labels``, any :class:`Labels` or file path reachable from its arguments) and returns
-    whatever ground truth it found, as Cars with score 1."""
+    """TEST ONLY: a cheating plugin. Records what ``detect`` is given (after reading the images, in
+    detector mode), hunts it for labels (the frames' ``labels``, any :class:`Labels` or file path
+    reachable from its arguments) and returns whatever ground truth it found, as Cars with score 1."""
 
     supported_proposals = ("detector", "gt")
 
     def detect(self, frames, proposals="detector"):
+        if proposals == "detector":
+            for frame in frames:
+                assert frame.image.shape[2] == 3  # renders an attacked frame's image: what it keeps is walked too
         everything = reachable(list(frames), proposals)
         paths = [Path(o) for o in everything if isinstance(o, str | Path) and ("/" in str(o) or "\\" in str(o))]
         RECORD.append({"frames": list(frames), "proposals": proposals, "reachable": everything, "paths": paths})
         out = []
         for frame in frames:
             found = [o for o in reachable(frame) if isinstance(o, Labels) and not o.has_score]
-            found += [_read_labels(p, frame.frame_id) for p in paths if (p / f"{frame.frame_id}.txt").is_file()]
+            found += [_read_labels(d, frame.frame_id) for d in _label_dirs(paths)
+                      if (d / f"{frame.frame_id}.txt").is_file()]
             if found:
                 cars = found[0].select(found[0].type == "Car")
                 out.append(dataclasses.replace(cars, score=np.ones(len(cars))))
             else:
                 out.append(Labels.empty(with_score=True))
         return out
+
+
+def _label_dirs(paths: list[Path]) -> list[Path]:
+    """Where labels may lie near ``paths``: each path and its ancestors, and their ``label_2`` folders."""
+    near = [q for p in paths for q in (p, *p.parents)]
+    return [d for q in near for d in (q, q / "label_2")]
 
 
 def _read_labels(directory: Path, frame_id: str) -> Labels:
@@ -121,8 +167,8 @@ def label_rows(dataset: Path, frame_id: str) -> list[list[str]]:
 
 
 def run(dataset: Path, out: Path, proposals: tuple[str, ...], victims: tuple[str, ...] = (SNOOP,),
-        log: list[str] | None = None, **kw: Any):
-    config = RunConfig(victims=victims, attacks=("none",), proposals=proposals, out=out, data=dataset,
+        log: list[str] | None = None, attacks: tuple[str, ...] = ("none",), **kw: Any):
+    config = RunConfig(victims=victims, attacks=attacks, proposals=proposals, out=out, data=dataset,
                        batch_size=3, progress=False, **kw)
     return run_benchmark(config, (log if log is not None else []).append)
 
@@ -192,6 +238,179 @@ def test_a_cheating_victim_cannot_return_the_labels(dataset, tmp_path, monkeypat
     assert perfect["Car"]["3d"]["R40"]["moderate"] > 40.0
 
 
+class _Holder:
+    def __init__(self, secret: Any) -> None:
+        self.secret = secret
+
+    def method(self) -> None:
+        pass
+
+
+def _closure(secret: Any):
+    def make():
+        return secret
+    return make
+
+
+def _with_dict(secret: Any):
+    def make():
+        return None
+    make.kept = secret
+    return make
+
+
+def _defaults(secret: Any):
+    def make(x=secret):
+        return x
+    return make
+
+
+def _kwdefaults(secret: Any):
+    def make(*, x=secret):
+        return x
+    return make
+
+
+@pytest.mark.parametrize("hide", [
+    _closure, _with_dict, _defaults, _kwdefaults,
+    lambda secret: functools.wraps(_closure(secret))(lambda: None),  # __wrapped__
+    lambda secret: functools.cache(_closure(secret)),
+    lambda secret: _Holder(secret).method,  # a bound method's __self__
+    lambda secret: functools.partial(print, secret),
+    lambda secret: functools.partial(print, sep=secret),
+    lambda secret: [secret].append,  # a builtin bound method
+], ids=["closure", "function-dict", "defaults", "kwdefaults", "wraps", "cache", "bound-method", "partial-args",
+        "partial-keywords", "builtin-method"])
+def test_the_walker_follows_what_a_callable_carries(hide):
+    secret = Labels.empty()
+    assert any(o is secret for o in reachable(hide(secret)))
+
+
+def test_the_walker_does_not_follow_globals_or_modules():
+    # module namespaces are the library, not what the frame holds (RECORD is this module's global)
+    assert not any(o is RECORD for o in reachable(_closure(1), reachable, types))
+
+
+def gt_boxes(dataset: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(the 2D boxes (K, 4), the 3D locations and dimensions (2K, 3)) of every labelled object but DontCare
+    of the label files, read independently of the library."""
+    rows = [r for i in range(FRAMES) for r in label_rows(dataset, f"{i:06d}") if r[0] != "DontCare"]
+    two = np.array([[float(v) for v in r[4:8]] for r in rows])
+    three = np.array([[float(v) for v in r[11:14]] for r in rows] + [[float(v) for v in r[8:11]] for r in rows])
+    return two, three
+
+
+def holding(objects: list[Any], boxes: np.ndarray) -> list[Any]:
+    """The float arrays and number sequences among ``objects`` holding one of ``boxes`` (K, k) as a row or a
+    column (the form a leaked box takes)."""
+    k = boxes.shape[1]
+    found = []
+    for o in objects:
+        if isinstance(o, list | tuple) and len(o) == k and all(isinstance(x, float | int) for x in o):
+            candidates = [np.array(o, np.float64)[None]]
+        elif isinstance(o, np.ndarray) and o.dtype.kind == "f" and o.ndim >= 1:
+            candidates = [o.reshape(-1, k)] if o.shape[-1] == k else []
+            candidates += [o.T] if o.ndim == 2 and o.shape[0] == k else []
+        else:
+            continue
+        if any(len(c) and (c[:, None, :] == boxes[None]).all(axis=2).any() for c in candidates):
+            found.append(o)
+    return found
+
+
+def test_a_cheating_victim_finds_no_ground_truth_in_attacked_frames(dataset, tmp_path, cache):
+    RECORD.clear()
+    report = run(dataset, tmp_path / "run", ("detector", "gt"), attacks=ATTACKS)
+    assert {(c["attack"], c["proposals"]) for c in report.cells} == {
+        (a, p) for a in ("none", *ATTACKS) for p in ("detector", "gt")}
+    for cell in report.cells:
+        assert cell["status"] == "ok" and sum(cell["metrics"]["meta"]["detections"].values()) == 0
+    boxes_2d, boxes_3d = gt_boxes(dataset)
+    assert holding([boxes_2d], boxes_2d) and holding([boxes_3d.T.copy()], boxes_3d)  # the probe finds a leak
+    attacked = {"detector": 0, "gt": 0}
+    for call in RECORD:
+        mode = "detector" if call["proposals"] == "detector" else "gt"
+        lazy = [f for f in call["frames"] if isinstance(f, LazyImageFrame) and not isinstance(f, FileImageFrame)]
+        attacked[mode] += sum(isinstance(f.make_image.make, CameraRender) for f in lazy)
+        assert not any(isinstance(o, Labels) for o in call["reachable"]), mode
+        assert call["paths"] == [], mode
+        # data, not closures: no function, partial or cell reachable at all
+        assert not [o for o in call["reachable"] if isinstance(o, types.FunctionType | functools.partial
+                                                                  | types.CellType | RoofObjectAttack)]
+        assert holding(reachable(call["frames"]), boxes_2d) == [], mode  # gt mode's proposals hold the 2D boxes
+        assert holding(call["reachable"], boxes_3d) == [], mode
+    assert attacked["detector"] > 0 and attacked["gt"] > 0  # attacked frames were walked, rendered or not
+
+
+def test_the_probe_catches_an_attacked_frame_whose_image_is_a_closure(dataset, tmp_path, cache, monkeypatch):
+    """As attacked frames were made before: the deferred render a closure over the clean frame (with its
+    labels), the targets and a copy of the attack (with the dataset's root); the snooping victim finds them."""
+    real = RoofObjectAttack.apply
+
+    def closure_apply(self, frame, targets, rng):
+        out = real(self, frame, targets, rng)
+        if out is frame:
+            return out
+        render, settings = out.make_image, copy.copy(self)
+
+        def camera_image():
+            return render() if (frame, targets, settings) else None
+
+        return LazyImageFrame(frame.frame_id, out.scan, frame.calib, frame.labels, frame.image_size, camera_image)
+
+    monkeypatch.setattr(RoofObjectAttack, "apply", closure_apply)
+    RECORD.clear()
+    cells = run(dataset, tmp_path / "leaky", ("gt",), attacks=("benign-sphere",)).cells
+    cheated = next(c for c in cells if c["attack"] == "benign-sphere")
+    clean = next(c for c in cells if c["attack"] == "none")
+    assert sum(clean["metrics"]["meta"]["detections"].values()) == 0
+    assert cheated["metrics"]["meta"]["detections"]["Car"] > 0
+    assert cheated["metrics"]["Car"]["3d"]["R40"]["moderate"] > 40.0
+    assert any(isinstance(o, Labels) for call in RECORD for o in call["reachable"])
+    assert any(str(dataset) in str(p) for call in RECORD for p in call["paths"])
+
+
+class RecordingCascade:
+    """TEST ONLY: wraps a victim, recording (frames, everything reachable) of every ``detect`` and
+    ``proposals`` call; the rest is the victim's."""
+
+    def __init__(self, victim: Any, seen: list[tuple[list[Any], list[Any]]]) -> None:
+        self._victim, self._seen = victim, seen
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._victim, name)
+
+    def detect(self, frames, proposals="detector"):
+        self._seen.append((reachable(list(frames)), reachable(list(frames), proposals)))
+        return self._victim.detect(frames, proposals)
+
+    def proposals(self, frames, source):
+        self._seen.append((reachable(list(frames)), reachable(list(frames), source)))
+        return self._victim.proposals(frames, source)
+
+
+@pytest.mark.parametrize("lidar_boxes", ["gt", "detector"])
+def test_attack_train_hands_its_victim_no_ground_truth(dataset, cache, lidar_boxes):
+    from robustbench3d.attacks.train import UniversalTrainer
+    from robustbench3d.attacks.train_config import TrainConfig
+    from robustbench3d.victims import create_victim
+
+    kitti = KittiDataset(dataset, split="val")
+    seen: list[tuple[list[Any], list[Any]]] = []
+    victim = RecordingCascade(create_victim("fpointnet-v1-lite"), seen)
+    config = TrainConfig(mode="adv-object", steps=1, batch_cars=2, occlusion="none", supersample=1,
+                         lidar_boxes=lidar_boxes)
+    UniversalTrainer(victim, kitti, kitti.frame_ids, [kitti.labels(f) for f in kitti.frame_ids],
+                     config).compute_step(0)
+    assert len(seen) >= 2
+    boxes_2d, boxes_3d = gt_boxes(dataset)
+    for frames, everything in seen:
+        assert not any(isinstance(o, Labels) for o in everything)
+        assert not [o for o in everything if isinstance(o, Path) or (isinstance(o, str) and "/" in o)]
+        assert not [o for o in everything if isinstance(o, types.FunctionType | functools.partial | types.CellType)]
+        assert holding(frames, boxes_2d) == [] and holding(everything, boxes_3d) == []
+
+
 def test_summary_lists_every_comparable_finished_cell_of_the_directory(dataset, tmp_path, capsys):
     out = tmp_path / "run"
     a = run(dataset, out, ("detector",))
@@ -207,8 +426,9 @@ def test_summary_lists_every_comparable_finished_cell_of_the_directory(dataset, 
     assert {r["proposals"] for r in rows} == {"detector", "gt"} and len(rows) == 2 * 4 * 2 * 3
 
     # another seed is another experiment: the earlier gt cell stays on disk but is left out, and said so
+    # (the detector cell of seed 0 is replaced: --force, see tests/test_trust_outputs_run.py)
     assert main(["run", "--victims", SNOOP, "--proposals", "detector", "--seed", "1", "--data", str(dataset),
-                 "--out", str(out), "--no-progress"]) == 0
+                 "--out", str(out), "--no-progress", "--force"]) == 0
     captured = capsys.readouterr()
     assert f"left out of the summary: {SNOOP}+none+gt: seed 0 (this run: 1)" in captured.err
     assert "1 cell(s) there are left out" in captured.out
@@ -217,7 +437,7 @@ def test_summary_lists_every_comparable_finished_cell_of_the_directory(dataset, 
     assert (out / "cells" / f"{SNOOP}+none+gt" / "cell.json").is_file()
 
     # fewer frames are another dataset
-    shorter = run(dataset, out, ("gt",), max_frames=2, seed=1)
+    shorter = run(dataset, out, ("gt",), max_frames=2, seed=1, force=True)
     assert shorter.earlier == []
     assert shorter.left_out == [f"{SNOOP}+none+detector: another dataset: frames 4 (this run: 2); "
                                 "last_frame '000003' (this run: '000001'); sha256 differs"]

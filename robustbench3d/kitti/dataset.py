@@ -6,8 +6,8 @@
 
 from __future__ import annotations
 
-import functools
 import os
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -16,8 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from robustbench3d.errors import DataFormatError
+from robustbench3d.fileio import read_data_bytes
 from robustbench3d.kitti.calib import Calibration, read_calibration
-from robustbench3d.kitti.image import check_image_fits_calibration, read_image, read_image_size
+from robustbench3d.kitti.image import check_image_fits_calibration, decode_image, read_image, read_image_size
 from robustbench3d.kitti.labels import Labels, read_labels
 from robustbench3d.kitti.splits import read_split
 from robustbench3d.kitti.velodyne import read_scan
@@ -55,15 +56,34 @@ class DeferredImageError(RuntimeError):
 
 
 @dataclass(frozen=True, eq=False)
+class MadeOnce:
+    """A ``make_image`` callable run at most once, its image kept (what a :class:`LazyImageFrame` holds):
+    nothing but the callable and its image."""
+
+    make: Callable[[], np.ndarray]
+    made: list[np.ndarray] = field(default_factory=list, repr=False)
+
+    def __call__(self) -> np.ndarray:
+        if not self.made:
+            self.made.append(self.make())
+        return self.made[0]
+
+
+@dataclass(frozen=True, eq=False)
 class LazyImageFrame(Frame):
     """A :class:`Frame` whose image is made on first access of ``image`` and kept (e.g. an attacked
     frame: its camera render is skipped when no consumer reads the image, as a victim given
     ground-truth 2D boxes does).
 
     Constructed as ``LazyImageFrame(frame_id, scan, calib, labels, size, make_image)``; ``image_size``
-    is ``size`` and never makes the image. ``make_image`` is wrapped so that it runs at most once for
-    this frame and every copy of it (``dataclasses.replace`` keeps the laziness; it cannot set
-    ``image``); its errors are raised as :class:`DeferredImageError`.
+    is ``size`` and never makes the image. ``make_image`` is wrapped (:class:`MadeOnce`) so that it runs
+    at most once for this frame and every copy of it (``dataclasses.replace`` keeps the laziness; it
+    cannot set ``image``); its errors are raised as :class:`DeferredImageError`.
+
+    A victim is handed such frames (with ``labels=None``) and can reach everything ``make_image`` holds
+    (a closure's cells, an object's attributes): it must hold data the victim may see (arrays, a
+    calibration, numbers), never labels, file paths or harness objects -- e.g. a frozen dataclass with
+    ``__call__`` (:class:`~robustbench3d.attacks.roof.CameraRender`, :class:`EncodedImage`), not a closure.
 
     Attributes:
         size: (width, height) of the image in pixels.
@@ -75,8 +95,8 @@ class LazyImageFrame(Frame):
     make_image: Callable[[], np.ndarray] = field(repr=False)
 
     def __post_init__(self) -> None:
-        if not hasattr(self.make_image, "cache_info"):  # copies share the wrapper, hence one image
-            object.__setattr__(self, "make_image", functools.cache(self.make_image))
+        if not isinstance(self.make_image, MadeOnce):  # copies share the wrapper, hence one image
+            object.__setattr__(self, "make_image", MadeOnce(self.make_image))
 
     def __getattr__(self, name: str) -> np.ndarray:  # only called while ``image`` is not yet set
         if name != "image":
@@ -99,14 +119,42 @@ class LazyImageFrame(Frame):
         return int(self.size[0]), int(self.size[1])
 
 
+#: The file each :class:`EncodedImage` was read from, to name it in errors; kept here rather than in the
+#: object so that a frame hands a victim no path.
+_IMAGE_FILES: weakref.WeakKeyDictionary[EncodedImage, Path] = weakref.WeakKeyDictionary()
+
+
+@dataclass(frozen=True, eq=False)
+class EncodedImage:
+    """An image file's bytes, decoded on the first call and kept (the ``make_image`` of a
+    :class:`FileImageFrame`): the bytes, the header's (width, height) and the decoded image, no path.
+
+    A file that cannot be decoded, or whose pixels are not the header's size, raises
+    :class:`DataFormatError` naming the file (:meth:`KittiDataset.lazy_frame` notes it)."""
+
+    data: bytes
+    size: tuple[int, int]
+    decoded: list[np.ndarray] = field(default_factory=list, repr=False)
+
+    def __call__(self) -> np.ndarray:
+        if not self.decoded:
+            path = _IMAGE_FILES.get(self, Path("<image bytes>"))
+            image = decode_image(self.data, path)
+            if (int(image.shape[1]), int(image.shape[0])) != tuple(self.size):
+                raise DataFormatError(path, f"decoded size {image.shape[1]}x{image.shape[0]} differs from "
+                                      f"the header's {self.size[0]}x{self.size[1]}")
+            self.decoded.append(image)
+        return self.decoded[0]
+
+
 @dataclass(frozen=True, eq=False)
 class FileImageFrame(LazyImageFrame):
     """A :class:`LazyImageFrame` whose image is a dataset file decoded on first access
     (:meth:`KittiDataset.lazy_frame`). Its size comes from the file's header; a file that cannot be
     decoded raises :class:`DataFormatError` naming it, as an eager read does (bad input, not a
-    deferred failure). ``make_image`` is a plain function that decodes once for the frame and its
-    copies; it is not wrapped, so nothing but the frame's data is reachable through its attributes
-    (a victim must not find the dataset's paths there)."""
+    deferred failure). ``make_image`` is an :class:`EncodedImage` (the file's bytes, read with the
+    header), which decodes once for the frame and its copies; it holds no path, so nothing but the
+    frame's data is reachable through it (a victim must not find the dataset's paths there)."""
 
     def __post_init__(self) -> None:
         pass
@@ -166,25 +214,16 @@ class KittiDataset:
         return read_image_size(self.path("image", frame_id))
 
     def lazy_frame(self, frame_id: str, labels: Labels | None) -> FileImageFrame:
-        """The frame with ``labels``: scan and calibration read now, the image decoded on first
-        access (a consumer that never reads it, like a victim given ground-truth 2D boxes, never pays
-        for it). The header's size is checked against the calibration now, as :meth:`image` does."""
+        """The frame with ``labels``: scan, calibration and the image file's bytes read now, the image
+        decoded on first access (a consumer that never reads it, like a victim given ground-truth 2D
+        boxes, never pays for it). The header's size is checked against the calibration now, as
+        :meth:`image` does."""
         path, calib = self.path("image", frame_id), self.calib(frame_id)
         size = read_image_size(path)
         check_image_fits_calibration(size, calib, path, self.path("calib", frame_id))
-
-        decoded: list[np.ndarray] = []
-
-        def decode() -> np.ndarray:
-            if not decoded:
-                image = read_image(path)
-                if (int(image.shape[1]), int(image.shape[0])) != size:
-                    raise DataFormatError(path, f"decoded size {image.shape[1]}x{image.shape[0]} differs from "
-                                          f"the header's {size[0]}x{size[1]}")
-                decoded.append(image)
-            return decoded[0]
-
-        return FileImageFrame(frame_id, self.scan(frame_id), calib, labels, size, decode)
+        encoded = EncodedImage(read_data_bytes(path), size)
+        _IMAGE_FILES[encoded] = path
+        return FileImageFrame(frame_id, self.scan(frame_id), calib, labels, size, encoded)
 
     def scan(self, frame_id: str) -> np.ndarray:
         return read_scan(self.path("scan", frame_id))

@@ -37,10 +37,16 @@ _ALPHA = ("RGBA", "LA", "PA", "La", "RGBa")
 
 def read_image(path: str | Path) -> np.ndarray:
     """Read an image file as (H, W, 3) uint8 RGB (conversions as in the module doc)."""
+    path = Path(path)
+    return decode_image(read_data_bytes(path), path)
+
+
+def decode_image(data: bytes, path: str | Path) -> np.ndarray:
+    """Decode an image file's bytes as (H, W, 3) uint8 RGB (conversions as in the module doc); ``path``
+    names the file in errors."""
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
-    data = read_data_bytes(path)
     try:
         im = Image.open(io.BytesIO(data))
         im.load()
