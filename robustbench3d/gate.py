@@ -1,11 +1,11 @@
 """``robustbench3d check``: the AP / AP-drop regression gate of a run against a recorded baseline.
 
     robustbench3d check RUN_DIR --write-baseline FILE [--force]
-    robustbench3d check RUN_DIR --baseline FILE [--tol-ap X] [--tol-drop Y]
+    robustbench3d check RUN_DIR --baseline FILE [--tol-ap X] [--tol-drop Y] [--json PATH] [--junit PATH] [--force]
 
-``--write-baseline`` writes a new FILE; an existing one is replaced only with ``--force`` (the command
-says so), never when it is the summary being read. Tolerances are percentage points in
-:data:`TOL_RANGE`.
+``--write-baseline``, ``--json`` and ``--junit`` write new files; an existing one is replaced only with
+``--force`` (the command says so), never when it is a file being read. Tolerances are percentage points
+in :data:`TOL_RANGE`. ``--json`` writes :func:`report_record`, ``--junit`` :func:`junit_xml`.
 
 A **baseline** (:data:`FORMAT`, version :data:`VERSION`) is a small JSON file::
 
@@ -29,9 +29,11 @@ parameters (``root`` is recorded but not compared: the same dataset sits at anot
 a *regression*; a higher AP or a smaller drop is an *improvement*, which fails too (the baseline is
 stale: record the new numbers with ``--write-baseline FILE --force``) unless ``--allow-improvements``. It also
 fails when a baseline cell is missing from the run, the run has a cell the baseline lacks, a cell's
-status changed, or the dataset or protocol differs. Unreadable or malformed files exit 2
-(:class:`~robustbench3d.errors.DataFormatError`, naming the file and field; a directory given as a
-file, bad JSON with its line, a NaN or Infinity anywhere); a passing check exits 0.
+status changed, or the dataset or protocol differs; a differing dataset or protocol is reported alone
+(:func:`format_mismatch`: the fields that differ), since every per-cell difference follows from it.
+Unreadable or malformed files exit 2 (:class:`~robustbench3d.errors.DataFormatError`, naming the file
+and field; a directory given as a file, bad JSON with its line, a NaN or Infinity anywhere); a passing
+check exits 0.
 
 Standard library only.
 """
@@ -59,6 +61,8 @@ GATE_METRICS: tuple[str, ...] = ("bev", "3d")
 DIFFICULTIES: tuple[str, ...] = ("easy", "moderate", "hard")
 #: Dataset identity keys compared between the baseline and the run (``root`` is informational).
 DATASET_KEYS: tuple[str, ...] = ("split", "frames", "split_frames", "sha256", "embedded")
+#: Evaluation protocol keys compared between the baseline and the run.
+PROTOCOL_KEYS: tuple[str, ...] = ("class", "recall", "metrics", "min_overlap", "evaluation", "seed")
 #: Default tolerances, percentage points.
 DEFAULT_TOL_AP = 1.0
 DEFAULT_TOL_DROP = 1.0
@@ -233,7 +237,7 @@ def validate_baseline(data: Any, path: str | Path) -> None:
         if key not in dataset:
             raise DataFormatError(path, "missing", field=f"$.dataset.{key}")
     protocol = _need(data, "protocol", dict, path, "$")
-    for key in ("class", "recall", "metrics", "min_overlap", "evaluation", "seed"):
+    for key in PROTOCOL_KEYS:
         if key not in protocol:
             raise DataFormatError(path, "missing", field=f"$.protocol.{key}")
     cells = _need(data, "cells", list, path, "$")
@@ -268,115 +272,220 @@ def read_baseline(path: str | Path) -> dict[str, Any]:
 # ---- comparing -------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
-class Move:
-    """One value of one cell that moved past its tolerance."""
+class Comparison:
+    """One compared value of one cell: a Car AP (percent, R40) or a moderate AP drop (percentage points)
+    of the baseline and the run, with its verdict."""
 
     cell: str
-    metric: str
+    quantity: str  # "ap" | "drop"
+    metric: str  # "bev" | "3d"
+    difficulty: str
     baseline: float | None
     now: float | None
     tolerance: float
-    verdict: str  # "regression" | "improvement" | "appeared" | "vanished"
+    verdict: str  # "within" | "regression" | "improvement" | "appeared" | "vanished"
 
     @property
     def delta(self) -> float | None:
         return None if self.baseline is None or self.now is None else self.now - self.baseline
 
+    @property
+    def moved(self) -> bool:
+        """Past its tolerance (or present on one side only)."""
+        return self.verdict != "within"
+
+    @property
+    def label(self) -> str:
+        """``BEV AP moderate`` / ``3D drop moderate``."""
+        return f"{_label(self.metric)} {'AP' if self.quantity == 'ap' else 'drop'} {self.difficulty}"
+
+
+#: Earlier name of :class:`Comparison` (a value that moved).
+Move = Comparison
+
+
+@dataclass(frozen=True)
+class CellCheck:
+    """A cell of the baseline (``status``: its baseline status) or one only the run has (``status`` None),
+    with the problem that kept its values from being compared."""
+
+    cell: CellId
+    status: str | None
+    problem: str | None = None
+
+    @property
+    def name(self) -> str:
+        return _name(self.cell)
+
+
+@dataclass(frozen=True)
+class Mismatch:
+    """A dataset or protocol field (dotted path into a nested record) that differs from the baseline."""
+
+    section: str  # "dataset" | "protocol"
+    field: str
+    baseline: Any
+    run: Any
+
+    def text(self) -> str:
+        return f"{self.section} {self.field}: baseline {_show(self.baseline)}, run {_show(self.run)}"
+
 
 @dataclass
 class GateReport:
-    """The outcome of :func:`compare`: moved values, structural problems and what was compared."""
+    """The outcome of :func:`compare`: every compared value, every cell, and the dataset/protocol fields
+    that differ (when any does, no cell is compared: every per-cell difference would follow from it)."""
 
-    moves: list[Move] = field(default_factory=list)
-    problems: list[str] = field(default_factory=list)
+    values: list[Comparison] = field(default_factory=list)
+    cells: list[CellCheck] = field(default_factory=list)
+    mismatches: list[Mismatch] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
-    compared_cells: int = 0
-    compared_values: int = 0
+    tol_ap: float = DEFAULT_TOL_AP
+    tol_drop: float = DEFAULT_TOL_DROP
     allow_improvements: bool = False
 
     @property
-    def failing_moves(self) -> list[Move]:
-        return [m for m in self.moves if not (self.allow_improvements and m.verdict == "improvement")]
+    def moves(self) -> list[Comparison]:
+        """The values past their tolerance."""
+        return [v for v in self.values if v.moved]
+
+    def allowed(self, value: Comparison) -> bool:
+        """An improvement that ``--allow-improvements`` lets pass."""
+        return self.allow_improvements and value.verdict == "improvement"
+
+    def failing(self, value: Comparison) -> bool:
+        return value.moved and not self.allowed(value)
+
+    @property
+    def failing_moves(self) -> list[Comparison]:
+        return [v for v in self.values if self.failing(v)]
+
+    @property
+    def problems(self) -> list[str]:
+        """Cells missing from the run or the baseline, or whose status changed."""
+        return [c.problem for c in self.cells if c.problem]
+
+    @property
+    def comparable(self) -> bool:
+        return not self.mismatches
+
+    @property
+    def compared_cells(self) -> int:
+        return sum(c.status is not None and c.problem is None for c in self.cells)
+
+    @property
+    def compared_values(self) -> int:
+        return len(self.values)
 
     @property
     def ok(self) -> bool:
-        return not self.problems and not self.failing_moves
+        return self.comparable and not self.problems and not self.failing_moves
 
 
-def _judge(cell: str, metric: str, base: float | None, now: float | None, tol: float,
-           higher_is_better: bool) -> tuple[Move | None, bool]:
-    """(the move, whether a value was compared) of one value."""
+def _judge(cell: str, quantity: str, metric: str, difficulty: str, base: float | None, now: float | None,
+           tol: float, higher_is_better: bool) -> Comparison | None:
+    """The comparison of one value (None when neither side has it)."""
     if base is None and now is None:
-        return None, False
+        return None
     if base is None or now is None:
-        return Move(cell, metric, base, now, tol, "appeared" if base is None else "vanished"), True
-    delta = now - base
-    if abs(delta) <= tol:
-        return None, True
-    better = delta > 0 if higher_is_better else delta < 0
-    return Move(cell, metric, base, now, tol, "improvement" if better else "regression"), True
+        verdict = "appeared" if base is None else "vanished"
+    elif abs(now - base) <= tol:
+        verdict = "within"
+    else:
+        verdict = "improvement" if (now > base) == higher_is_better else "regression"
+    return Comparison(cell, quantity, metric, difficulty, base, now, tol, verdict)
 
 
-def _differences(base: Mapping[str, Any], now: Mapping[str, Any], keys: Sequence[str]) -> list[str]:
-    return [f"{k} {base.get(k)!r} (run: {now.get(k)!r})" if k not in ("sha256", "evaluation") else f"{k} differs"
-            for k in keys if base.get(k) != now.get(k)]
+_MISSING = object()
+
+
+def _field_diffs(section: str, base: Mapping[str, Any], now: Mapping[str, Any], keys: Sequence[str],
+                 prefix: str = "") -> list[Mismatch]:
+    """The fields of ``keys`` that differ, descending into records both sides hold (``embedded.seed``)."""
+    out = []
+    for key in keys:
+        b, n = base.get(key, _MISSING), now.get(key, _MISSING)
+        if b == n:
+            continue
+        if isinstance(b, dict) and isinstance(n, dict):
+            out += _field_diffs(section, b, n, sorted(set(b) | set(n)), f"{prefix}{key}.")
+        else:
+            out.append(Mismatch(section, prefix + key, None if b is _MISSING else b, None if n is _MISSING else n))
+    return out
+
+
+def _show(value: Any) -> str:
+    """A field value for the terminal: JSON, a sha256 cut to 16 hex digits."""
+    if isinstance(value, str) and len(value) == 64 and all(ch in "0123456789abcdef" for ch in value):
+        return value[:16] + "..."
+    return json.dumps(value, sort_keys=True, default=str)
 
 
 def compare(baseline: Mapping[str, Any], cells: Sequence[Mapping[str, Any]], run_path: Path,
             tol_ap: float = DEFAULT_TOL_AP, tol_drop: float = DEFAULT_TOL_DROP,
             allow_improvements: bool = False) -> GateReport:
-    """Compare a run's summary cells with a baseline (module doc)."""
-    report = GateReport(allow_improvements=allow_improvements)
+    """Compare a run's summary cells with a baseline (module doc). A run over another dataset or
+    protocol is reported by its differing fields alone: its cells are not compared."""
+    report = GateReport(tol_ap=tol_ap, tol_drop=tol_drop, allow_improvements=allow_improvements)
     ds = _common(cells, "dataset", _dataset, run_path)
-    diff = _differences(baseline["dataset"], ds, DATASET_KEYS)
-    if diff:
-        report.problems.append("another dataset: " + "; ".join(diff))
     proto = _common(cells, "evaluation protocol", _protocol, run_path)
-    diff = _differences(baseline["protocol"], proto, ("class", "recall", "metrics", "min_overlap", "evaluation",
-                                                        "seed"))
-    if diff:
-        report.problems.append("another evaluation protocol: " + "; ".join(diff))
+    report.mismatches = (_field_diffs("dataset", baseline["dataset"], ds, DATASET_KEYS)
+                         + _field_diffs("protocol", baseline["protocol"], proto, PROTOCOL_KEYS))
     if baseline["dataset"].get("root") != ds.get("root"):
+        same = "" if report.mismatches else "; same split, frames and labels"
         report.notes.append(f"dataset root {ds.get('root')} (baseline: {baseline['dataset'].get('root')}); "
-                            "same split, frames and labels")
-    run_cells = {_cell_id(c): (i, c) for i, c in enumerate(cells)}
-    base_ids = set()
-    for bcell in baseline["cells"]:
-        cid = (bcell["victim"], bcell["attack"], bcell["proposals"])
-        base_ids.add(cid)
-        name = _name(cid)
-        if cid not in run_cells:
-            report.problems.append(f"cell {name} is in the baseline but not in the run")
-            continue
-        i, cell = run_cells[cid]
-        if cell["status"] != bcell["status"]:
-            reason = f": {cell['reason']}" if cell.get("reason") else ""
-            report.problems.append(f"cell {name} is {cell['status']} (baseline: {bcell['status']}){reason}")
-            continue
-        report.compared_cells += 1
-        ap, drop = _values(cell, run_path, i)
-        for m in GATE_METRICS if ap is not None else ():
-            for d in DIFFICULTIES:
-                move, counted = _judge(name, f"{_label(m)} AP {d}", bcell["ap"][m][d], ap[m][d], tol_ap, True)
-                report.compared_values += counted
-                if move:
-                    report.moves.append(move)
-        bdrop = bcell["drop_moderate"] or {}
-        for m in GATE_METRICS:
-            move, counted = _judge(name, f"{_label(m)} drop moderate", bdrop.get(m), (drop or {}).get(m), tol_drop,
-                                   False)
-            report.compared_values += counted
-            if move:
-                report.moves.append(move)
-        moved = any(mv.cell == name for mv in report.moves)
-        if moved and bcell.get("victim_weights_sha256") != cell["provenance"]["config"]["victim"].get("weights_sha256"):
-            report.notes.append(f"{name}: the victim's weights changed since the baseline")
-        if moved and bcell.get("attack_object_sha256") != _object_sha(cell):
-            report.notes.append(f"{name}: the attack's object changed since the baseline")
-    for cid in run_cells:
-        if cid not in base_ids:
-            report.problems.append(f"cell {_name(cid)} is in the run but not in the baseline")
+                            f"recorded, not compared{same}")
+    if report.comparable:
+        _compare_cells(report, baseline["cells"], cells, run_path)
     return report
+
+
+def _cell_problem(bcell: Mapping[str, Any], found: tuple[int, Mapping[str, Any]] | None, name: str) -> str | None:
+    if found is None:
+        return f"cell {name} is in the baseline but not in the run"
+    cell = found[1]
+    if cell["status"] != bcell["status"]:
+        reason = f": {cell['reason']}" if cell.get("reason") else ""
+        return f"cell {name} is {cell['status']} (baseline: {bcell['status']}){reason}"
+    return None
+
+
+def _compare_cells(report: GateReport, base_cells: Sequence[Mapping[str, Any]],
+                   cells: Sequence[Mapping[str, Any]], run_path: Path) -> None:
+    """Add every baseline cell, its compared values, and the cells only the run has, to ``report``."""
+    run_cells = {_cell_id(c): (i, c) for i, c in enumerate(cells)}
+    for bcell in base_cells:
+        cid: CellId = (bcell["victim"], bcell["attack"], bcell["proposals"])
+        problem = _cell_problem(bcell, run_cells.get(cid), _name(cid))
+        report.cells.append(CellCheck(cid, bcell["status"], problem))
+        if problem is None:
+            i, cell = run_cells[cid]
+            _compare_values(report, _name(cid), bcell, *_values(cell, run_path, i))
+            _explain(report, _name(cid), bcell, cell)
+    base_ids = {c.cell for c in report.cells}
+    report.cells += [CellCheck(cid, None, f"cell {_name(cid)} is in the run but not in the baseline")
+                     for cid in run_cells if cid not in base_ids]
+
+
+def _compare_values(report: GateReport, name: str, bcell: Mapping[str, Any], ap: dict | None,
+                    drop: dict | None) -> None:
+    found = []
+    for m in GATE_METRICS if ap is not None else ():
+        found += [_judge(name, "ap", m, d, bcell["ap"][m][d], ap[m][d], report.tol_ap, True) for d in DIFFICULTIES]
+    bdrop = bcell["drop_moderate"] or {}
+    found += [_judge(name, "drop", m, "moderate", bdrop.get(m), (drop or {}).get(m), report.tol_drop, False)
+              for m in GATE_METRICS]
+    report.values += [v for v in found if v is not None]
+
+
+def _explain(report: GateReport, name: str, bcell: Mapping[str, Any], cell: Mapping[str, Any]) -> None:
+    """Notes on what changed under a cell whose values moved (its victim's weights, its attack's object)."""
+    if not any(v.cell == name for v in report.moves):
+        return
+    if bcell.get("victim_weights_sha256") != cell["provenance"]["config"]["victim"].get("weights_sha256"):
+        report.notes.append(f"{name}: the victim's weights changed since the baseline")
+    if bcell.get("attack_object_sha256") != _object_sha(cell):
+        report.notes.append(f"{name}: the attack's object changed since the baseline")
 
 
 def _label(metric: str) -> str:
@@ -387,13 +496,54 @@ def _fmt(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f}"
 
 
+def _delta(value: Comparison) -> str:
+    return "-" if value.delta is None else f"{value.delta:+.2f}"
+
+
+def _verdict(report: GateReport, value: Comparison) -> str:
+    return value.verdict + (" (allowed)" if report.allowed(value) else "")
+
+
+def reason(value: Comparison) -> str:
+    """One line naming the cell, the value and its numbers: ``CELL BEV AP moderate: baseline 64.00, now
+    62.50, delta -1.50, tolerance 1.00: regression``."""
+    return (f"{value.cell} {value.label}: baseline {_fmt(value.baseline)}, now {_fmt(value.now)}, delta "
+            f"{_delta(value)}, tolerance {value.tolerance:.2f}: {value.verdict}")
+
+
+def _counts(report: GateReport) -> dict[str, int]:
+    failing = report.failing_moves
+    return {"regressions": sum(m.verdict in ("regression", "vanished") for m in failing),
+            "improvements": sum(m.verdict in ("improvement", "appeared") for m in failing),
+            "allowed_improvements": sum(report.allowed(m) for m in report.moves),
+            "problems": len(report.problems), "mismatches": len(report.mismatches)}
+
+
+def _mismatch_kinds(report: GateReport) -> str:
+    kinds = {"dataset": "another dataset", "protocol": "another evaluation protocol"}
+    return " and ".join(dict.fromkeys(kinds[m.section] for m in report.mismatches))
+
+
+def format_mismatch(report: GateReport, run_path: Path, baseline_path: Path) -> str:
+    """The one block ``check`` prints for a run over another dataset or protocol: the differing fields."""
+    lines = [f"check FAILED: {run_path} is not comparable with {baseline_path}: {_mismatch_kinds(report)}"]
+    lines += [f"  {m.text()}" for m in report.mismatches]
+    lines += [f"  note: {n}" for n in report.notes]
+    lines.append("no cell was compared (every per-cell difference would follow from this): run on the baseline's "
+                 "dataset and protocol (--data, --split, --max-frames, --seed), or record this run as the "
+                 f"baseline with --write-baseline {baseline_path} --force")
+    return "\n".join(lines)
+
+
 def format_report(report: GateReport, run_path: Path, baseline_path: Path) -> str:
-    """The per-cell diff table and the verdict, as printed by ``check``."""
+    """The per-cell diff table and the verdict, as printed by ``check`` (:func:`format_mismatch` alone
+    for a run over another dataset or protocol)."""
+    if not report.comparable:
+        return format_mismatch(report, run_path, baseline_path)
     lines = []
     if report.moves:
-        rows = [[m.cell, m.metric, _fmt(m.baseline), _fmt(m.now),
-                 "-" if m.delta is None else f"{m.delta:+.2f}", f"{m.tolerance:.2f}",
-                 m.verdict + (" (allowed)" if m not in report.failing_moves else "")] for m in report.moves]
+        rows = [[m.cell, m.label, _fmt(m.baseline), _fmt(m.now), _delta(m), f"{m.tolerance:.2f}",
+                 _verdict(report, m)] for m in report.moves]
         lines.append("values that moved past their tolerance (AP in %, R40, Car; drop in percentage points):")
         lines.append(format_table(["cell", "metric", "baseline", "now", "delta", "tolerance", "verdict"], rows,
                                   align="llrrrrl"))
@@ -401,19 +551,131 @@ def format_report(report: GateReport, run_path: Path, baseline_path: Path) -> st
     lines += [f"note: {n}" for n in report.notes]
     head = (f"{run_path} against {baseline_path}: {report.compared_cells} cell(s), {report.compared_values} "
             "value(s) compared")
+    counts = _counts(report)
     if report.ok:
-        allowed = len(report.moves)
+        allowed = counts["allowed_improvements"]
         lines.append(f"check passed: {head}, none moved past its tolerance"
                      + (f" except {allowed} allowed improvement(s)" if allowed else ""))
     else:
-        regressions = sum(m.verdict in ("regression", "vanished") for m in report.failing_moves)
-        improvements = sum(m.verdict in ("improvement", "appeared") for m in report.failing_moves)
-        lines.append(f"check FAILED: {head}; {regressions} regression(s), {improvements} improvement(s) past "
-                     f"tolerance, {len(report.problems)} problem(s)")
-        if improvements:
+        lines.append(f"check FAILED: {head}; {counts['regressions']} regression(s), {counts['improvements']} "
+                     f"improvement(s) past tolerance, {counts['problems']} problem(s)")
+        if counts["improvements"]:
             lines.append("an improvement past tolerance fails too (the baseline is stale): accept the new numbers "
                          f"with --write-baseline {baseline_path} --force, or pass --allow-improvements")
     return "\n".join(lines)
+
+
+# ---- machine-readable results: --json, --junit ------------------------------------------------------
+
+REPORT_FORMAT = "robustbench3d.check"
+REPORT_VERSION = 1
+JUNIT_SUITE = "robustbench3d check"
+
+
+def _reasons(report: GateReport) -> list[str]:
+    """Why the check failed, one line each (empty when it passed)."""
+    if not report.comparable:
+        return [f"{_mismatch_kinds(report)}: " + "; ".join(m.text() for m in report.mismatches)]
+    return [*report.problems, *(reason(v) for v in report.failing_moves)]
+
+
+def _value_record(report: GateReport, value: Comparison) -> dict[str, Any]:
+    return {"quantity": value.quantity, "metric": value.metric, "difficulty": value.difficulty,
+            "baseline": value.baseline, "current": value.now, "difference": value.delta,
+            "tolerance": value.tolerance, "pass": not report.failing(value), "verdict": value.verdict}
+
+
+def _cell_record(report: GateReport, cell: CellCheck) -> dict[str, Any]:
+    values = [v for v in report.values if v.cell == cell.name]
+    reasons = [cell.problem] if cell.problem else [reason(v) for v in values if report.failing(v)]
+    return {"cell": cell.name, "victim": cell.cell[0], "attack": cell.cell[1], "proposals": cell.cell[2],
+            "baseline_status": cell.status, "pass": not reasons, "problem": cell.problem,
+            "values": [_value_record(report, v) for v in values], "reasons": reasons}
+
+
+def report_record(report: GateReport, run_path: Path, baseline_path: Path) -> dict[str, Any]:
+    """The ``--json`` record: the verdict, the tolerances, the dataset/protocol mismatch (if any: no cell
+    is listed), and per cell every compared value (baseline, current, difference, tolerance, pass) and
+    the reasons it failed. AP in percent (Car, R40); drops in percentage points."""
+    return {"format": REPORT_FORMAT, "version": REPORT_VERSION,
+            "verdict": "passed" if report.ok else "failed", "exit_status": 0 if report.ok else 1,
+            "run": str(run_path), "baseline": str(baseline_path),
+            "units": {"ap": f"percent ({CLASS}, {RECALL})", "drop": "percentage points (moderate AP drop)"},
+            "tolerances": {"ap": report.tol_ap, "drop": report.tol_drop},
+            "allow_improvements": report.allow_improvements, "comparable": report.comparable,
+            "mismatch": [{"section": m.section, "field": m.field, "baseline": m.baseline, "run": m.run}
+                         for m in report.mismatches],
+            "counts": {"cells": report.compared_cells, "values": report.compared_values, **_counts(report)},
+            "cells": [_cell_record(report, c) for c in report.cells],
+            "notes": list(report.notes), "reasons": _reasons(report)}
+
+
+@dataclass(frozen=True)
+class _Case:
+    classname: str
+    name: str
+    failure: tuple[str, str, str] | None  # (type, message, text)
+    out: str = ""
+
+
+def _failure(kind: str, lines: Sequence[str]) -> tuple[str, str, str] | None:
+    return (kind, "; ".join(lines), "\n".join(lines)) if lines else None
+
+
+def _dataset_case(report: GateReport) -> _Case:
+    lines = [m.text() for m in report.mismatches]
+    failure = _failure("mismatch", lines)
+    if failure:
+        failure = ("mismatch", f"{_mismatch_kinds(report)}: {failure[1]}; no cell was compared", failure[2])
+    return _Case(JUNIT_SUITE, "dataset and evaluation protocol", failure, "\n".join(report.notes))
+
+
+def _cell_cases(report: GateReport, cell: CellCheck) -> list[_Case]:
+    """One testcase per metric (BEV, 3D: its AP easy/moderate/hard and moderate drop) of an ok baseline
+    cell, one ``status`` testcase for a skipped one, one ``in baseline`` testcase for a cell only the run has."""
+    if cell.status is None:
+        return [_Case(cell.name, "in baseline", _failure("problem", [cell.problem or ""]))]
+    if cell.status != "ok":
+        return [_Case(cell.name, "status", _failure("problem", [cell.problem] if cell.problem else []),
+                      f"{cell.status} in the baseline" + ("" if cell.problem else " and the run"))]
+    cases = []
+    for m in GATE_METRICS:
+        values = [v for v in report.values if v.cell == cell.name and v.metric == m]
+        failing = [v for v in values if report.failing(v)]
+        kind = "problem" if cell.problem else (failing[0].verdict if failing else "")
+        lines = [cell.problem] if cell.problem else [reason(v) for v in failing]
+        out = "\n".join(reason(v) + (" (allowed)" if report.allowed(v) else "") for v in values)
+        cases.append(_Case(cell.name, f"{_label(m)} AP and drop", _failure(kind, lines), out))
+    return cases
+
+
+def junit_xml(report: GateReport, run_path: Path, baseline_path: Path) -> str:
+    """The ``--junit`` document: one testsuite; a ``dataset and evaluation protocol`` testcase, then (when
+    that passes) one testcase per baseline cell and metric; a failure's message names the cell, the
+    metric and the numbers."""
+    import xml.etree.ElementTree as ET
+
+    cases = [_dataset_case(report)]
+    if report.comparable:
+        cases += [case for cell in report.cells for case in _cell_cases(report, cell)]
+    counts = {"tests": str(len(cases)), "failures": str(sum(c.failure is not None for c in cases)),
+              "errors": "0", "skipped": "0"}
+    root = ET.Element("testsuites", name=JUNIT_SUITE, **counts)
+    suite = ET.SubElement(root, "testsuite", name=JUNIT_SUITE, **counts)
+    props = ET.SubElement(suite, "properties")
+    for key, value in (("run", run_path), ("baseline", baseline_path), ("tol_ap", report.tol_ap),
+                       ("tol_drop", report.tol_drop), ("allow_improvements", report.allow_improvements),
+                       ("verdict", "passed" if report.ok else "failed")):
+        ET.SubElement(props, "property", name=key, value=str(value))
+    for case in cases:
+        node = ET.SubElement(suite, "testcase", classname=case.classname, name=case.name)
+        if case.failure:
+            kind, message, text = case.failure
+            ET.SubElement(node, "failure", type=kind, message=message).text = text
+        if case.out:
+            ET.SubElement(node, "system-out").text = case.out
+    ET.indent(root)
+    return ET.tostring(root, encoding="unicode", xml_declaration=True) + "\n"
 
 
 # ---- command ---------------------------------------------------------------------------------------
@@ -438,7 +700,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--baseline", metavar="FILE", help="compare the run with this baseline; exit 1 on a move")
     group.add_argument("--write-baseline", metavar="FILE", help="record the run's numbers as a baseline (a new file "
                                                                 "unless --force)")
-    parser.add_argument("--force", action="store_true", help="let --write-baseline replace an existing FILE")
+    parser.add_argument("--json", metavar="PATH", help="with --baseline: also write the verdict and every compared "
+                                                       "value as JSON (a new file unless --force)")
+    parser.add_argument("--junit", metavar="PATH", help="with --baseline: also write JUnit XML, one testcase per "
+                                                        "cell and metric (a new file unless --force)")
+    parser.add_argument("--force", action="store_true", help="let --write-baseline, --json or --junit replace an "
+                                                             "existing file")
     lo, hi = TOL_RANGE
     parser.add_argument("--tol-ap", type=_tolerance, default=DEFAULT_TOL_AP, metavar="X",
                         help=f"tolerance of every AP, percentage points in [{lo:g}, {hi:g}] (default {DEFAULT_TOL_AP})")
@@ -449,6 +716,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="do not fail on a higher AP or a smaller drop past tolerance (they are still listed)")
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    return a.resolve() == b.resolve()
+
+
 def _baseline_output(run_dir: str, out: str, force: bool) -> Path:
     """``--write-baseline FILE`` checked before any work: writable, new unless ``force``, and not the
     summary being read (which ``--force`` would otherwise replace)."""
@@ -456,33 +727,79 @@ def _baseline_output(run_dir: str, out: str, force: bool) -> Path:
 
     path = check_output_file(out, "--write-baseline", force=force)
     summary = summary_path(run_dir)
-    if path.exists() and summary.exists() and path.resolve() == summary.resolve():
+    if path.exists() and summary.exists() and _same_file(path, summary):
         raise RobustBenchError(f"--write-baseline {path}: is the run's summary being read; choose another file "
                                "(nothing was written)")
     return path
 
 
-def run(args: argparse.Namespace) -> int:
-    if args.write_baseline is not None:
-        from robustbench3d.fileio import replacing_note
+def _report_outputs(args: argparse.Namespace) -> list[tuple[str, Path]]:
+    """``--json`` / ``--junit`` checked before any work: writable, new unless ``--force``, and none of the
+    files read nor each other."""
+    from robustbench3d.fileio import check_output_file
 
-        out = _baseline_output(args.run_dir, args.write_baseline, args.force)
-        record = baseline_from_run(args.run_dir)  # before the note: a refused run replaces nothing
-        note = replacing_note(out)
+    taken = [(Path(args.baseline), "the baseline being read"), (summary_path(args.run_dir), "the run's summary")]
+    outputs = []
+    for flag, value in (("--json", args.json), ("--junit", args.junit)):
+        if value is None:
+            continue
+        path = check_output_file(value, flag, force=args.force)
+        for other, what in taken:
+            if _same_file(path, other):
+                raise RobustBenchError(f"{flag} {path}: is {what}; choose another file (nothing was written)")
+        taken.append((path, f"the {flag} file"))
+        outputs.append((flag, path))
+    return outputs
+
+
+def _write_baseline_command(args: argparse.Namespace) -> int:
+    from robustbench3d.fileio import replacing_note
+
+    for flag, value in (("--json", args.json), ("--junit", args.junit)):
+        if value is not None:
+            raise RobustBenchError(f"{flag}: applies to --baseline only (--write-baseline compares nothing)")
+    out = _baseline_output(args.run_dir, args.write_baseline, args.force)
+    record = baseline_from_run(args.run_dir)  # before the note: a refused run replaces nothing
+    note = replacing_note(out)
+    if note:
+        print(note)
+    _write_record(record, out)
+    print(f"baseline: {out} ({len(record['cells'])} cells of {record['source']['summary']})")
+    return 0
+
+
+def _write_outputs(outputs: Sequence[tuple[str, Path]], report: GateReport, run_path: Path,
+                   baseline_path: Path) -> None:
+    from robustbench3d.fileio import atomic_write_text, replacing_note
+
+    for flag, path in outputs:
+        if flag == "--json":
+            text, what = dumps(report_record(report, run_path, baseline_path)), "JSON"
+        else:
+            text, what = junit_xml(report, run_path, baseline_path), "JUnit XML"
+        note = replacing_note(path)
         if note:
             print(note)
-        _write_record(record, out)
-        print(f"baseline: {out} ({len(record['cells'])} cells of {record['source']['summary']})")
-        return 0
-    if args.force:
-        raise RobustBenchError("--force: applies to --write-baseline only (check --baseline writes no file)")
+        atomic_write_text(path, text)
+        print(f"wrote {path} ({what})")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.write_baseline is not None:
+        return _write_baseline_command(args)
+    outputs = _report_outputs(args)
+    if args.force and not outputs:
+        raise RobustBenchError("--force: applies to --write-baseline only, or to the --json/--junit files of "
+                               "--baseline (this check writes no file)")
     baseline_path = Path(args.baseline)
     baseline = read_baseline(baseline_path)
     run_path, cells = read_run(args.run_dir)
     report = compare(baseline, cells, run_path, args.tol_ap, args.tol_drop, args.allow_improvements)
     print(format_report(report, run_path, baseline_path), file=sys.stdout)
+    _write_outputs(outputs, report, run_path, baseline_path)
     return 0 if report.ok else 1
 
 
-__all__ = ["FORMAT", "VERSION", "GateReport", "Move", "baseline_from_run", "compare", "format_report",
-           "read_baseline", "read_run", "validate_baseline", "write_baseline"]
+__all__ = ["FORMAT", "REPORT_FORMAT", "VERSION", "CellCheck", "Comparison", "GateReport", "Mismatch", "Move",
+           "baseline_from_run", "compare", "format_mismatch", "format_report", "junit_xml", "read_baseline",
+           "read_run", "reason", "report_record", "validate_baseline", "write_baseline"]

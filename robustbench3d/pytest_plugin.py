@@ -20,13 +20,22 @@ arguments share one run. Marker keywords: ``victim`` (required), ``attacks`` (de
 ``seed`` one in [0, 2**63 - 1] (:data:`robustbench3d.victims.zoo.SEED_RANGE`); anything else is a usage
 error naming the keyword, raised before any run.
 
+What a test saw is reported: each test's ``robustbench3d_run`` records, as JUnit properties of the test
+(``user_properties``, written by ``--junitxml``), the run (``robustbench3d.victim``, ``.frames``, ``.cells``,
+``.out``) and every number it hands out, named ``robustbench3d.clean_ap.PROPOSALS.CLASS.METRIC.RECALL.DIFFICULTY``
+(``ap.ATTACK...``, ``drop.ATTACK...``, ``relative_drop.ATTACK...`` for the others), e.g.
+``robustbench3d.clean_ap.gt.Car.bev.R40.moderate = 96.1``. A failing test adds a ``robustbench3d``
+section to its failure report: the run, the frame count, the cells the test read with their flags and
+evaluator notes, and the numbers it was handed.
+
 Standard library and pytest only at import (pytest loads entry-point plugins in every session).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Generator, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +52,29 @@ def pytest_configure(config: pytest.Config) -> None:
                    "split='val', seed=0, victim_args=None, attack_args=None): what the robustbench3d_run fixture runs")
 
 
+PROPERTY_PREFIX = "robustbench3d"
+
+
+class _Seen:
+    """What one test read from the run: the cells (in order) and the numbers handed out, each number
+    also recorded as a JUnit property of the test (``item.user_properties``)."""
+
+    def __init__(self, item: pytest.Item) -> None:
+        self.item = item
+        self.cells: list[str] = []
+        self.values: dict[str, Any] = {}
+
+    def record(self, key: str, value: Any) -> None:
+        """Record one number handed out, once per test."""
+        if key not in self.values:
+            self.values[key] = value
+            self.item.user_properties.append((key, value))
+
+    def cell(self, name: str) -> None:
+        if name not in self.cells:
+            self.cells.append(name)
+
+
 @dataclass(frozen=True)
 class BenchmarkResult:
     """The cells of one benchmark run, read by attack and proposal source (AP in percent)."""
@@ -52,11 +84,15 @@ class BenchmarkResult:
     cells: tuple[dict[str, Any], ...] = field(repr=False)
     #: The run's progress lines (dataset, cells, flags).
     log: tuple[str, ...] = field(default=(), repr=False)
+    #: What the test holding this object read (set by the fixture; None outside a test).
+    _seen: _Seen | None = field(default=None, repr=False, compare=False)
 
     def cell(self, attack: str = "none", proposals: str = "detector") -> dict[str, Any]:
         """The summary cell; a failed or skipped cell fails the test with its reason."""
         for c in self.cells:
             if (c["attack"], c["proposals"]) == (attack, proposals):
+                if self._seen is not None:
+                    self._seen.cell(cell_name(c))
                 if c["status"] != "ok":
                     pytest.fail(f"robustbench3d cell {self.victim} / {attack} / {proposals} is {c['status']}: "
                                 f"{c['reason']}", pytrace=False)
@@ -69,7 +105,9 @@ class BenchmarkResult:
         """AP in percent of one cell."""
         from robustbench3d.results import CellResult
 
-        return CellResult(self.cell(attack, proposals)).ap(cls, metric, recall, difficulty)
+        value = CellResult(self.cell(attack, proposals)).ap(cls, metric, recall, difficulty)
+        kind = "clean_ap" if attack == "none" else f"ap.{attack}"
+        return self._record(f"{kind}.{proposals}.{cls}.{metric}.{recall}.{difficulty}", value)
 
     def clean_ap(self, metric: str = "bev", difficulty: str = "moderate", proposals: str = "detector",
                  recall: str = "R40", cls: str = "Car") -> float:
@@ -82,7 +120,15 @@ class BenchmarkResult:
         it is 0), from the attacked cell's ``attack_effect``."""
         from robustbench3d.results import CellResult
 
-        return CellResult(self.cell(attack, proposals)).drop(cls, metric, recall, difficulty, relative=relative)
+        value = CellResult(self.cell(attack, proposals)).drop(cls, metric, recall, difficulty, relative=relative)
+        kind = "relative_drop" if relative else "drop"
+        return self._record(f"{kind}.{attack}.{proposals}.{cls}.{metric}.{recall}.{difficulty}", value)
+
+    def _record(self, key: str, value: Any) -> Any:
+        """``value``, recorded as the test's property ``robustbench3d.KEY``."""
+        if self._seen is not None:
+            self._seen.record(f"{PROPERTY_PREFIX}.{key}", value)
+        return value
 
     def flags(self, attack: str = "none", proposals: str = "detector") -> list[dict[str, str]]:
         """The cell's sanity flags (:mod:`robustbench3d.runner.flags`)."""
@@ -91,6 +137,48 @@ class BenchmarkResult:
     @property
     def frames(self) -> int:
         return int(self.cells[0]["dataset"]["frames"])
+
+    def for_test(self, item: pytest.Item) -> BenchmarkResult:
+        """This run, recording what the test ``item`` reads (its properties and failure section)."""
+        seen = _Seen(item)
+        item.user_properties += [(f"{PROPERTY_PREFIX}.{key}", value) for key, value in (
+            ("victim", self.victim), ("frames", self.frames),
+            ("cells", ", ".join(cell_name(c) for c in self.cells)), ("out", str(self.out)))]
+        item.stash[_SEEN_KEY] = (self, seen)
+        return dataclasses.replace(self, _seen=seen)
+
+
+def cell_name(cell: Mapping[str, Any]) -> str:
+    """``victim+attack+proposals``, the name of a cell in a run's output and in ``check``."""
+    return f"{cell['victim']}+{cell['attack']}+{cell['proposals']}"
+
+
+def _cell_lines(cell: Mapping[str, Any]) -> Iterator[str]:
+    """A cell's status, sanity flags and evaluator notes / skipped metrics, for the failure section."""
+    yield f"  {cell_name(cell)}: {cell['status']}" + (f" ({cell['reason']})" if cell.get("reason") else "")
+    for flag in cell.get("flags") or []:
+        yield f"    flag {flag['code']}: {flag['message']}"
+    meta = (cell.get("metrics") or {}).get("meta", {})
+    notes = [*meta.get("notes", []),
+             *(f"skipped {s['class']} {s['metric']}: {s['reason']}" for s in meta.get("skipped", []))]
+    yield from (f"    evaluator note: {n}" for n in notes) if notes else ["    evaluator notes: none"]
+
+
+def describe(run: BenchmarkResult, seen: _Seen) -> str:
+    """The ``robustbench3d`` section of a failing test's report: run, frames, cells read, numbers."""
+    dataset = run.cells[0]["dataset"]
+    lines = [f"run: victim {run.victim}, {run.frames} frame(s) of split {dataset['split']!r} "
+             f"({dataset['split_frames']} in the split) under {dataset['root']}; output {run.out}"]
+    by_name = {cell_name(c): c for c in run.cells}
+    if seen.cells:
+        lines.append("cell(s) this test read:")
+        lines += [line for name in seen.cells for line in _cell_lines(by_name[name])]
+    else:
+        lines.append(f"cell(s) this test read: none (the run's cells: {', '.join(by_name)})")
+    if seen.values:
+        lines.append("numbers handed to the test (AP in %, drops in percentage points):")
+        lines += [f"  {key} = {value}" for key, value in seen.values.items()]
+    return "\n".join(lines)
 
 
 def _names(value: str | Sequence[str] | None, default: tuple[str, ...]) -> tuple[str, ...]:
@@ -135,6 +223,22 @@ def _config_from_marker(marker: pytest.Mark, out: Path) -> Any:
 
 
 _RUNS = pytest.StashKey[dict[str, BenchmarkResult]]()
+_SEEN_KEY = pytest.StashKey[tuple[BenchmarkResult, _Seen]]()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item,
+                              call: pytest.CallInfo[None]) -> Generator[None, pytest.TestReport, pytest.TestReport]:
+    """Add the ``robustbench3d`` section (:func:`describe`) to a failing test that used the fixture."""
+    report = yield
+    found = item.stash.get(_SEEN_KEY, None)
+    if found is not None and report.when == "call" and report.failed:
+        text = describe(*found)
+        if hasattr(report.longrepr, "addsection"):  # shown in the terminal and in --junitxml's failure text
+            report.longrepr.addsection(MARKER, text)
+        else:
+            report.sections.append((MARKER, text))
+    return report
 
 
 @pytest.fixture
@@ -153,7 +257,7 @@ def robustbench3d_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.T
         lines: list[str] = []
         report = run_benchmark(config, lines.append)
         runs[key] = BenchmarkResult(out=out, victim=config.victims[0], cells=tuple(report.summary), log=tuple(lines))
-    return runs[key]
+    return runs[key].for_test(request.node)
 
 
-__all__ = ["BenchmarkResult", "robustbench3d_run"]
+__all__ = ["BenchmarkResult", "cell_name", "robustbench3d_run"]

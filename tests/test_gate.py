@@ -180,12 +180,15 @@ def test_other_dataset_or_protocol_fails_other_root_does_not(base, tmp_path, cap
         c["dataset"]["frames"] = 9
     assert check(write_run(tmp_path / "data", other), base) == 1
     out = capsys.readouterr().out
-    assert "another dataset: frames 10 (run: 9); sha256 differs" in out
+    assert "is not comparable with" in out and ": another dataset\n" in out
+    assert "  dataset frames: baseline 10, run 9\n" in out
+    assert f"  dataset sha256: baseline {'ab' * 8}..., run {'cd' * 8}...\n" in out
     seeded = summary()
     for c in seeded:
         c["provenance"]["seed"] = 3
     assert check(write_run(tmp_path / "seed", seeded), base) == 1
-    assert "another evaluation protocol: seed 0 (run: 3)" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert ": another evaluation protocol\n" in out and "  protocol seed: baseline 0, run 3\n" in out
 
 
 def test_compare_counts_match_a_brute_force_over_the_values(base, tmp_path):
