@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from robustbench3d.errors import RobustBenchError
+from robustbench3d.ranges import FRAMES_RANGE, SEED_RANGE
 from robustbench3d.registry import Spec
 from robustbench3d.victims.spec import Capabilities
 
@@ -21,12 +22,11 @@ if TYPE_CHECKING:
 
 
 #: The largest seed the attack commands accept (``show``/``attack apply`` draw a frame's attack from ``(seed, frame
-#: id)`` as ``run`` does, ``attack train`` its batches and EOT): 32-bit, the range of ``run --seed``
-#: (``robustbench3d.run_cli.SEED_RANGE``: the seeds numpy's legacy API, torch and most tools take).
-MAX_SEED = 2**32 - 1
-#: The most frames ``--max-frames`` may ask for: KITTI frame ids have six digits, so no split holds more (the
-#: range of ``run --max-frames``).
-MAX_FRAMES = 1_000_000
+#: id)`` as ``run`` does, ``attack train`` its batches and EOT): the range of ``run --seed``
+#: (:data:`robustbench3d.ranges.SEED_RANGE`).
+MAX_SEED = SEED_RANGE[1]
+#: The most frames ``--max-frames`` may ask for (:data:`robustbench3d.ranges.FRAMES_RANGE`, as ``run --max-frames``).
+MAX_FRAMES = FRAMES_RANGE[1]
 
 
 def check_seed(seed: object, option: str = "--seed") -> int:

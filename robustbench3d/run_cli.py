@@ -7,8 +7,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from typing import Any
+
+from robustbench3d.ranges import (
+    BATCH_RANGE,
+    FRAMES_RANGE,
+    PROCESSES_RANGE,
+    RESAMPLES_RANGE,
+    SEED_RANGE,
+    check_bootstrap,
+    check_range,
+    default_processes,
+)
 
 
 def _names(text: str) -> list[str]:
@@ -56,6 +66,7 @@ def frames_line(max_frames: int | None, requested: int | None, full: bool, data:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    frames, seeds, batch, procs, resamples = FRAMES_RANGE, SEED_RANGE, BATCH_RANGE, PROCESSES_RANGE, RESAMPLES_RANGE
     parser.add_argument("--victims", required=True, metavar="NAME[,NAME...]",
                         help="registered victims, or ONNX victim directories (registered under their directory name)")
     parser.add_argument("--attacks", default="none", metavar="NAME[,NAME...]",
@@ -66,37 +77,57 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "a victim that does not support a source gets a skipped cell (default: detector)")
     parser.add_argument("--out", required=True, metavar="DIR",
                         help="output directory (cell files, summary.json, results.csv, seed_table.md); "
-                             "an interrupted run resumes")
+                             "an interrupted run resumes: finished cells of the same configuration are kept")
+    parser.add_argument("--force", action="store_true",
+                        help="replace finished cells in --out that were computed with another configuration "
+                             "(without it the run refuses them up front; each replaced cell is named)")
     parser.add_argument("--data", metavar="DIR",
                         help="KITTI-layout dataset root (default: the embedded procedural dataset in the cache, "
                              "generated if missing)")
     parser.add_argument("--split", default="val", help="split name, ImageSets/<split>.txt (default: val)")
     parser.add_argument("--max-frames", type=int, metavar="N",
-                        help="evaluate only the first N frames of the split (default on the embedded val split: "
-                             "the first DEFAULT_VAL_FRAMES, see --full; elsewhere: all)")
+                        help=f"evaluate only the first N frames of the split, {frames[0]}..{frames[1]} (default on "
+                             "the embedded val split: the first DEFAULT_VAL_FRAMES, see --full; elsewhere: all)")
     parser.add_argument("--full", action="store_true",
                         help="evaluate the whole split (the embedded val split's default is a first-N slice)")
     parser.add_argument("--seed", type=int, default=0, metavar="S",
-                        help="run seed: attack randomness per frame, and seed= of victims that take one (default 0)")
-    parser.add_argument("--batch-size", type=int, default=4, metavar="B", help="frames per detect call (default 4)")
+                        help=f"run seed, {seeds[0]}..{seeds[1]}: attack randomness per frame, and seed= of victims "
+                             "that take one (default 0)")
+    parser.add_argument("--batch-size", type=int, default=4, metavar="B",
+                        help=f"frames per detect call, {batch[0]}..{batch[1]} (default 4)")
     parser.add_argument("--victim-arg", action="append", metavar="NAME:KEY=VALUE",
                         help="keyword argument of a victim's factory, e.g. fpointnet-v1:weights=cascade.pt "
                              "(repeatable; VALUE is JSON or a string)")
     parser.add_argument("--attack-arg", action="append", metavar="NAME:KEY=VALUE",
                         help="keyword argument of an attack's factory (repeatable)")
-    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, metavar="W",
-                        help="processes generating the embedded dataset if it is missing (default: CPUs)")
+    parser.add_argument("--workers", type=int, default=default_processes(), metavar="W",
+                        help=f"processes generating the embedded dataset if it is missing, {procs[0]}..{procs[1]} "
+                             "(default: CPUs)")
     parser.add_argument("--executor", choices=("local", "ray"), default="local",
                         help="where frame shards of the cells run: local worker processes, or a Ray cluster "
                              "(docs/executors.md; default: local)")
-    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, metavar="J",
-                        help="worker processes (local; 1: everything in this process) or CPUs of the local Ray "
-                             "cluster started without --address (default: CPUs)")
-    parser.add_argument("--address", metavar="ADDR", help="a running Ray cluster to join (--executor ray)")
+    parser.add_argument("--jobs", type=int, default=default_processes(), metavar="J",
+                        help=f"worker processes (local; 1: everything in this process) or CPUs of the local Ray "
+                             f"cluster started without --address, {procs[0]}..{procs[1]} (default: CPUs)")
+    parser.add_argument("--address", metavar="ADDR",
+                        help="a running Ray cluster to join (--executor ray): HOST:PORT (the head's GCS port, "
+                             "e.g. 6379), ray://HOST:PORT (Ray Client), auto (the cluster `ray start` recorded on "
+                             "this machine) or local (start one, as without --address); checked up front")
     parser.add_argument("--bootstrap", type=int, default=1000, metavar="R",
                         help="bootstrap resamples of the frames for the 95 %% confidence interval of every AP and "
-                             "(paired) AP drop; 0: none (default 1000)")
+                             f"(paired) AP drop, {resamples[0]}..{resamples[1]}; 0: none (default 1000)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars on stderr")
+
+
+def check_numbers(args: argparse.Namespace) -> None:
+    """Every numeric option of ``run`` in its range (:data:`FRAMES_RANGE` ...), before any work."""
+    if args.max_frames is not None:
+        check_range("--max-frames", args.max_frames, *FRAMES_RANGE, "frames")
+    check_range("--seed", args.seed, *SEED_RANGE, "run seed")
+    check_range("--batch-size", args.batch_size, *BATCH_RANGE, "frames per detect call")
+    check_range("--workers", args.workers, *PROCESSES_RANGE, "dataset generation processes")
+    check_range("--jobs", args.jobs, *PROCESSES_RANGE, "worker processes")
+    check_bootstrap(args.bootstrap)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -106,10 +137,12 @@ def run(args: argparse.Namespace) -> int:
     from robustbench3d.fileio import check_output_dir, remove_created_dir
     from robustbench3d.runner import RunConfig, run_benchmark, summary_table
     from robustbench3d.runner.config import default_max_frames
+    from robustbench3d.runner.executors import make_executor
     from robustbench3d.seed_table import SEED_TABLE_FILE, seed_table_text
     from robustbench3d.victims import resolve_victim_references
 
     out = check_output_dir(args.out, "--out")
+    check_numbers(args)
     created = not out.exists()
 
     victims, victim_args = resolve_victim_references(_names(args.victims),
@@ -117,18 +150,16 @@ def run(args: argparse.Namespace) -> int:
     attacks, attack_args = resolve_attack_references(_names(args.attacks),
                                                      parse_factory_args(args.attack_arg, "--attack-arg"))
     max_frames = default_max_frames(args.max_frames, args.full, args.data, args.split)
-    print(frames_line(max_frames, args.max_frames, args.full, args.data, args.split), file=sys.stderr, flush=True)
     config = RunConfig(
         victims=tuple(victims), attacks=tuple(attacks),
         proposals=tuple(_names(args.proposals)), out=args.out, data=args.data, split=args.split,
         max_frames=max_frames, seed=args.seed, batch_size=args.batch_size,
         victim_args=victim_args,
         attack_args=attack_args,
-        workers=args.workers, progress=not args.no_progress, bootstrap=args.bootstrap,
+        workers=args.workers, progress=not args.no_progress, bootstrap=args.bootstrap, force=args.force,
     )
-    from robustbench3d.runner.executors import make_executor
-
-    executor = make_executor(args.executor, args.jobs, args.address)
+    executor = make_executor(args.executor, args.jobs, args.address)  # a Ray address is checked here
+    print(frames_line(max_frames, args.max_frames, args.full, args.data, args.split), file=sys.stderr, flush=True)
     if executor is None:  # one intra-op thread, as in every worker process: the same result files
         from robustbench3d.runner.shards import worker_setup
 

@@ -129,12 +129,12 @@ def test_shard_ranges_are_whole_batches_covering_every_frame():
 def test_executor_arguments_are_checked(tmp_path, capsys):
     assert make_executor("local", 1) is None  # one job: everything in this process
     assert isinstance(make_executor("local", 2), LocalExecutor)
-    with pytest.raises(RobustBenchError, match="--jobs must be at least 1, got 0"):
+    with pytest.raises(RobustBenchError, match=r"--jobs must be an integer in 1\.\.1024 \(worker processes\), got 0"):
         make_executor("local", 0)
     with pytest.raises(RobustBenchError, match="--address joins a Ray cluster"):
         make_executor("local", 2, "127.0.0.1:6379")
     assert main(["run", "--victims", "lidar-cluster", "--out", str(tmp_path / "r"), "--jobs", "0"]) == 2
-    assert "--jobs must be at least 1" in capsys.readouterr().err
+    assert "--jobs must be an integer in 1..1024" in capsys.readouterr().err
 
 
 def _serial_and_sharded(config, tmp_path: Path) -> tuple:

@@ -155,12 +155,17 @@ def test_resume_reuses_finished_cells_and_recomputes_after_a_change(dataset, tmp
     assert [o.reused for o in repaired.outcomes] == [False, True]
     assert result_files(out / "cells" / CELL) == files
 
-    # a changed configuration recomputes
-    shorter = run_benchmark(config(max_frames=2), lines.append)
+    # a changed configuration is refused before any work, and recomputed under force
+    with pytest.raises(RobustBenchError) as refused:
+        run_benchmark(config(max_frames=2), lines.append)
+    assert (f"finished cell {CELL} (and 1 more cell(s)) was computed with another configuration (on disk vs this "
+            "run: frames (--max-frames) 4 vs 2;") in str(refused.value)
+    assert result_files(out / "cells" / CELL) == files and (out / "summary.json").is_file()
+    shorter = run_benchmark(config(max_frames=2, force=True), lines.append)
     assert [o.reused for o in shorter.outcomes] == [False, False]
     assert shorter.cells[0]["metrics"]["meta"]["frames"] == 2 and len(result_files(out / "cells" / CELL)) == 2
     assert shorter.cells[0]["provenance"]["fingerprint"] != first.cells[0]["provenance"]["fingerprint"]
-    seeded = run_benchmark(config(max_frames=2, seed=1), lines.append)
+    seeded = run_benchmark(config(max_frames=2, seed=1, force=True), lines.append)
     assert not any(o.reused for o in seeded.outcomes)
 
 

@@ -194,7 +194,7 @@ def test_tiny_run_writes_consistent_files_and_resumes(tiny_tradeoff, capsys):
 
 def test_bad_inputs_are_refused(tmp_path, capsys):
     assert main(["tradeoff", "--out", str(tmp_path / "o"), "--frames", "0"]) == 2
-    assert "--frames must be at least 1" in capsys.readouterr().err
+    assert "--frames must be an integer in 1..1000000 (frames), got 0" in capsys.readouterr().err
     assert main(["tradeoff", "--out", str(tmp_path / "o"), "--attack", "none"]) == 2
     assert "--attack" in capsys.readouterr().err
     (tmp_path / "t").mkdir()

@@ -60,6 +60,8 @@ class RunConfig:
         progress: progress bars on stderr.
         bootstrap: resamples of the bootstrap 95 % intervals over frames attached to every ok cell's AP
             (``metrics_ci``) and attack effect's drop (``drop_ci``); 0 disables them.
+        force: replace finished cells of ``out`` computed with another configuration (without it the run
+            refuses them before computing anything; :func:`~robustbench3d.runner.grid.run_benchmark`).
     """
 
     victims: tuple[str, ...]
@@ -77,6 +79,7 @@ class RunConfig:
     workers: int = 1
     progress: bool = True
     bootstrap: int = 1000
+    force: bool = False
 
     def __post_init__(self) -> None:
         for what in ("victims", "attacks", "proposals"):
@@ -85,16 +88,7 @@ class RunConfig:
         bad = [p for p in self.proposals if p not in PROPOSAL_SOURCES]
         if bad:
             raise RobustBenchError(f"--proposals: unknown source {bad[0]!r}; choose from {', '.join(PROPOSAL_SOURCES)}")
-        if self.max_frames is not None and self.max_frames < 1:
-            raise RobustBenchError(f"--max-frames must be at least 1, got {self.max_frames}")
-        if self.batch_size < 1:
-            raise RobustBenchError(f"--batch-size must be at least 1, got {self.batch_size}")
-        if self.seed < 0:
-            raise RobustBenchError(f"--seed must be non-negative, got {self.seed}")
-        if self.bootstrap < 0:
-            raise RobustBenchError(f"--bootstrap must be non-negative (0 disables), got {self.bootstrap}")
-        if self.workers < 1:
-            raise RobustBenchError(f"--workers must be at least 1, got {self.workers}")
+        self._check_numbers()
         for what, args, names in (("victim", self.victim_args, self.victims),
                                   ("attack", self.attack_args, self.attacks)):
             extra = sorted(set(args) - set(names))
@@ -103,6 +97,24 @@ class RunConfig:
         object.__setattr__(self, "out", Path(self.out))
         if self.data is not None:
             object.__setattr__(self, "data", Path(self.data))
+
+    def _check_numbers(self) -> None:
+        """The numeric settings in the ranges of ``run``'s options (:mod:`robustbench3d.run_cli`)."""
+        from robustbench3d.ranges import (
+            BATCH_RANGE,
+            FRAMES_RANGE,
+            PROCESSES_RANGE,
+            SEED_RANGE,
+            check_bootstrap,
+            check_range,
+        )
+
+        if self.max_frames is not None:
+            check_range("--max-frames", self.max_frames, *FRAMES_RANGE, "frames")
+        check_range("--batch-size", self.batch_size, *BATCH_RANGE, "frames per detect call")
+        check_range("--seed", self.seed, *SEED_RANGE, "run seed")
+        check_bootstrap(self.bootstrap)
+        check_range("--workers", self.workers, *PROCESSES_RANGE, "dataset generation processes")
 
     def as_dict(self) -> dict[str, Any]:
         """JSON form (for provenance)."""
@@ -140,3 +152,69 @@ def fingerprint(cell_config: Mapping[str, Any]) -> str:
     """sha256 of the canonical JSON of a cell's configuration (sorted keys, no whitespace)."""
     text = json.dumps(cell_config, sort_keys=True, separators=(",", ":"), allow_nan=False, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+#: How :func:`config_differences` names some entries of a cell configuration (dotted paths).
+_LABELS = {"dataset.frames": "frames (--max-frames)", "dataset.sha256": "labels sha256", "seed": "--seed",
+           "batch_size": "--batch-size", "package_version": "package version", "dataset.root": "--data"}
+_MISSING = object()
+
+
+def _flatten(value: Any, path: str = "") -> dict[str, Any]:
+    """Leaves of nested mappings by dotted path (a ``made_by`` record, an object's training log, is one leaf)."""
+    if isinstance(value, Mapping) and value and not path.endswith("made_by"):
+        out: dict[str, Any] = {}
+        for k, v in value.items():
+            out.update(_flatten(v, f"{path}.{k}" if path else str(k)))
+        return out
+    return {path: value}
+
+
+def _label(path: str, labels: Mapping[str, str]) -> str:
+    if path in labels:
+        return labels[path]
+    for prefix, option in (("victim.kwargs.", "--victim-arg "), ("attack.params.", "--attack-arg ")):
+        if path.startswith(prefix):
+            return option + path[len(prefix):]
+    if path.endswith("made_by"):
+        return "the object's made_by record"
+    return "object sha256" if path.endswith("ply_sha256") else path
+
+
+def _difference(label: str, a: Any, b: Any) -> str:
+    """``"LABEL OLD vs NEW"``, or ``"LABEL differs"`` for records (mappings, lists) too long to show."""
+    if any(isinstance(v, dict | list) and len(_text(v)) > 24 for v in (a, b)):
+        return f"{label} differs"
+    return f"{label} {_show(a)} vs {_show(b)}"
+
+
+def _text(value: Any) -> str:
+    if value is _MISSING:
+        return "(none)"
+    return value if isinstance(value, str) else json.dumps(value, sort_keys=True, default=str)
+
+
+def _show(value: Any) -> str:
+    """The value as text, shortened to 12 characters and an ellipsis past 24 (hashes, paths)."""
+    text = _text(value)
+    return text[:12] + "…" if len(text) > 24 else text
+
+
+def _nested(path: str, flat: dict[str, Any]) -> bool:
+    """True when ``path`` (an empty mapping on the other side) has entries in ``flat``: not a difference itself."""
+    return path not in flat and any(other.startswith(f"{path}.") for other in flat)
+
+
+def config_differences(old: Mapping[str, Any], new: Mapping[str, Any], limit: int = 3,
+                       labels: Mapping[str, str] | None = None) -> str:
+    """What differs between two cell configurations (:func:`~robustbench3d.runner.records.cell_config`), as
+    ``"NAME OLD vs NEW; ..."`` for the first ``limit`` differing entries (long values shortened; ``labels``
+    names entries by dotted path, over the run's names)."""
+    names = {**_LABELS, **(labels or {})}
+    a, b = (_flatten(json.loads(json.dumps(c, sort_keys=True, default=str))) for c in (old, new))  # as stored
+    diff = [k for k in dict.fromkeys([*a, *b])
+            if a.get(k, _MISSING) != b.get(k, _MISSING) and not _nested(k, a) and not _nested(k, b)]
+    parts = [_difference(_label(k, names), a.get(k, _MISSING), b.get(k, _MISSING)) for k in diff[:limit]]
+    if len(diff) > limit:
+        parts.append(f"{len(diff) - limit} more")
+    return "; ".join(parts) if parts else "no entry differs"

@@ -14,7 +14,11 @@ the summary is written, so it always refers to the clean cell on disk) holds:
   that maximises F1 on the clean cell; the same threshold applies to the attacked cell. Null when the
   clean cell matches no Car.
 
-Both cells' numbers come from their result files on disk (``cells/<cell>/data/*.txt``).
+Both cells' numbers come from their result files on disk (``cells/<cell>/data/*.txt``). The clean cell
+counts as the reference only when its configuration equals the attacked cell's but for the attack
+(:func:`reference_mismatch`: victim and its arguments, proposals, dataset and frames, seed, batch size,
+evaluation, versions); a clean cell recomputed with, say, other victim arguments leaves an earlier
+attacked cell without a reference (``attack_effect`` null), never compared with the wrong one.
 
 With ``bootstrap`` resamples (the run's ``RunConfig.bootstrap``; 0: none), every ``ok`` cell also gets
 ``metrics_ci``, the percentile bootstrap 95 % interval over frames of each AP in ``metrics``, and every
@@ -25,13 +29,13 @@ frames); :mod:`robustbench3d.eval.bootstrap`, resampling weights from the run se
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from robustbench3d.kitti.labels import Labels, read_labels
 from robustbench3d.results import APResult
-from robustbench3d.runner.config import CellKey, RunConfig
+from robustbench3d.runner.config import CellKey, RunConfig, config_differences
 
 CLEAN_ATTACK = "none"
 #: The success-rate criterion: class, metric, difficulty (the IoU is the evaluator's for the metric).
@@ -49,6 +53,13 @@ def with_clean_cells(config: RunConfig) -> RunConfig:
 def clean_key(key: CellKey) -> CellKey:
     """The clean cell compared with ``key``."""
     return CellKey(key.victim, CLEAN_ATTACK, key.proposals)
+
+
+def reference_mismatch(clean: dict[str, Any], attacked: dict[str, Any]) -> str | None:
+    """Why ``clean`` is not ``attacked``'s clean reference: their cell configurations differ outside the
+    attack (:func:`~robustbench3d.runner.config.config_differences`, clean vs attacked), or None."""
+    a, b = ({k: v for k, v in c["provenance"]["config"].items() if k != "attack"} for c in (clean, attacked))
+    return None if a == b else config_differences(a, b)
 
 
 def read_results(data_dir: Path, frame_ids: Sequence[str]) -> list[Labels]:
@@ -155,11 +166,13 @@ def attack_effect(clean_cell: dict[str, Any], attacked_cell: dict[str, Any], cle
 
 
 def attach_effects(cells: list[dict[str, Any]], cells_dir: Path, gt: Sequence[Labels],
-                   frame_ids: Sequence[str], bootstrap: int = 0, seed: int = 0) -> list[int]:
+                   frame_ids: Sequence[str], bootstrap: int = 0, seed: int = 0,
+                   log: Callable[[str], None] | None = None) -> list[int]:
     """Set ``attack_effect`` on every attacked cell of ``cells`` (in place): the record for an ``ok`` one whose
-    clean cell is among ``cells`` and ``ok``, else null (clean cells are left as they are); with
-    ``bootstrap`` resamples also ``metrics_ci`` on every ``ok`` cell and ``drop_ci`` in each record
-    (``bootstrap=0`` removes them). Returns the indices of changed cells."""
+    clean cell is among ``cells``, ``ok`` and of the same configuration but for the attack
+    (:func:`reference_mismatch`; ``log`` gets a line for each one that is not), else null (clean cells are
+    left as they are); with ``bootstrap`` resamples also ``metrics_ci`` on every ``ok`` cell and ``drop_ci``
+    in each record (``bootstrap=0`` removes them). Returns the indices of changed cells."""
     clean = {(c["victim"], c["proposals"]): c for c in cells
              if c["attack"] == CLEAN_ATTACK and c["status"] == "ok"}
     intervals = Intervals(gt, frame_ids, bootstrap, seed) if bootstrap > 0 else None
@@ -180,7 +193,11 @@ def attach_effects(cells: list[dict[str, Any]], cells_dir: Path, gt: Sequence[La
         key = CellKey(cell["victim"], cell["attack"], cell["proposals"])
         base = clean.get((key.victim, key.proposals))
         effect = None
-        if cell["status"] == "ok" and base is not None:
+        mismatch = reference_mismatch(base, cell) if cell["status"] == "ok" and base is not None else None
+        if mismatch is not None and log is not None:
+            log(f"no clean reference for {key}: its clean cell {clean_key(key).dirname} was computed with another "
+                f"configuration (clean vs attacked: {mismatch}); attack_effect left null")
+        if cell["status"] == "ok" and base is not None and mismatch is None:
             effect = attack_effect(base, cell, cells_dir / clean_key(key).dirname, cells_dir / key.dirname, gt,
                                    frame_ids, intervals)
         if cell.get("attack_effect", None) != effect or "attack_effect" not in cell:
@@ -189,5 +206,5 @@ def attach_effects(cells: list[dict[str, Any]], cells_dir: Path, gt: Sequence[La
     return sorted(set(changed))
 
 
-__all__ = ["CLEAN_ATTACK", "Intervals", "attach_effects", "attack_effect", "clean_key", "read_results", "success_rate",
-           "with_clean_cells"]
+__all__ = ["CLEAN_ATTACK", "Intervals", "attach_effects", "attack_effect", "clean_key", "read_results",
+           "reference_mismatch", "success_rate", "with_clean_cells"]

@@ -10,7 +10,10 @@ Output layout::
 
 A cell is finished when its ``cell.json`` exists (written atomically, last). A rerun reuses a
 finished ``ok`` or ``skipped`` cell whose configuration fingerprint is unchanged (and whose result
-files are all there); anything else is (re)computed. ``error`` cells are always retried.
+files are all there) and says how many it kept; ``error`` cells are always retried. A finished ``ok`` or
+``skipped`` cell of the grid whose fingerprint differs (another ``--max-frames``, object file, victim
+argument...) is never replaced silently: the run refuses before computing anything, naming the cell and
+what differs, unless ``RunConfig.force`` (``--force``), which replaces it with one line per cell.
 A victim that cannot be created (e.g. missing weights) or fails makes error cells; the run goes on.
 A run with attacked cells also runs (or reuses) the clean control ``none`` of each victim x proposal
 source, and every attacked cell records its AP drop and attack success rate against it
@@ -20,7 +23,10 @@ the one every cell prepares and applies.
 
 The summary and the CSV cover every finished cell of ``OUT`` run on the same dataset, evaluation
 and seed (:mod:`robustbench3d.runner.collect`), so runs of different victims or attacks into one
-directory add up; finished cells that are not comparable are left out and listed.
+directory add up; finished cells that are not comparable are left out and listed. An attacked cell
+is compared only with a clean cell of the same configuration but for the attack (victim and its
+arguments, proposals, dataset and frames, seed, batch size, evaluation, versions); else its
+``attack_effect`` is null and the run says why.
 """
 
 from __future__ import annotations
@@ -57,7 +63,7 @@ from robustbench3d.runner.cell import (
     victim_failure,
 )
 from robustbench3d.runner.collect import earlier_cells
-from robustbench3d.runner.config import CellKey, RunConfig, fingerprint, grid
+from robustbench3d.runner.config import CellKey, RunConfig, config_differences, fingerprint, grid
 from robustbench3d.runner.effect import CLEAN_ATTACK, attach_effects, with_clean_cells
 from robustbench3d.runner.executors import Executor
 from robustbench3d.runner.flags import determinism, record_flags
@@ -170,6 +176,62 @@ def _check_names(config: RunConfig) -> None:
         ATTACKS.entry(name)
 
 
+def _finished(cell_dir: Path) -> dict | None:
+    """The cell's ``cell.json`` if it is there and schema-valid (else None: the cell is recomputed,
+    :func:`_reusable` says why)."""
+    path = cell_dir / CELL_FILE
+    if not path.is_file():
+        return None
+    try:
+        cell = read_json(path)
+        validate_summary(cell, path, cell_only=True)
+    except DataFormatError:
+        return None
+    return cell
+
+
+def _check_finished(out: Path, cells: list[CellKey], cfgs: list[dict[str, Any]], force: bool,
+                    frame_ids: list[str], log: Callable[[str], None]) -> None:
+    """The written-once rule for the grid's cells, before any is computed (module doc): refuse a finished
+    ``ok`` or ``skipped`` cell whose fingerprint differs from this run's unless ``force`` (then name each one
+    replaced); say how many unchanged finished cells are kept."""
+    kept, changed = 0, []
+    for key, cfg in zip(cells, cfgs, strict=True):
+        cell_dir = out / "cells" / key.dirname
+        old = _finished(cell_dir)
+        if old is None or old["status"] == "error":  # nothing finished there, or an error cell: always retried
+            continue
+        if old["provenance"]["fingerprint"] != fingerprint(cfg):
+            why = config_differences(old["provenance"]["config"], cfg)
+            dependents = _compared_with(out / "cells", key.dirname, {k.dirname for k in cells})
+            if dependents:
+                why += (f"; {len(dependents)} attacked cell(s) of earlier runs are compared with it and lose their "
+                        f"clean reference when it is replaced: {', '.join(dependents)}")
+            changed.append((key, why))
+        elif old["status"] == "skipped" or results_complete(cell_dir, frame_ids):
+            kept += 1
+    if changed and not force:
+        key, why = changed[0]
+        more = f" (and {len(changed) - 1} more cell(s))" if len(changed) > 1 else ""
+        raise RobustBenchError(f"--out {out}: finished cell {key.dirname}{more} was computed with another "
+                               f"configuration (on disk vs this run: {why}); pass --force to replace it, or choose "
+                               "another --out (nothing was changed)")
+    for key, why in changed:
+        log(f"replacing finished cell {key.dirname} (--force): on disk vs this run: {why}")
+    if kept:
+        log(f"keeping {kept} finished cell(s) already in {out} (same configuration fingerprint: not recomputed)")
+
+
+def _compared_with(cells_dir: Path, clean: str, grid_cells: set[str]) -> list[str]:
+    """Cells of ``cells_dir`` outside the grid whose recorded ``attack_effect`` is against cell ``clean``."""
+    out = []
+    for cell_dir in sorted(p for p in cells_dir.iterdir() if p.is_dir() and p.name not in grid_cells):
+        cell = _finished(cell_dir)
+        if cell is not None and (cell.get("attack_effect") or {}).get("clean_cell") == clean:
+            out.append(cell_dir.name)
+    return out
+
+
 def _reusable(cell_dir: Path, print_fn: Callable[[str], None], want: str, frame_ids: list[str]) -> dict | None:
     path = cell_dir / CELL_FILE
     if not path.is_file():
@@ -211,8 +273,6 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
     out = config.out
     out.mkdir(parents=True, exist_ok=True)
     with _exclusive(out):
-        for stale in (SUMMARY_FILE, CSV_FILE, SEED_TABLE_FILE):  # derived files: rewritten at the end, never stale
-            (out / stale).unlink(missing_ok=True)
         dataset = resolve_dataset(config.data, config.split, workers=config.workers, progress=config.progress,
                                   lazy=True, max_frames=config.max_frames, log=log)  # only the frames evaluated
         gt = load_ground_truth(dataset, config.max_frames)
@@ -234,6 +294,9 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
         cells = grid(config)
         cfgs = [cell_config(key, records[key.victim], attack_records[key.attack], identity, config.seed,
                             config.batch_size, evaluation) for key in cells]
+        _check_finished(out, cells, cfgs, config.force, gt.frame_ids, log)
+        for stale in (SUMMARY_FILE, CSV_FILE, SEED_TABLE_FILE):  # derived files: rewritten at the end, never stale
+            (out / stale).unlink(missing_ok=True)
         if executor is not None:  # frame shards of every cell on the executor's workers
             from robustbench3d.runner.parallel import run_cells
 
@@ -254,7 +317,7 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
             log(f"the summary also lists {len(report.earlier)} finished cell(s) of earlier runs in {out}")
         for line in report.left_out:
             log(f"left out of the summary: {line}")
-        _record_effects(report, out / "cells", inputs)
+        _record_effects(report, out / "cells", inputs, log)
         record_flags(report, out / "cells", attacks, log, CELL_FILE)
         summary = write_validated(out / SUMMARY_FILE, report.summary)
         write_long_csv(out / CSV_FILE, summary)
@@ -262,11 +325,13 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
     return report
 
 
-def _record_effects(report: RunReport, cells_dir: Path, inputs: CellInputs) -> None:
+def _record_effects(report: RunReport, cells_dir: Path, inputs: CellInputs,
+                    log: Callable[[str], None] | None = None) -> None:
     """Compare every attacked cell of the summary with its clean cell (:mod:`.effect`); rewrite the
     ``cell.json`` of each cell whose comparison changed (atomically, the cell stays finished)."""
     cells = report.summary
-    for i in attach_effects(cells, cells_dir, inputs.gt.labels, inputs.gt.frame_ids, inputs.bootstrap, inputs.seed):
+    for i in attach_effects(cells, cells_dir, inputs.gt.labels, inputs.gt.frame_ids, inputs.bootstrap, inputs.seed,
+                            log):
         cell = cells[i]
         key = CellKey(cell["victim"], cell["attack"], cell["proposals"])
         write_validated(cells_dir / key.dirname / CELL_FILE, cell, cell_only=True)

@@ -8,8 +8,10 @@ time spent emulating a sparser scan, :class:`DecimatedScan`, left out: a real sp
 The dataset-level caches the attacked cells read (the clean scans' beam patterns, the scene depth of
 each camera sampling) are filled before any cell is timed (:func:`warm_caches`), so every cell is
 timed in the same steady state whatever its place in the run. Results go to ``OUT/cells/<id>/``
-(``data/`` and ``cell.json``, written last): a rerun with the same fingerprint reuses a finished cell,
-timings included (``reused`` says so), so an interrupted run resumes.
+(``data/`` and ``cell.json``, written last, with the configuration its fingerprint hashes): a rerun with
+the same fingerprint reuses a finished cell, timings included (``reused`` says so), so an interrupted run
+resumes; a finished cell of another fingerprint is replaced only under ``--force``
+(:mod:`robustbench3d.tradeoff.outdir`, checked before any cell is measured).
 """
 
 from __future__ import annotations
@@ -134,11 +136,11 @@ def make_attack(spec: CellSpec, kitti: KittiDataset) -> Attack:
     return attack if spec.decimation == 1 else DecimatedScan(attack, spec.decimation)
 
 
-def _fingerprint(spec: CellSpec, ctx: Context, victim: dict[str, Any], attack: dict[str, Any]) -> str:
-    cfg = {"package_version": __version__, "cell": json.loads(spec.key), "victim": victim, "attack": attack,
-           "dataset": {k: ctx.dataset[k] for k in ("root", "split", "frames", "sha256", "embedded")},
-           "proposals": ctx.proposals, "seed": ctx.seed, "batch_size": ctx.batch_size, "threads": ctx.threads}
-    return fingerprint(cfg)
+def cell_config(spec: CellSpec, ctx: Context, victim: dict[str, Any], attack: dict[str, Any]) -> dict[str, Any]:
+    """Everything a cell's detections and timings depend on (its sha256 is the cell's fingerprint)."""
+    return {"package_version": __version__, "cell": json.loads(spec.key), "victim": victim, "attack": attack,
+            "dataset": {k: ctx.dataset[k] for k in ("root", "split", "frames", "sha256", "embedded")},
+            "proposals": ctx.proposals, "seed": ctx.seed, "batch_size": ctx.batch_size, "threads": ctx.threads}
 
 
 def cell_dir(ctx: Context, spec: CellSpec) -> Path:
@@ -146,27 +148,58 @@ def cell_dir(ctx: Context, spec: CellSpec) -> Path:
     return ctx.out / "cells" / f"{spec.victim}+{spec.attack}+{hashlib.sha256(spec.key.encode()).hexdigest()[:12]}"
 
 
-def measure_cell(spec: CellSpec, ctx: Context, log: Callable[[str], None] = print) -> CellMeasure:
-    """Run (or reuse) one cell; see the module docstring."""
-    import torch
+@dataclass(frozen=True)
+class CellPlan:
+    """A cell about to be measured or reused: its victim arguments and record, its attack (made once, the
+    instance measured), the configuration and fingerprint, and its directory."""
 
+    spec: CellSpec
+    kwargs: dict[str, Any]
+    victim: dict[str, Any]
+    attack: Attack
+    attack_record: dict[str, Any]
+    config: dict[str, Any]
+    fingerprint: str
+    where: Path
+    ids: list[str]  # the frames the cell covers
+
+
+def plan_cell(spec: CellSpec, ctx: Context) -> CellPlan:
+    """The :class:`CellPlan` of ``spec`` in ``ctx`` (creates no victim)."""
     kwargs = victim_kwargs(spec.victim, dict(spec.victim_args), ctx.seed)
     vrec = victim_record(spec.victim, kwargs)
     attack = make_attack(spec, ctx.kitti)
     arec = {"name": spec.attack, "params": dict(spec.attack_args), "object": attack.describe()}
-    fp = _fingerprint(spec, ctx, vrec, arec)
-    where = cell_dir(ctx, spec)
-    ids = ctx.gt.frame_ids[:spec.frames]
+    cfg = cell_config(spec, ctx, vrec, arec)
+    return CellPlan(spec, kwargs, vrec, attack, arec, cfg, fingerprint(cfg), cell_dir(ctx, spec),
+                    list(ctx.gt.frame_ids[:spec.frames]))
+
+
+def finished_record(where: Path) -> dict[str, Any] | None:
+    """The ``cell.json`` of a finished cell directory (a JSON object with a fingerprint), else None."""
+    try:
+        rec = json.loads((where / CELL_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return rec if isinstance(rec, dict) and isinstance(rec.get("fingerprint"), str) else None
+
+
+def measure_cell(spec: CellSpec, ctx: Context, log: Callable[[str], None] = print,
+                 plan: CellPlan | None = None) -> CellMeasure:
+    """Run (or reuse) one cell (``plan``: its :func:`plan_cell`, made here when not given); see the module
+    docstring."""
+    import torch
+
+    plan = plan if plan is not None else plan_cell(spec, ctx)
+    kwargs, vrec, attack, arec, fp, where = (plan.kwargs, plan.victim, plan.attack, plan.attack_record,
+                                             plan.fingerprint, plan.where)
+    ids = plan.ids
     done = where / CELL_FILE
-    if done.is_file():
-        try:
-            rec = json.loads(done.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            rec = None
-        if rec is not None and rec.get("fingerprint") == fp and results_complete(where, ids):
-            log(f"tradeoff: reusing {where.name} (measured {rec['measured_at']})")
-            return CellMeasure(spec, read_results(where / "data", ids), rec["batch_frames"], rec["wall_s"],
-                               rec["cpu_s"], True, rec)
+    rec = finished_record(where)
+    if rec is not None and rec["fingerprint"] == fp and results_complete(where, ids):
+        log(f"tradeoff: reusing {where.name} (measured {rec['measured_at']})")
+        return CellMeasure(spec, read_results(where / "data", ids), rec["batch_frames"], rec["wall_s"],
+                           rec["cpu_s"], True, rec)
     done.unlink(missing_ok=True)
     remove_results(where)
     (where / PARTIAL).mkdir(parents=True)
@@ -190,7 +223,7 @@ def measure_cell(spec: CellSpec, ctx: Context, log: Callable[[str], None] = prin
                           ctx.batch_size, list(zip(ids, ctx.gt.labels[:len(ids)], strict=True)), where / PARTIAL,
                           batch_done)
     promote(where)
-    rec = {"fingerprint": fp, "spec": json.loads(spec.key), "victim": vrec, "attack": arec,
+    rec = {"fingerprint": fp, "config": plan.config, "spec": json.loads(spec.key), "victim": vrec, "attack": arec,
            "measured_at": utc_now(), "threads": ctx.threads,
            "batch_frames": frames, "wall_s": wall, "cpu_s": cpu}
     atomic_write_text(done, json.dumps(rec, indent=1, default=str) + "\n")

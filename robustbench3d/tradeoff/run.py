@@ -11,7 +11,8 @@ from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.provenance import host_provenance, library_versions, utc_now
 from robustbench3d.tradeoff.analysis import Scorer, score
-from robustbench3d.tradeoff.measure import CellMeasure, Context, measure_cell, warm_caches
+from robustbench3d.tradeoff.measure import CellMeasure, CellPlan, Context, measure_cell, plan_cell, warm_caches
+from robustbench3d.tradeoff.outdir import check_cells
 from robustbench3d.tradeoff.output import write_all
 from robustbench3d.tradeoff.sweeps import CLEAN, SWEEP_NAMES, Setting, Sweep, VictimDefaults, build_sweeps, cells_of
 
@@ -57,8 +58,11 @@ def victim_defaults(cfg: TradeoffConfig) -> VictimDefaults:
                           precision="precision" in params)
 
 
-def run_tradeoff(cfg: TradeoffConfig, out: Path, log: Callable[[str], None] = print) -> list[Path]:
-    """Measure every cell the sweeps need (reusing finished ones in ``out/cells``), score, write the files."""
+def run_tradeoff(cfg: TradeoffConfig, out: Path, log: Callable[[str], None] = print, force: bool = False,
+                 say: Callable[[str], None] | None = None) -> list[Path]:
+    """Measure every cell the sweeps need (reusing finished ones of the same fingerprint in ``out/cells``;
+    others are refused before any is measured unless ``force``, :mod:`robustbench3d.tradeoff.outdir`), score,
+    write the files. ``say`` gets the lines on kept and replaced cells (default ``log``)."""
     from robustbench3d.victims import VICTIMS
 
     if cfg.attack == CLEAN:
@@ -75,12 +79,15 @@ def run_tradeoff(cfg: TradeoffConfig, out: Path, log: Callable[[str], None] = pr
     specs = cells_of(sweeps, default, cfg.attack)
     ctx = Context(kitti=dataset.kitti(), gt=gt, dataset=identity, proposals=cfg.proposals, seed=cfg.seed,
                   batch_size=cfg.batch_size, threads=cfg.threads, out=out)
+    plans: list[CellPlan | None] = [plan_cell(spec, ctx) for spec in specs]
+    check_cells([p for p in plans if p is not None], out, force, say or log)
     started = utc_now()
     warm_caches(specs, ctx, log)
     measures: dict[str, CellMeasure] = {}
-    for i, spec in enumerate(specs, start=1):
-        log(f"tradeoff: cell {i}/{len(specs)}: {spec.key}")
-        measures[spec.key] = measure_cell(spec, ctx, log)
+    for i, spec in enumerate(specs):
+        plan, plans[i] = plans[i], None  # its attack (and the caches it fills) is released after the cell
+        log(f"tradeoff: cell {i + 1}/{len(specs)}: {spec.key}")
+        measures[spec.key] = measure_cell(spec, ctx, log, plan)
     key = ("Car", cfg.metric, "R40", "moderate")
     rows = score(sweeps, measures, cfg.attack, Scorer(gt.labels, cfg.resamples, cfg.seed, key), default)
     host = host_provenance()
@@ -88,8 +95,8 @@ def run_tradeoff(cfg: TradeoffConfig, out: Path, log: Callable[[str], None] = pr
         "measured_at": started, "config": cfg.as_dict(), "ap": list(key), "dataset": identity,
         "machine": host["platform"], "provenance": {**host, "libraries": library_versions()},
         "sweeps": {s.name: s.notes for s in sweeps},
-        "cells": {k: {**m.record, "reused": m.reused, "wall_s_total": sum(m.wall_s), "cpu_s_total": sum(m.cpu_s)}
-                  for k, m in measures.items()},
+        "cells": {k: {**{f: v for f, v in m.record.items() if f != "config"}, "reused": m.reused,
+                      "wall_s_total": sum(m.wall_s), "cpu_s_total": sum(m.cpu_s)} for k, m in measures.items()},
         "points": rows,
         "reused_cells": sum(m.reused for m in measures.values()),
     }
