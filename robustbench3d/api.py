@@ -66,7 +66,8 @@ def benchmark(victim: Any, attacks: Sequence[str] = DEFAULT_ATTACKS, frames: int
               proposals: Sequence[str] | None = None, name: str | None = None,
               capabilities: Capabilities | None = None, data: str | Path | None = None, split: str = "val",
               out: str | Path | None = None, seed: int = 0, batch_size: int = 4, bootstrap: int = 1000,
-              victim_args: Mapping[str, Any] | None = None, progress: bool = False) -> pd.DataFrame:
+              victim_args: Mapping[str, Any] | None = None, progress: bool = False,
+              force: bool = False) -> pd.DataFrame:
     """Score ``victim`` clean and under ``attacks`` on the first ``frames`` frames of ``split``.
 
     Args:
@@ -82,6 +83,7 @@ def benchmark(victim: Any, attacks: Sequence[str] = DEFAULT_ATTACKS, frames: int
         seed, batch_size, bootstrap: as ``robustbench3d run``'s ``--seed``, ``--batch-size``, ``--bootstrap``.
         victim_args: keyword arguments of a registered victim's factory (names only).
         progress: progress bars and per-cell lines on stderr.
+        force: replace finished cells of ``out`` computed with another configuration (``run --force``).
     Returns:
         the run's ``results.csv`` as a DataFrame.
     Raises:
@@ -126,7 +128,7 @@ def benchmark(victim: Any, attacks: Sequence[str] = DEFAULT_ATTACKS, frames: int
                                seed=seed, batch_size=batch_size,
                                victim_args={run_name: dict(victim_args)} if victim_args else {},
                                attack_args=attack_args,
-                               progress=progress, bootstrap=bootstrap)
+                               progress=progress, bootstrap=bootstrap, force=force)
             run_benchmark(config, None if progress else (lambda _line: None))
             return pd.read_csv(target / "results.csv", keep_default_na=False, na_values=[""])
     finally:
