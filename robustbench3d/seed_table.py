@@ -15,13 +15,15 @@ source. Per victim, one row per ``ok`` summary cell of that map:
 * the seed paper's row and numbers, and its relative drop at moderate against its clean row.
 
 Rows appear only for cells the summary has; a victim without attacked cells of the map gets one line
-naming the attacks that would fill its table instead. Standard library only.
+naming the attacks that would fill its table instead. :func:`victim_layout` gives the same rows as numbers
+(``robustbench3d report``'s Table 1 block); there :func:`layout_rows` adds, for a proposal source beyond
+``detector`` and ``gt`` (a further LiDAR protocol), the rows ``gt`` has. Standard library only.
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -72,6 +74,36 @@ SEED_ROWS: tuple[SeedRow, ...] = (
     SeedRow("adv-object", "adv-object", "detector", PAPER_BOTH),
 )
 CLEAN_ATTACK = "none"
+
+#: The proposal source of the victim's own 2D detector (the paper's image-only and LiDAR+image rows). Every
+#: other source gives ground-truth 2D boxes: a LiDAR protocol, whose ``adv-shape`` cell is a LiDAR-only row.
+DETECTOR_PROPOSALS = "detector"
+#: The proposal source whose rows :func:`layout_rows` repeats for a further LiDAR protocol.
+GT_PROPOSALS = "gt"
+#: How a reader is told each proposal source; a source not named here (a LiDAR protocol added later, e.g.
+#: ``gt-object``) is shown as ``<name> proposals``.
+PROPOSAL_LABELS: dict[str, str] = {
+    DETECTOR_PROPOSALS: "the victim's 2D detector",
+    GT_PROPOSALS: "GT 2D boxes (object outside the frustum)",
+}
+
+
+def proposal_label(source: str) -> str:
+    """A proposal source as a reader is told it (:data:`PROPOSAL_LABELS`)."""
+    return PROPOSAL_LABELS.get(source, f"{source} proposals")
+
+
+def layout_rows(sources: Iterable[str] = ()) -> tuple[SeedRow, ...]:
+    """:data:`SEED_ROWS`, then for each source of ``sources`` that no row of it uses (a further LiDAR protocol:
+    ground-truth 2D boxes made another way) the rows :data:`GT_PROPOSALS` has, with that source: its clean
+    and control rows and an ``adv-shape`` row beside the paper's LiDAR-only row."""
+    known = {spec.proposals for spec in SEED_ROWS}
+    rows = list(SEED_ROWS)
+    for source in dict.fromkeys(s for s in sources if s not in known):
+        rows += [SeedRow(spec.name, spec.attack, source, spec.paper) for spec in SEED_ROWS
+                 if spec.proposals == GT_PROPOSALS]
+    return tuple(rows)
+
 
 HEADER: tuple[str, ...] = (
     "row", "proposals", "BEV R40 (E M H)", "BEV R11 (E M H)", "clean R40 (E M H)", "rel. drop M % (R40 R11)",
@@ -147,6 +179,91 @@ def _row(spec: SeedRow, cell: CellResult) -> list[str]:
         " ".join(f"{v:.1f}" for v in paper.bev) if paper else _NONE,
         _percent(paper_relative_drop(paper)) if paper and spec.attack != CLEAN_ATTACK else _NONE,
     ]
+
+
+#: Easy, moderate, hard values (None where the cell has none).
+Triple = tuple[float | None, float | None, float | None]
+
+
+@dataclass(frozen=True)
+class MeasuredRow:
+    """One summary cell of the layout as numbers (the data behind a row of :data:`HEADER`). An ``ok`` cell has
+    its Car BEV AP per recall sampling (easy, moderate, hard; percent) and their bootstrap intervals
+    (``metrics_ci``: [lo, hi] or None); an attacked one also its clean reference (the ``none`` cell with the
+    same proposals, E M H), its relative drop at moderate (a fraction; None where the clean AP is 0) and its
+    attack success rate (a fraction or None). ``clean``, ``relative_drop`` are None for a cell without a
+    clean-cell comparison; every number is None for a cell that is not ``ok`` (``status``, ``reason``)."""
+
+    spec: SeedRow
+    victim: str
+    status: str
+    reason: str | None
+    frames: int
+    bev: Mapping[str, Triple]
+    ci: Mapping[str, tuple[tuple[float, float] | None, ...]]
+    clean: Mapping[str, Triple] | None
+    relative_drop: Mapping[str, float | None] | None
+    success_rate: float | None
+
+
+RECALLS = ("R40", "R11")
+
+
+def _triple(get: Callable[[str], float | None]) -> Triple:
+    values = []
+    for d in DIFFICULTIES:
+        try:
+            values.append(get(d))
+        except LookupError:
+            values.append(None)
+    return (values[0], values[1], values[2])
+
+
+def _pair(ci: Sequence[float] | None) -> tuple[float, float] | None:
+    return None if ci is None else (float(ci[0]), float(ci[1]))
+
+
+def measured_row(spec: SeedRow, cell: CellResult) -> MeasuredRow:
+    """The numbers of ``cell`` in the row ``spec`` of the layout (:class:`MeasuredRow`)."""
+    ok = cell.status == "ok"
+    attacked = ok and cell.effect is not None
+
+    def rel(recall: str) -> float | None:
+        try:
+            return cell.drop(CLASS, METRIC, recall, "moderate", relative=True)
+        except LookupError:
+            return None
+
+    return MeasuredRow(
+        spec=spec, victim=cell.victim, status=cell.status, reason=cell.reason, frames=cell.frames,
+        bev={r: _triple(lambda d, r=r: cell.ap(CLASS, METRIC, r, d)) if ok else (None, None, None)
+             for r in RECALLS},
+        ci={r: tuple(_pair(interval(cell, CLASS, METRIC, r, d)) if ok else None for d in DIFFICULTIES)
+            for r in RECALLS},
+        clean={r: _triple(lambda d, r=r: cell.clean_ap(CLASS, METRIC, r, d)) for r in RECALLS} if attacked else None,
+        relative_drop={r: rel(r) for r in RECALLS} if attacked else None,
+        success_rate=cell.attack_success_rate if attacked else None,
+    )
+
+
+def victim_layout(cells: Sequence[Mapping[str, Any]]) -> dict[str, list[tuple[SeedRow, MeasuredRow | None]]]:
+    """Per victim of ``cells`` (summary cells, in order of first appearance) every row of
+    :func:`layout_rows` (with the cells' proposal sources) and its :class:`MeasuredRow`, or None where the
+    summary has no such cell (the first cell counts where one appears twice)."""
+    by_victim: dict[str, dict[tuple[str, str], CellResult]] = {}
+    for cell in map(CellResult, cells):
+        by_victim.setdefault(cell.victim, {}).setdefault((cell.attack, cell.proposals), cell)
+    rows = layout_rows(c["proposals"] for c in cells)
+    out = {}
+    for victim, have in by_victim.items():
+        found = ((spec, have.get((spec.attack, spec.proposals))) for spec in rows)
+        out[victim] = [(spec, None if cell is None else measured_row(spec, cell)) for spec, cell in found]
+    return out
+
+
+def interval_meta(cells: Sequence[Mapping[str, Any]]) -> Mapping[str, Any] | None:
+    """How the first cell with ``metrics_ci`` drew its intervals (its ``meta``: level, resamples, ...), or None."""
+    return next((c["metrics_ci"]["meta"] for c in cells if c.get("metrics_ci")), None)
 
 
 @dataclass
@@ -235,15 +352,16 @@ def _notes(section: VictimSection) -> list[str]:
 
 def _legend(cells: Sequence[dict[str, Any]]) -> str:
     """The legend, plus what ``[lo, hi]`` means when some cell carries bootstrap intervals."""
-    meta = next((c["metrics_ci"]["meta"] for c in cells if c.get("metrics_ci")), None)
+    meta = interval_meta(cells)
     if meta is None:
         return LEGEND
     return (f"{LEGEND}; [lo, hi] = {100 * meta['level']:.0f} % bootstrap interval over frames "
             f"({meta['resamples']} resamples)")
 
 
-def seed_table_text(cells: Sequence[dict[str, Any]]) -> str:
-    """The layout as plain text (:func:`robustbench3d.texttable.format_table`), one section per victim."""
+def seed_table_text(cells: Sequence[dict[str, Any]], table: Callable[..., str] = format_table) -> str:
+    """The layout as plain text (:func:`robustbench3d.texttable.format_table`, or ``table``, called as
+    ``table(header, rows, align=...)``, e.g. the run's terminal folding), one section per victim."""
     secs = sections(cells)
     if (empty := _no_layout(secs)) is not None:
         return f"{TITLE}: {empty}"
@@ -251,7 +369,7 @@ def seed_table_text(cells: Sequence[dict[str, Any]]) -> str:
     for section in secs:
         lines.append(f"victim {section.victim}, {section.frames} frames")
         if section.rows:
-            lines.append(format_table(HEADER, section.rows, align=_ALIGN))
+            lines.append(table(HEADER, section.rows, align=_ALIGN))
         lines += _notes(section)
     return "\n".join(lines)
 
@@ -290,7 +408,8 @@ def write_seed_table(path: str | Path, cells: Sequence[dict[str, Any]]) -> str:
 
 
 __all__ = [
-    "CLEAN_ATTACK", "HEADER", "LEGEND", "PAPER_BOTH", "PAPER_CLEAN", "PAPER_IMAGE", "PAPER_LIDAR", "SEED_ROWS",
-    "SEED_TABLE_FILE", "TITLE", "PaperRow", "SeedRow", "VictimSection", "paper_relative_drop", "sections",
-    "seed_table_markdown", "seed_table_text", "write_seed_table",
+    "CLEAN_ATTACK", "DETECTOR_PROPOSALS", "GT_PROPOSALS", "HEADER", "LEGEND", "PAPER_BOTH", "PAPER_CLEAN",
+    "PAPER_IMAGE", "PAPER_LIDAR", "PROPOSAL_LABELS", "SEED_ROWS", "SEED_TABLE_FILE", "TITLE", "MeasuredRow",
+    "PaperRow", "SeedRow", "VictimSection", "interval_meta", "layout_rows", "measured_row", "paper_relative_drop",
+    "proposal_label", "sections", "seed_table_markdown", "seed_table_text", "victim_layout", "write_seed_table",
 ]

@@ -184,6 +184,9 @@ def test_the_same_cells_twice_count_once_and_conflicting_twins_are_refused(tiny_
     twin = _copy_run(tiny_run, tmp_path / "twin", lambda c: None)
     secs = rdata.sections(rdata.read_runs([tiny_run, twin]))
     assert len(secs) == 1 and [c.run for c in secs[0].cells] == [tiny_run] * 6
+    # each twin is recorded, the kept cell and the one left out (tests/test_report_table1.py: the notes)
+    assert [(m.kept.run, m.dropped.run, m.kept.index, m.dropped.index, m.same_results) for m in secs[0].merged] \
+        == [(tiny_run, twin, i, i, True) for i in range(6)]
 
     def refingerprint(c):
         c["provenance"]["fingerprint"] = "f" * 64
@@ -269,9 +272,14 @@ def test_transfer_matrix_on_hand_made_cells():
 
 @needs_plugin
 def test_page_in_headless_chromium(tiny_run, tiny_report, tmp_path):
-    with chromium_page() as (page, errors):
+    with chromium_page(width=1280, height=1000) as (page, errors):
         page.goto((tiny_report / "leaderboard.html").as_uri())
         page.wait_for_load_state("load")
+        # fits a 1280 px wide window: no sideways scroll of the page, the leaderboard within its box
+        assert page.evaluate("document.documentElement.scrollWidth") <= page.evaluate("window.innerWidth") == 1280
+        assert page.locator("#lb-0").evaluate("t => t.scrollWidth <= t.parentElement.clientWidth")
+        table1 = page.locator("#t1-0")  # the seed paper's Table 1 beside the measured rows
+        assert table1.is_visible() and page.locator("#t1-0 tr.paper").count() == 4
 
         images = page.locator("img")
         assert images.count() >= 3  # AP per attack, drop, one scene

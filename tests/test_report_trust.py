@@ -174,10 +174,67 @@ def test_summary_strings_are_inert_in_markdown_and_html(partial, tmp_path):
     rendered, text = _rendered(md)
     assert f"{SCRIPT}{LINK}" in text and IMG in text
     assert "a|b `c` *d* _e_ &amp;  # heading" in text  # on one line: the line break a space
-    head, body = rendered.split("<tbody>")
-    rows = body.split("</tbody>")[0].split("<tr>")[1:]
+    tables = [_head_rows(t) for t in rendered.split("<table>")[1:]]
+    assert len(tables) == 2  # the Table 1 block and the leaderboard
+    for head, rows in tables:
+        assert all(r.count("<td>") == head.count("<th>") for r in rows)
+    head, rows = tables[1]
     assert len(rows) == len(cells) and head.count("<th>") > 10
-    assert all(r.count("<td>") == head.count("<th>") for r in rows)
+
+
+def _head_rows(table: str) -> tuple[str, list[str]]:
+    """A rendered table's head and its body rows."""
+    head, body = table.split("</table>")[0].split("<tbody>")
+    return head, body.split("</tbody>")[0].split("<tr>")[1:]
+
+
+def test_table1_and_cell_notes_strings_are_inert(partial, tmp_path):
+    """A skipped cell's reason (Table 1's no-AP line, the notes) and run directories with markup in their names
+    (the notes on the cells merged): shown as given, never markup, in the page and in the markdown."""
+    _, run, _ = partial
+    first = shutil.copytree(run, tmp_path / f"r{IMG}")
+    cells = json.loads((first / "summary.json").read_text())
+    for c in cells:
+        if c["attack"] == "none":
+            c.update(status="skipped", reason=HOSTILE, metrics=None)
+            for key in ("metrics_ci", "attack_effect"):
+                c.pop(key, None)
+    (first / "summary.json").write_text(json.dumps(cells))
+    second = shutil.copytree(first, tmp_path / f"s{LINK}")  # the same cells again: merged, each named
+    out = tmp_path / "rep"
+    assert _report([first, second], out, "--scenes", "0") == 0
+    md = (out / "leaderboard.md").read_text(encoding="utf-8")
+    page = (out / "leaderboard.html").read_text(encoding="utf-8")
+    for raw in (SCRIPT, IMG, "<img src=x", "<script>alert"):
+        assert raw not in page, raw
+    doc = _tags(page)
+    assert [t for t, _ in doc.tags].count("script") == 1
+    _assert_inert(doc, "data:image/png;base64,")
+    text = "".join(doc.text)
+    assert f"no AP: skipped: {HOSTILE}" in text  # Table 1's line for the clean cell
+    i = next(k for k, c in enumerate(cells) if c["attack"] == "none")
+    assert f"({second / 'summary.json'}[{i}]) is left out: it is the same cell as {first / 'summary.json'}[{i}]" in text
+    _, md_text = _rendered(md)
+    assert f"({second / 'summary.json'}[{i}]) is left out" in md_text
+    assert "# heading" in md_text and HOSTILE.splitlines()[0] in md_text
+
+
+def test_the_page_template_escapes_every_value():
+    """The page's Jinja2 template: autoescape on, nothing marked safe, so any value it shows is escaped."""
+    from robustbench3d.report.page import TEMPLATE, environment
+
+    env = environment()
+    assert env.autoescape is True
+    source = env.loader.get_source(env, TEMPLATE)[0]
+    squeezed = source.replace(" ", "")
+    assert "|safe" not in squeezed and "{%autoescape" not in squeezed and "Markup" not in source
+    html_text = env.get_template(TEMPLATE).render(title=SCRIPT, runs=IMG, notes=[HOSTILE], sections=[], trades=[],
+                                                  groups=[("3d", LINK)])
+    for raw in (SCRIPT, IMG, "<img src=x"):
+        assert raw not in html_text, raw
+    doc = _tags(html_text)
+    assert [t for t, _ in doc.tags].count("script") == 1 and SCRIPT in "".join(doc.text)
+    assert ("p", {"class": "why"}) in doc.tags and HOSTILE in "".join(doc.text)
 
 
 def _rendered(md: str) -> tuple[str, str]:
@@ -306,3 +363,23 @@ def test_scenes_outside_its_range_is_refused_before_anything_else(tmp_path, caps
     assert main(["report", str(tmp_path / "no-run"), "--out", str(out), "--scenes", scenes]) == 2
     err = _one_line_error(capsys)
     assert "--scenes must be in 0..20" in err and scenes in err and not out.exists()
+
+
+# ------------------------------------------------------------------ the template ships with the package
+
+def test_templates_are_package_data_and_jinja2_tabulate_dependencies():
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    from fnmatch import fnmatch
+
+    repo = Path(__file__).resolve().parent.parent
+    data = tomllib.loads((repo / "pyproject.toml").read_text(encoding="utf-8"))
+    globs = data["tool"]["setuptools"]["package-data"]["robustbench3d.report"]
+    templates = repo / "robustbench3d" / "report" / "templates"
+    files = [p.relative_to(templates.parent).as_posix() for p in templates.iterdir() if p.is_file()]
+    assert "templates/leaderboard.html.j2" in files
+    assert all(any(fnmatch(f, g) for g in globs) for f in files), (files, globs)
+    names = {d.split(">")[0].split("<")[0].split("=")[0].strip().lower() for d in data["project"]["dependencies"]}
+    assert {"jinja2", "tabulate"} <= names

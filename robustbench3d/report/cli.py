@@ -1,7 +1,9 @@
 """``robustbench3d report RUN_DIR [RUN_DIR ...] --out DIR``: a leaderboard a person reads.
 
-Writes ``DIR/leaderboard.html`` (one self-contained file: sortable table with an R40/R11 toggle, figures,
-transfer heat-map, scene figures, each cell's provenance one click away), ``DIR/leaderboard.md``, the
+Writes ``DIR/leaderboard.html`` (one self-contained file: per section the seed paper's Table 1 beside the
+measured rows, a sortable table with an R40/R11 toggle that fits a 1280 px wide page, the cells merged or
+left out and why, figures, transfer heat-map, scene figures, each cell's provenance one click away),
+``DIR/leaderboard.md``, the
 figures as ``DIR/figures/*.png`` and ``DIR/report_manifest.json`` (the files written). Runs on different
 datasets, protocols or package versions go to separate sections, each saying what differs; ``--strict``
 refuses them instead (exit 2).
@@ -64,8 +66,8 @@ def _slug(text: str) -> str:
 def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = print) -> tuple[list[Any], list[str]]:
     """The report's section views (tables and figures) and page notes."""
     from robustbench3d.report import data, figures
-    from robustbench3d.report.page import Figure, SectionView
     from robustbench3d.report.scenes import SceneSource, scene
+    from robustbench3d.report.view import Figure, SectionView
 
     check_scenes(scenes)
     secs = data.sections(data.read_runs(runs), strict=strict)
@@ -73,6 +75,8 @@ def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = pri
     if len(secs) > 1:
         notes.append(f"The runs hold {len(secs)} groups of cells that are not comparable (different dataset, "
                      "protocol or package versions); each is its own section and nothing is compared across them.")
+    for merged in (m for sec in secs for m in sec.merged):
+        log(f"report: {merged.note()}")
     views = []
     for k, sec in enumerate(secs):
         df = data.table(sec)
@@ -120,24 +124,26 @@ def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = pri
 
 def _contents(views: list[Any], trades: list[Any], args: argparse.Namespace, notes: list[str]) -> dict[str, bytes]:
     """Every file of the report (relative path -> bytes), made in memory before anything is written."""
-    from robustbench3d.report.page import Figure, html_page, img_html, markdown
-    from robustbench3d.report.tradeoff_view import tradeoff_html, tradeoff_markdown
+    from robustbench3d.report.mdpage import markdown
+    from robustbench3d.report.page import html_page, image
+    from robustbench3d.report.tradeoff_view import tradeoff_markdown, tradeoff_model
+    from robustbench3d.report.view import Figure
 
     out: dict[str, bytes] = {}
     for view in views:
         for fig in [*view.figures, *([view.transfer] if view.transfer else []), *view.scenes]:
             out[f"{FIGURES}/{fig.name}"] = fig.png
-    html_extra, md_extra = [], []
+    html_trades, md_extra = [], []
     for k, trade in enumerate(trades):
         out[f"{FIGURES}/{trade.figure_name}"] = trade.png
         fig = Figure(trade.figure_name, trade.png, "Wall time of the clean + attacked cell relative to the "
                      "default setting's on the same frames against |ΔAP| from each sweep's reference (left, Pareto "
                      "front dashed); frames evaluated against the interval width (right).", trade.title)
-        html_extra.append(tradeoff_html(trade, k, img_html(fig)))
+        html_trades.append(tradeoff_model(trade, k, image(fig)))
         md_extra.append(tradeoff_markdown(trade, FIGURES))
     runs = [str(Path(r)) for r in [*args.runs, *args.tradeoff]]
     out[MD_FILE] = markdown(views, args.title, runs, notes, FIGURES, md_extra).encode("utf-8")
-    out[HTML_FILE] = html_page(views, args.title, runs, notes, html_extra).encode("utf-8")
+    out[HTML_FILE] = html_page(views, args.title, runs, notes, html_trades).encode("utf-8")
     return out
 
 

@@ -25,6 +25,7 @@ DIFFICULTIES = ("easy", "moderate", "hard")
 RECALLS = ("R40", "R11")
 METRICS = ("bev", "3d")
 SUMMARY = "summary.json"
+CLEAN_ATTACK = "none"
 
 
 @dataclass(frozen=True)
@@ -124,13 +125,32 @@ def key_differences(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[str]:
     return out
 
 
+@dataclass(frozen=True)
+class Merged:
+    """A cell shown once although given twice: ``dropped`` (a later run's, or later in one summary) is the same
+    cell as ``kept`` (same victim, attack, proposals and configuration fingerprint on the same dataset and
+    protocol); ``same_results`` whether their metrics and attack effect are equal too."""
+
+    kept: RunCell
+    dropped: RunCell
+    same_results: bool
+
+    def note(self) -> str:
+        """One sentence naming the cell, both places and why one is not shown."""
+        results = "identical results" if self.same_results else "but different results: the first one's are shown"
+        return (f"{self.dropped.name} ({self.dropped.source}) is left out: it is the same cell as {self.kept.source} "
+                f"(same configuration fingerprint, dataset and protocol), {results}.")
+
+
 @dataclass
 class Section:
-    """Cells that are comparable (one :func:`comparability_key`), and why they differ from section 1."""
+    """Cells that are comparable (one :func:`comparability_key`), why they differ from section 1, and the
+    cells given more than once that it shows once (:class:`Merged`)."""
 
     key: dict[str, Any]
     cells: list[RunCell] = field(default_factory=list)
     differs: list[str] = field(default_factory=list)
+    merged: list[Merged] = field(default_factory=list)
 
     @property
     def runs(self) -> list[Path]:
@@ -145,8 +165,9 @@ def sections(cells: Iterable[RunCell], strict: bool = False) -> list[Section]:
     """Group cells by :func:`comparability_key`, in order of first appearance. With ``strict`` more than
     one group is refused (:class:`RobustBenchError` naming the runs and the fields that differ). The
     same cell (victim, attack, proposals) twice in a section is kept once when its configuration
-    fingerprint is equal and refused otherwise. A cell without metrics joins a section that agrees with it
-    on every other field (one holding cells of its own run first)."""
+    fingerprint is equal (recorded in the section's ``merged``) and refused otherwise. A cell without
+    metrics joins a section that agrees with it on every other field (one holding cells of its own run
+    first)."""
     groups: list[Section] = []
     cells_list = list(cells)
     for rc in sorted(cells_list, key=lambda c: c.cell.get("metrics") is None):  # cells with metrics found sections
@@ -166,9 +187,12 @@ def sections(cells: Iterable[RunCell], strict: bool = False) -> list[Section]:
         elif twin.cell["provenance"]["fingerprint"] != rc.cell["provenance"]["fingerprint"]:
             raise RobustBenchError(f"report: cell {rc.name} is in {twin.source} and {rc.source} with different "
                                    "configurations on the same dataset and protocol; report the runs separately")
+        else:
+            sec.merged.append(Merged(twin, rc, _results(twin.cell) == _results(rc.cell)))
     order = {id(rc): i for i, rc in enumerate(cells_list)}
     for sec in groups:
         sec.cells.sort(key=lambda c: order[id(c)])  # back to run and summary order
+        sec.merged.sort(key=lambda m: order[id(m.dropped)])
     for sec in groups[1:]:
         sec.differs = key_differences(groups[0].key, sec.key)
     if strict and len(groups) > 1:
@@ -177,6 +201,32 @@ def sections(cells: Iterable[RunCell], strict: bool = False) -> list[Section]:
         raise RobustBenchError(f"report: the runs are not comparable (different dataset, protocol or versions) "
                                f"and --strict refuses to separate them: {why}")
     return groups
+
+
+def _results(cell: Mapping[str, Any]) -> tuple[Any, ...]:
+    """What a cell measured: status, metrics, intervals, attack effect."""
+    return tuple(cell.get(k) for k in ("status", "metrics", "metrics_ci", "attack_effect"))
+
+
+def _status(cell: Mapping[str, Any]) -> str:
+    return cell["status"] + (f", {cell['reason']}" if cell.get("reason") else "")
+
+
+def left_out(section: Section) -> list[str]:
+    """Why cells of ``section`` are missing from its figures or transfer matrix (one sentence per reason,
+    naming each cell and where it comes from): cells with no AP (not ``ok``), and attacked cells without a
+    clean comparison (no ``attack_effect``: no ``ok`` clean cell of the same victim and proposals)."""
+    out = []
+    no_ap = [rc for rc in section.cells if rc.cell["status"] != "ok"]
+    if no_ap:
+        out.append("No AP, so not in the figures or the transfer matrix (the leaderboard shows their status): "
+                   + "; ".join(f"{rc.name} ({rc.source}): {_status(rc.cell)}" for rc in no_ap) + ".")
+    lone = [rc for rc in section.cells if rc.cell["status"] == "ok" and rc.cell["attack"] != CLEAN_ATTACK
+            and not rc.cell.get("attack_effect")]
+    if lone:
+        out.append("No clean cell with the same victim and proposals to compare with, so no drop (not in the drop "
+                   "figure or the transfer matrix): " + "; ".join(f"{rc.name} ({rc.source})" for rc in lone) + ".")
+    return out
 
 
 def _get(tree: Any, *path: str) -> Any:

@@ -1,13 +1,12 @@
 """The speed/accuracy trade in the leaderboard: a ``robustbench3d tradeoff`` run's Pareto table and figure.
 
-HTML: a sortable table (the leaderboard's script sorts any ``table.lb`` on ``data-v``), the figure inline,
-the run's machine and provenance one click away. Markdown: the run's own ``tradeoff.md`` tables under a
-section heading, the figure as a file beside the page.
+HTML (:func:`tradeoff_model`, shown by the page's template): a sortable table (the leaderboard's script sorts
+any ``table.lb`` on ``data-v``), the figure inline, the run's machine and provenance one click away.
+Markdown: the run's own ``tradeoff.md`` tables under a section heading, the figure as a file beside the page.
 """
 
 from __future__ import annotations
 
-import html
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,51 +45,44 @@ class TradeoffView:
         return "tradeoff_" + "".join(ch if ch.isalnum() else "_" for ch in Path(self.source).name) + ".png"
 
 
-def _td(row: dict[str, Any], key: str, kind: str) -> str:
+def _td(row: dict[str, Any], key: str, kind: str) -> dict[str, str]:
+    """One cell of the table: its sort key (``data-v``), whether it is a number, and its text."""
     v = row.get(key)
     if key == "pareto_sweep":
         text = "★" if v else ""
-        return f'<td data-v="{text}">{text}</td>'
+        return {"v": text, "num": False, "text": text}
     if key == "value":
-        text = f"{v} (ref)" if row["reference"] else str(v)
-        return f'<td data-v="{html.escape(str(v))}">{html.escape(text)}</td>'
+        return {"v": str(v), "num": False, "text": f"{v} (ref)" if row["reference"] else str(v)}
     if kind == "num":
         if not isinstance(v, int | float) or isinstance(v, bool):  # None, or not a number: shown, never parsed
-            return f'<td class="num" data-v="">{"–" if v is None else html.escape(str(v))}</td>'
+            return {"v": "", "num": True, "text": "–" if v is None else str(v)}
         text = f"{v:+.2f}" if key == "d_attacked" else (str(v) if key == "frames" else f"{v:.2f}")
-        return f'<td class="num" data-v="{float(v)!r}">{text}</td>'
-    return f'<td data-v="{html.escape(str(v))}">{html.escape(str(v))}</td>'
+        return {"v": repr(float(v)), "num": True, "text": text}
+    return {"v": str(v), "num": False, "text": str(v)}
 
 
-def tradeoff_html(view: TradeoffView, k: int, img: str) -> str:
-    """The section of one tradeoff run (``img``: the figure's ``<figure>`` markup)."""
+def tradeoff_model(view: TradeoffView, k: int, fig: dict[str, str]) -> dict[str, Any]:
+    """What the page's template shows of one tradeoff run (``fig``: the figure as
+    :func:`robustbench3d.report.page.image` gives it); plain values, escaped by the template."""
     doc = view.doc
     m = doc["machine"]
     c, metric, r, d = doc["ap"]
-    out = [f'<section id="tradeoff-{k}"><h2>{html.escape(view.title)}</h2>',
-           f'<p class="note">From {html.escape(view.source)}. Machine: {html.escape(str(m.get("cpu")))} '
-           f'({html.escape(str(m.get("cpu_count")))} cores), measured {html.escape(str(doc["measured_at"]))}, '
-           "every point in one run. "
-           f"AP: {html.escape(f'{c} {metric.upper()} {r} {d}')}; ΔAP against each sweep's reference (ref), "
-           "|ΔAP| the larger of clean and attacked; time: the clean and the attacked cell together. ★: on the "
-           "sweep's Pareto front.</p>", img,
-           f'<div class="wrap"><table class="lb" id="tradeoff-table-{k}"><thead><tr>']
-    out += [f'<th data-type="{kind}" data-key="{key}">{html.escape(title)}</th>' for title, key, kind in COLUMNS]
-    out.append("</tr></thead><tbody>")
-    for i, row in enumerate(doc["points"]):
-        out.append(f'<tr data-i="{i}">' + "".join(_td(row, key, kind) for _, key, kind in COLUMNS) + "</tr>")
-    out.append("</tbody></table></div>")
     prov = {k2: doc[k2] for k2 in ("config", "dataset", "machine", "provenance", "sweeps") if k2 in doc}
-    out.append(f'<details id="tradeoff-prov-{k}"><summary>provenance of the tradeoff run</summary><pre>'
-               f"{html.escape(json.dumps(prov, indent=1, ensure_ascii=False))}</pre></details></section>")
-    return "\n".join(out)
+    return {
+        "k": k, "title": view.title, "source": view.source, "cpu": str(m.get("cpu")),
+        "cpu_count": str(m.get("cpu_count")), "measured_at": str(doc["measured_at"]),
+        "ap": f"{c} {metric.upper()} {r} {d}", "figure": fig,
+        "columns": [{"title": title, "key": key, "type": kind} for title, key, kind in COLUMNS],
+        "rows": [[_td(row, key, kind) for _, key, kind in COLUMNS] for row in doc["points"]],
+        "provenance": json.dumps(prov, indent=1, ensure_ascii=False),
+    }
 
 
 def _inert(tree: Any) -> Any:
-    """A copy of a tradeoff document with every string (keys too) through :func:`~robustbench3d.report.page.md_text`:
+    """A copy of a tradeoff document with every string (keys too) through :func:`~robustbench3d.report.mdpage.md_text`:
     what ``tradeoff.md`` writes from it is inert as markdown and HTML (names a run writes have no markup
     character and come out unchanged)."""
-    from robustbench3d.report.page import md_text
+    from robustbench3d.report.mdpage import md_text
 
     if isinstance(tree, str):
         return md_text(tree)
@@ -103,7 +95,7 @@ def _inert(tree: Any) -> Any:
 
 def tradeoff_markdown(view: TradeoffView, figure_dir: str) -> str:
     """The run's ``tradeoff.md`` (headings one level down; every string of the run escaped) and its figure."""
-    from robustbench3d.report.page import md_text
+    from robustbench3d.report.mdpage import md_text
 
     body = markdown(_inert(view.doc)).split("\n", 1)[1]  # drop the run's own title
     body = "\n".join("#" + line if line.startswith("## ") else line for line in body.split("\n"))
