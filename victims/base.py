@@ -11,8 +11,9 @@ implements the protocols that make sense for it and declares its :class:`Capabil
 * :class:`ImageObjectnessOracle` — the 2D detector's objectness logits for the candidate
   predictions around target boxes, differentiable w.r.t. an image tensor.
 * :class:`FrustumSegmentationOracle` — frustum construction from rect-frame points (selection and
-  resampling are non-differentiable and seeded per frame and proposal, as in ``detect``) and the
-  segmentation logits, differentiable w.r.t. the point coordinates.
+  resampling are non-differentiable and seeded per frame and proposal, as in ``detect``; a
+  ``gt-append`` box's extra rows join the frustum through ``extra_points``) and the segmentation
+  logits, differentiable w.r.t. the point coordinates.
 * :class:`FrustumBoxOracle` — the 3D box a frustum's stages regress (centre, size, heading in the
   rect frame), differentiable w.r.t. the point coordinates (the mask and the discrete choices of
   heading bin and size template held fixed), the same box ``detect`` reports.
@@ -30,11 +31,24 @@ What the harness hands ``detect`` (:func:`victim_inputs`), per proposal mode of 
   frame's labels: every ground-truth 2D box except DontCare, in label order, with
   ``source="gt"``, its KITTI ``types`` and scores of 1 -- nothing 3D. The victim chooses which
   types it uses (the F-PN cascade keeps ``settings.gt_types``, default Car).
+* ``gt-object``: as ``gt`` (same boxes in the same order, types, scores of 1), ``source="gt-object"``,
+  except that the box of each attack target is its GT box united with the image box of the object the
+  attack placed on that car (:func:`object_proposals`, from the harness's record of the placement; the
+  clean control gets the union with the default object's box at the nominal placement).
+* ``gt-append``: the ``gt`` boxes with ``source="gt-append"`` and ``extra_points``: per box, the rows of
+  the frame's scan that are the object returns of that car (empty arrays for the other boxes and in
+  the clean control). The victim adds them to that box's frustum (the F-PN cascades: the points in front
+  of the camera among them, whether or not they project into the box).
+
+The harness builds every one of these from the labels and, for the last two, from what the attack
+placed; the victim never receives the labels or the attack's record. A victim gets a mode only if it
+lists it in ``supported_proposals``; otherwise the harness skips those cells.
 
 A list of ``source="external"`` (or ``"detector"``) proposals is for direct calls, e.g. an attack
-study feeding chosen boxes. Calling ``detect(frames, "gt")`` on labelled frames is a convenience of
-the shipped cascades outside the harness (same result as ``gt_proposals`` of each frame's labels);
-the harness never does it and plugins need not accept it.
+study feeding chosen boxes (with ``extra_points`` if it wants rows added to frustums). Calling
+``detect(frames, "gt")`` on labelled frames is a convenience of the shipped cascades outside the harness
+(same result as ``gt_proposals`` of each frame's labels); the harness never does it and plugins need not
+accept it. ``"gt-object"`` and ``"gt-append"`` come only as lists (they need the attack's record).
 
 This module imports torch only for type checking.
 """
@@ -49,7 +63,16 @@ import numpy as np
 
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels, type_mask
-from robustbench3d.victims.spec import PROPOSAL_SOURCES, Capabilities, EntryInfo, ProposalSource, VictimSpec
+from robustbench3d.victims.spec import (
+    GT_PROPOSAL_SOURCES,
+    OBJECT_PROPOSAL_SOURCES,
+    PROPOSAL_SOURCES,
+    PROTOCOL_LABELS,
+    Capabilities,
+    EntryInfo,
+    ProposalSource,
+    VictimSpec,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -68,15 +91,20 @@ class Proposals:
     Attributes:
         boxes: (K, 4) left, top, right, bottom in image-2 pixels.
         scores: (K,) 2D scores (1 for ground-truth boxes).
-        source: "gt" for ground-truth boxes (:func:`gt_proposals`), "detector" for a 2D detector's,
+        source: "gt" for ground-truth boxes (:func:`gt_proposals`), "gt-object" / "gt-append" for the
+            harness's frustum protocols (:func:`object_proposals`), "detector" for a 2D detector's,
             "external" for anything else (e.g. a GT box enlarged over a roof object).
-        types: (K,) KITTI type of each box (str); required for "gt", else optional (None).
+        types: (K,) KITTI type of each box (str); required for the sources of
+            :data:`~robustbench3d.victims.spec.GT_PROPOSAL_SOURCES`, else optional (None).
+        extra_points: None, or per box a sorted, unique (E_k,) int64 array of rows of the frame's scan
+            (``frame.scan``) to add to that box's frustum (E_k may be 0); required for "gt-append".
     """
 
     boxes: np.ndarray
     scores: np.ndarray
     source: ProposalOrigin = "external"
     types: np.ndarray | None = None
+    extra_points: tuple[np.ndarray, ...] | None = None
 
     def __post_init__(self) -> None:
         boxes = np.asarray(self.boxes, dtype=np.float64).reshape(-1, 4)
@@ -85,27 +113,55 @@ class Proposals:
             raise ValueError(f"Proposals: {len(boxes)} boxes but {len(scores)} scores")
         if self.source not in PROPOSAL_ORIGINS:
             raise ValueError(f"Proposals: source must be one of {PROPOSAL_ORIGINS}, got {self.source!r}")
-        if self.types is None and self.source == "gt":
-            raise ValueError("Proposals: source 'gt' needs the type of each box")
+        if self.types is None and self.source in GT_PROPOSAL_SOURCES:
+            raise ValueError(f"Proposals: source {self.source!r} needs the type of each box")
         if self.types is not None:
             types = np.asarray(self.types, dtype=str).reshape(-1)
             if len(types) != len(boxes):
                 raise ValueError(f"Proposals: {len(boxes)} boxes but {len(types)} types")
             object.__setattr__(self, "types", types)
+        if self.extra_points is None and self.source == "gt-append":
+            raise ValueError("Proposals: source 'gt-append' needs extra_points (one row array per box)")
+        if self.extra_points is not None:
+            object.__setattr__(self, "extra_points", _row_arrays(self.extra_points, len(boxes)))
         object.__setattr__(self, "boxes", boxes)
         object.__setattr__(self, "scores", scores)
 
     def select(self, keep: np.ndarray) -> Proposals:
-        """The proposals where the (K,) boolean ``keep`` is set, in order."""
+        """The proposals where the (K,) boolean ``keep`` is set, in order (extra points follow their boxes)."""
         keep = np.asarray(keep, dtype=bool).reshape(-1)
+        extra = None if self.extra_points is None else tuple(
+            e for e, k in zip(self.extra_points, keep, strict=True) if k)
         return Proposals(self.boxes[keep], self.scores[keep], self.source,
-                         None if self.types is None else self.types[keep])
+                         None if self.types is None else self.types[keep], extra)
 
     def of_types(self, types: Sequence[str]) -> Proposals:
         """The boxes whose type is in ``types`` (in order); raises ValueError without types."""
         if self.types is None:
             raise ValueError(f"Proposals from {self.source!r} carry no box types")
         return self.select(type_mask(self.types, types))
+
+
+def _row_arrays(extra: Sequence[np.ndarray], count: int) -> tuple[np.ndarray, ...]:
+    """``extra`` as ``count`` read-only int64 arrays of non-negative, strictly increasing scan rows
+    (ValueError naming the box otherwise)."""
+    if isinstance(extra, np.ndarray) or not isinstance(extra, Sequence):
+        raise ValueError(f"Proposals: extra_points must be a sequence of {count} row arrays, "
+                         f"got {type(extra).__name__}")
+    if len(extra) != count:
+        raise ValueError(f"Proposals: {count} boxes but {len(extra)} extra_points arrays")
+    rows = []
+    for k, e in enumerate(extra):
+        arr = np.asarray(e)
+        if arr.ndim != 1 or (arr.size and arr.dtype.kind not in "iu"):
+            raise ValueError(f"Proposals: extra_points of box {k}: expected a 1-D array of integer scan rows, "
+                             f"got shape {arr.shape} {arr.dtype}")
+        arr = np.array(arr, dtype=np.int64)
+        if arr.size and (arr[0] < 0 or np.any(np.diff(arr) <= 0)):
+            raise ValueError(f"Proposals: extra_points of box {k}: scan rows must be >= 0, sorted and unique")
+        arr.flags.writeable = False
+        rows.append(arr)
+    return tuple(rows)
 
 
 #: A ``detect`` call's proposals: a mode name or one :class:`Proposals` per frame.
@@ -120,22 +176,125 @@ def gt_proposals(labels: Labels) -> Proposals:
     return Proposals(labels.bbox[keep], np.ones(int(keep.sum())), source="gt", types=types[keep])
 
 
-def victim_inputs(frames: Sequence[Frame], labels: Sequence[Labels | None],
-                  source: str) -> tuple[list[Frame], ProposalsArg]:
-    """What the harness passes to ``detect`` for proposal mode ``source``: the frames with
-    ``labels=None``, and ``"detector"`` or one :func:`gt_proposals` per frame (from ``labels``)."""
+@runtime_checkable
+class PlacementRecord(Protocol):
+    """What :func:`victim_inputs` reads of the harness's record of one attacked frame: any object with these
+    attributes (the runner passes :class:`robustbench3d.attacks.record.ObjectRecord`; the victim side never
+    imports the attack side). One entry per attack target car T of the frame:
+
+    Attributes:
+        boxes: (T, 4) image-2 box (left, top, right, bottom; px) of the object placed on each target; a box
+            with right < left or bottom < top (e.g. ``(+inf, +inf, -inf, -inf)``) shows nowhere in the image.
+        returns: T sorted, unique int64 arrays of rows of the attacked scan: each target's object returns.
+        target_index: (T,) int64 row of each target in the frame's labels (-1: no row of them).
+    """
+
+    @property
+    def boxes(self) -> np.ndarray: ...
+
+    @property
+    def returns(self) -> Sequence[np.ndarray]: ...
+
+    @property
+    def target_index(self) -> np.ndarray: ...
+
+
+def object_proposals(frame: Frame, labels: Labels, record: PlacementRecord | None, source: str) -> Proposals:
+    """The ``gt-object`` or ``gt-append`` proposals of one (attacked) frame: :func:`gt_proposals` of ``labels``
+    with ``source`` set and, for each target of ``record`` (its labels row ``target_index[k]``):
+
+    * ``gt-object``: the box is the union of its GT box and ``record.boxes[k]`` clipped to the image
+      ([0, W-1] x [0, H-1] px, as KITTI clips its 2D labels; an empty box leaves the GT box);
+    * ``gt-append``: ``extra_points`` of the box is ``record.returns[k]`` (rows of ``frame.scan``).
+
+    The other boxes are the GT boxes unchanged (no extra points). ``record`` None: no object on any car.
+    Raises ValueError for a record that does not fit the labels or the scan.
+    """
+    base = gt_proposals(labels)
+    if source not in OBJECT_PROPOSAL_SOURCES:
+        raise ValueError(f"object proposals are {' or '.join(OBJECT_PROPOSAL_SOURCES)}, got {source!r}")
+    boxes = base.boxes.copy()
+    extra = [np.zeros(0, dtype=np.int64) for _ in range(len(boxes))]
+    for k, pos in _record_targets(frame, labels, record):
+        assert record is not None
+        if source == "gt-object":
+            boxes[pos] = _united(boxes[pos], np.asarray(record.boxes[k], dtype=np.float64), frame.image_size)
+        else:
+            extra[pos] = _scan_rows(record.returns[k], len(frame.scan), frame.frame_id, k)
+    return Proposals(boxes, base.scores, source, base.types, tuple(extra) if source == "gt-append" else None)
+
+
+def _record_targets(frame: Frame, labels: Labels, record: PlacementRecord | None) -> list[tuple[int, int]]:
+    """(k, position in :func:`gt_proposals`) of each target of ``record`` that is a row of ``labels``."""
+    if record is None:
+        return []
+    where = f"frame {frame.frame_id}: object record"
+    index = np.asarray(record.target_index).reshape(-1)
+    t = len(index)
+    if np.asarray(record.boxes).shape != (t, 4) or len(record.returns) != t:
+        raise ValueError(f"{where}: {t} targets but boxes of shape {np.asarray(record.boxes).shape} and "
+                         f"{len(record.returns)} return arrays")
+    keep = labels.type.astype(str) != "DontCare"
+    position = np.cumsum(keep) - 1
+    out, seen = [], set()
+    for k, row in enumerate(index.tolist()):
+        if row == -1:
+            continue
+        if not 0 <= row < len(labels) or not keep[row] or row in seen:
+            raise ValueError(f"{where}: target {k} names labels row {row}, which is not a distinct non-DontCare "
+                             f"row of the frame's {len(labels)}")
+        seen.add(row)
+        out.append((k, int(position[row])))
+    return out
+
+
+def _united(gt_box: np.ndarray, object_box: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    """The union of ``gt_box`` and ``object_box`` clipped to [0, W-1] x [0, H-1]; an empty object box
+    (right < left or bottom < top) leaves ``gt_box``."""
+    if np.isnan(object_box).any():
+        raise ValueError(f"object box {object_box.tolist()} holds NaN")
+    if object_box[2] < object_box[0] or object_box[3] < object_box[1]:
+        return gt_box
+    w, h = image_size
+    clipped = np.clip(object_box, 0.0, [w - 1, h - 1, w - 1, h - 1])
+    return np.concatenate([np.minimum(gt_box[:2], clipped[:2]), np.maximum(gt_box[2:], clipped[2:])])
+
+
+def _scan_rows(rows: np.ndarray, scan_rows: int, frame_id: str, k: int) -> np.ndarray:
+    """``rows`` as int64 after checking they are rows of a scan of ``scan_rows`` points."""
+    arr = np.asarray(rows)
+    if arr.size and (arr.dtype.kind not in "iu" or arr.min() < 0 or arr.max() >= scan_rows):
+        raise ValueError(f"frame {frame_id}: object record: returns of target {k} are not rows of the "
+                         f"attacked scan ({scan_rows} points)")
+    return arr.astype(np.int64).reshape(-1)
+
+
+def victim_inputs(frames: Sequence[Frame], labels: Sequence[Labels | None], source: str,
+                  objects: Sequence[PlacementRecord | None] | None = None) -> tuple[list[Frame], ProposalsArg]:
+    """What the harness passes to ``detect`` for proposal mode ``source``: the frames with ``labels=None``,
+    and ``"detector"`` or one :class:`Proposals` per frame: :func:`gt_proposals` of ``labels`` for
+    ``"gt"``, :func:`object_proposals` of ``labels`` and ``objects`` (one record per frame, from the attack
+    that made the frame; None for a frame without one) for ``"gt-object"`` / ``"gt-append"``.
+    ``objects`` is given for those two modes only. Raises ValueError for inputs that do not fit."""
     bare = [replace(f, labels=None) for f in frames]
+    if source not in PROPOSAL_SOURCES:
+        raise ValueError(f"proposal mode must be one of {', '.join(PROPOSAL_SOURCES)}, got {source!r}")
+    needs_objects = source in OBJECT_PROPOSAL_SOURCES
+    if needs_objects and (objects is None or len(objects) != len(frames)):
+        got = "none" if objects is None else str(len(objects))
+        raise ValueError(f"proposals {source!r} ({PROTOCOL_LABELS[source]}) need one object record per frame: "
+                         f"{len(frames)} frames, {got} records")
+    if not needs_objects and objects is not None:
+        raise ValueError(f"proposals {source!r} take no object records")
     if source == "detector":
         return bare, "detector"
-    if source != "gt":
-        raise ValueError(f"proposal mode must be 'detector' or 'gt', got {source!r}")
     if len(labels) != len(frames):
         raise ValueError(f"{len(labels)} label sets for {len(frames)} frames")
     props = []
-    for frame, lab in zip(frames, labels, strict=True):
+    for i, (frame, lab) in enumerate(zip(frames, labels, strict=True)):
         if lab is None:
-            raise ValueError(f"frame {frame.frame_id} has no labels; proposals 'gt' need them")
-        props.append(gt_proposals(lab))
+            raise ValueError(f"frame {frame.frame_id} has no labels; proposals {source!r} need them")
+        props.append(object_proposals(frame, lab, objects[i], source) if objects is not None else gt_proposals(lab))
     return bare, props
 
 
@@ -233,7 +392,8 @@ class FrustumSegmentationOracle(Protocol):
     num_points: int
 
     def frustum_logits(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
-                       box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0) -> FrustumLogits | None:
+                       box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0,
+                       extra_points: np.ndarray | None = None) -> FrustumLogits | None:
         """Segment the frustum of ``box2d``, resampled to ``num_points`` (with replacement) by the
         same generator ``detect`` uses for proposal ``proposal`` of frame ``frame_id`` (the victim's
         own seed), so the frustum an attack's loss sees is the one that gets scored.
@@ -248,6 +408,12 @@ class FrustumSegmentationOracle(Protocol):
             proposal: index of ``box2d`` in the frame's proposal set as ``detect`` enumerates it
                 (for the F-PN cascades: ``victim.proposals([frame], source)[0]``).
             class_id: one-hot class (0 Car, 1 Pedestrian, 2 Cyclist).
+            extra_points: None, or sorted unique int64 rows of ``points_rect`` added to the frustum of
+                ``box2d`` as ``detect`` adds a ``gt-append`` box's
+                :attr:`Proposals.extra_points` (for the F-PN cascades: the rows in front of the camera,
+                wherever they project, in row order without duplicates, before the resampling); the
+                points stay differentiable. ``gt-object`` needs no parameter: pass its union box as
+                ``box2d``.
         Returns:
             The logits, or None if the frustum holds no point.
         """
@@ -282,8 +448,9 @@ class FrustumBoxOracle(Protocol):
     """White-box access to the box a frustum-based detector regresses from its points."""
 
     def frustum_box(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
-                    box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0) -> FrustumBox | None:
-        """The box ``detect`` gives the frustum of ``box2d`` (arguments as
+                    box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0,
+                    extra_points: np.ndarray | None = None) -> FrustumBox | None:
+        """The box ``detect`` gives the frustum of ``box2d`` (arguments, ``extra_points`` included, as
         :meth:`FrustumSegmentationOracle.frustum_logits`), differentiable w.r.t. ``points_rect``;
         None if the frustum holds no point."""
         ...
@@ -317,8 +484,11 @@ def empty_detections() -> Labels:
 
 
 __all__ = [
+    "GT_PROPOSAL_SOURCES",
+    "OBJECT_PROPOSAL_SOURCES",
     "PROPOSAL_ORIGINS",
     "PROPOSAL_SOURCES",
+    "PROTOCOL_LABELS",
     "Capabilities",
     "Detector",
     "EntryInfo",
@@ -328,6 +498,7 @@ __all__ = [
     "FrustumSegmentationOracle",
     "ImageObjectnessOracle",
     "ObjectnessCandidates",
+    "PlacementRecord",
     "ProposalOrigin",
     "ProposalSource",
     "Proposals",
@@ -336,5 +507,6 @@ __all__ = [
     "check_victim",
     "empty_detections",
     "gt_proposals",
+    "object_proposals",
     "victim_inputs",
 ]

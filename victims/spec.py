@@ -21,9 +21,23 @@ MODALITIES: tuple[str, ...] = ("camera", "lidar")
 BACKENDS: tuple[str, ...] = ("torch", "onnx", "other")
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
-#: A cell's proposal mode: the victim's own 2D detector, or the frame's ground-truth 2D boxes.
-ProposalSource = Literal["detector", "gt"]
+#: A cell's proposal mode (frustum protocol): the victim's own 2D detector; the frame's ground-truth 2D boxes;
+#: each target car's GT box united with the image box of the object on its roof; or the GT boxes with that
+#: car's object returns added to its frustum (see :mod:`robustbench3d.victims.base`).
+ProposalSource = Literal["detector", "gt", "gt-object", "gt-append"]
 PROPOSAL_SOURCES: tuple[str, ...] = get_args(ProposalSource)
+#: The modes whose boxes the harness builds from the labels: types given, scores 1, scored as ground truth.
+GT_PROPOSAL_SOURCES: tuple[str, ...] = ("gt", "gt-object", "gt-append")
+#: The modes the harness builds from an attack's record of its objects as well as from the labels.
+OBJECT_PROPOSAL_SOURCES: tuple[str, ...] = ("gt-object", "gt-append")
+#: How each proposal mode is told to a reader: the one place these words live; everything that prints a
+#: protocol uses them.
+PROTOCOL_LABELS: dict[str, str] = {
+    "detector": "the victim's own 2D detector",
+    "gt": "GT 2D boxes (object outside the frustum)",
+    "gt-object": "GT 2D box united with the object's projected box",
+    "gt-append": "GT-box frustum plus the car's object returns",
+}
 
 
 @dataclass(frozen=True)
@@ -93,4 +107,5 @@ class VictimSpec(Spec["Detector"]):
         return victim
 
 
-__all__ = ["BACKENDS", "MODALITIES", "PROPOSAL_SOURCES", "Capabilities", "EntryInfo", "ProposalSource", "VictimSpec"]
+__all__ = ["BACKENDS", "GT_PROPOSAL_SOURCES", "MODALITIES", "OBJECT_PROPOSAL_SOURCES", "PROPOSAL_SOURCES",
+           "PROTOCOL_LABELS", "Capabilities", "EntryInfo", "ProposalSource", "VictimSpec"]

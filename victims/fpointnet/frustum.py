@@ -30,11 +30,14 @@ class ProjectedScan:
         points_rect: (P, 4) float64 rect xyz (m) and reflectance, in scan order.
         uv: (P, 2) image-2 pixel coordinates.
         in_fov: (P,) bool, inside [0, W) x [0, H) and velodyne x > :data:`CLIP_DISTANCE`.
+        in_front: (P,) bool, velodyne x > :data:`CLIP_DISTANCE` (the FOV test's depth clause: in front of
+            the camera, wherever it projects); None if unknown (then no extra rows can be added).
     """
 
     points_rect: np.ndarray
     uv: np.ndarray
     in_fov: np.ndarray
+    in_front: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -77,7 +80,8 @@ def project_scan(scan: np.ndarray, calib: Calibration, image_size: tuple[int, in
     rect = calib.velo_to_rect_points(scan[:, :3])
     uv, _ = calib.rect_to_image(rect)
     points = np.concatenate([rect, scan[:, 3:4].astype(np.float64)], axis=1)
-    return ProjectedScan(points, uv, fov_mask(scan[:, 0], uv, image_size, clip_distance))
+    return ProjectedScan(points, uv, fov_mask(scan[:, 0], uv, image_size, clip_distance),
+                         np.asarray(scan[:, 0]) > clip_distance)
 
 
 def project_rect_points(points_rect: np.ndarray, calib: Calibration, image_size: tuple[int, int],
@@ -87,7 +91,7 @@ def project_rect_points(points_rect: np.ndarray, calib: Calibration, image_size:
     pts = np.asarray(points_rect, dtype=np.float64)
     uv, _ = calib.rect_to_image(pts[:, :3])
     velo_x = calib.rect_to_velo_points(pts[:, :3])[:, 0]
-    return ProjectedScan(pts, uv, fov_mask(velo_x, uv, image_size, clip_distance))
+    return ProjectedScan(pts, uv, fov_mask(velo_x, uv, image_size, clip_distance), velo_x > clip_distance)
 
 
 def frustum_angle(box2d: np.ndarray, calib: Calibration, depth: float = CENTER_DEPTH) -> float:
@@ -114,11 +118,35 @@ def box_mask(uv: np.ndarray, box2d: np.ndarray) -> np.ndarray:
     return (uv[:, 0] >= xmin) & (uv[:, 0] < xmax) & (uv[:, 1] >= ymin) & (uv[:, 1] < ymax)
 
 
-def extract_frustum(projected: ProjectedScan, box2d: np.ndarray, calib: Calibration) -> Frustum:
-    """The FOV points whose projection falls inside ``box2d`` (half-open), and the frustum angle."""
+def extract_frustum(projected: ProjectedScan, box2d: np.ndarray, calib: Calibration,
+                    extra_rows: np.ndarray | None = None) -> Frustum:
+    """The FOV points whose projection falls inside ``box2d`` (half-open), and the frustum angle.
+
+    ``extra_rows`` (int64 rows of the scan, e.g. :attr:`~robustbench3d.victims.base.Proposals.extra_points`)
+    adds those of them in front of the camera (``projected.in_front``) wherever they project; the frustum
+    keeps scan order and holds each row once. None or empty: the box's points alone.
+    """
     box = np.asarray(box2d, dtype=np.float64).reshape(4)
-    idx = np.flatnonzero(projected.in_fov & box_mask(projected.uv, box))
+    chosen = projected.in_fov & box_mask(projected.uv, box)
+    if extra_rows is not None and len(extra_rows):
+        chosen |= _extra_mask(projected, extra_rows)
+    idx = np.flatnonzero(chosen)
     return Frustum(idx.astype(np.int64), projected.points_rect[idx], box, frustum_angle(box, calib))
+
+
+def _extra_mask(projected: ProjectedScan, extra_rows: np.ndarray) -> np.ndarray:
+    """(P,) bool: the rows ``extra_rows`` that are in front of the camera (ValueError for rows outside the scan
+    or a scan whose ``in_front`` is unknown)."""
+    rows = np.asarray(extra_rows).reshape(-1)
+    count = len(projected.points_rect)
+    if rows.dtype.kind not in "iu" or rows.min() < 0 or rows.max() >= count:
+        raise ValueError(f"extra frustum rows must be integer rows of the {count}-point scan, got "
+                         f"{rows.dtype} in [{rows.min()}, {rows.max()}]")
+    if projected.in_front is None:
+        raise ValueError("extra frustum rows need ProjectedScan.in_front (project_scan / project_rect_points set it)")
+    mask = np.zeros(count, dtype=bool)
+    mask[rows] = True
+    return mask & projected.in_front
 
 
 def rotate_to_frustum(points: np.ndarray, rot_angle: float) -> np.ndarray:

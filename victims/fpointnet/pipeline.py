@@ -10,7 +10,14 @@ frame, proposal])``), so a frustum's result does not depend on the batch or on o
 frustum oracle (``frustum_logits``) resamples with the same generator, so an attack's loss sees the
 frustums that ``detect`` scores. Proposal filters follow
 §1.3: 2D height >= 25 px, and at least ``min_points_detector`` (5) frustum points for detector
-boxes or ``min_points_gt`` (1) for GT boxes.
+boxes or ``min_points_gt`` (1) for GT boxes (every source of
+:data:`~robustbench3d.victims.spec.GT_PROPOSAL_SOURCES`).
+
+Frustum protocols: ``gt-object`` proposals are GT boxes like any other (the harness made the target cars'
+boxes the union with the object's image box); for proposals with ``extra_points`` (``gt-append``) a box's
+frustum is its points united with those scan rows that lie in front of the camera
+(:func:`~robustbench3d.victims.fpointnet.frustum.extract_frustum`), in scan order; resampling, the gather
+and the box stages are unchanged, so with empty extra rows the result is the ``gt`` result bit for bit.
 
 Imports numpy only (no torch).
 """
@@ -37,6 +44,7 @@ from robustbench3d.victims.fpointnet.frustum import (
 )
 from robustbench3d.victims.fpointnet.glue import FrustumStages, GatherMode, run_frustum_stages
 from robustbench3d.victims.fpointnet.to_kitti import decode, to_labels
+from robustbench3d.victims.spec import GT_PROPOSAL_SOURCES, OBJECT_PROPOSAL_SOURCES
 from robustbench3d.victims.yolo.postprocess import Detections2D
 
 #: A 2D detector: (H, W, 3) uint8 images -> one :class:`Detections2D` per image.
@@ -91,22 +99,42 @@ def frustum_rng(seed: int, frame_id: str, proposal: int) -> np.random.Generator:
 def make_proposals(frames: Sequence[Frame], source: ProposalsArg, detect_2d: Detect2DFn, car_class: int,
                    gt_types: Sequence[str]) -> list[Proposals]:
     """2D proposals per frame: the detector's ``car_class`` detections for ``"detector"``, else the
-    given list (one :class:`Proposals` per frame) with ground-truth sets reduced to ``gt_types``.
+    given list (one :class:`Proposals` per frame) with ground-truth sets (the sources of
+    :data:`~robustbench3d.victims.spec.GT_PROPOSAL_SOURCES`) reduced to ``gt_types``, their extra points
+    with them.
 
     ``"gt"`` (outside the harness only) takes :func:`~robustbench3d.victims.base.gt_proposals` of
-    each frame's labels.
+    each frame's labels. ``"gt-object"`` / ``"gt-append"`` come only as lists (the harness builds them
+    from the attack's placement, :func:`~robustbench3d.victims.base.victim_inputs`). Extra points that are
+    no rows of their frame's scan raise ValueError before anything runs.
     """
     if isinstance(source, str):
         if source == "detector":
             dets = detect_2d([f.image for f in frames])
             return [Proposals(d.boxes[d.classes == car_class], d.scores[d.classes == car_class], "detector")
                     for d in dets]
+        if source in OBJECT_PROPOSAL_SOURCES:
+            raise ValueError(f"proposals {source!r} come as a list of Proposals built by victim_inputs from the "
+                             "attack's object records, not as a name")
         if source != "gt":
             raise ValueError(f"proposals must be 'detector', 'gt' or a list of Proposals, got {source!r}")
         source = victim_inputs(frames, [f.labels for f in frames], "gt")[1]
     if len(source) != len(frames):
         raise ValueError(f"{len(source)} proposal sets for {len(frames)} frames")
-    return [p.of_types(gt_types) if p.source == "gt" else p for p in source]
+    for frame, p in zip(frames, source, strict=True):
+        _check_extra_points(frame, p)
+    return [p.of_types(gt_types) if p.source in GT_PROPOSAL_SOURCES else p for p in source]
+
+
+def _check_extra_points(frame: Frame, proposals: Proposals) -> None:
+    """ValueError unless every extra point of ``proposals`` is a row of ``frame.scan``."""
+    if proposals.extra_points is None:
+        return
+    count = len(frame.scan)
+    for k, rows in enumerate(proposals.extra_points):
+        if len(rows) and rows[-1] >= count:
+            raise ValueError(f"frame {frame.frame_id}: extra_points of proposal {k} name scan row {int(rows[-1])}, "
+                             f"but the scan has {count} points")
 
 
 @dataclass(frozen=True)
@@ -126,21 +154,24 @@ def frustum_inputs(frames: Sequence[Frame], proposals: Sequence[Proposals], sett
                    num_points: int, min_points: int | None = None) -> list[FrustumInput]:
     """Frustums of every proposal that passes the filters, resampled to ``num_points`` points.
 
-    ``min_points`` defaults to ``settings.min_points_gt`` for ground-truth proposal sets and
-    ``settings.min_points_detector`` for the others.
+    A proposal's frustum holds its box's points and, with ``extra_points``, those rows of the scan in front
+    of the camera. ``min_points`` defaults to ``settings.min_points_gt`` for ground-truth proposal sets (the
+    sources of :data:`~robustbench3d.victims.spec.GT_PROPOSAL_SOURCES`) and ``settings.min_points_detector``
+    for the others.
     """
     out: list[FrustumInput] = []
     for fi, (frame, prop) in enumerate(zip(frames, proposals, strict=True)):
         if len(prop.boxes) == 0:
             continue
-        gt = prop.source == "gt"
+        gt = prop.source in GT_PROPOSAL_SOURCES
         least = min_points if min_points is not None else (
             settings.min_points_gt if gt else settings.min_points_detector)
         projected = project_scan(frame.scan, frame.calib, frame.image_size)
         for k, (box, score) in enumerate(zip(prop.boxes, prop.scores, strict=True)):
             if box[3] - box[1] < settings.min_box_height:
                 continue
-            fr = extract_frustum(projected, box, frame.calib)
+            fr = extract_frustum(projected, box, frame.calib,
+                                 None if prop.extra_points is None else prop.extra_points[k])
             if len(fr) < max(least, 1):
                 continue
             rng = frustum_rng(settings.seed, frame.frame_id, k)
@@ -153,7 +184,8 @@ def frustum_inputs(frames: Sequence[Frame], proposals: Sequence[Proposals], sett
 def detect_frames(frames: Sequence[Frame], proposals: ProposalsArg, *, detect_2d: Detect2DFn, car_class: int,
                   stages: FrustumStages, settings: CascadeSettings, num_points: int,
                   num_object_points: int) -> list[Labels]:
-    """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes).
+    """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes: proposals of
+    the sources of :data:`~robustbench3d.victims.spec.GT_PROPOSAL_SOURCES`).
 
     ``settings.batch_size`` frustums go through ``stages`` at a time.
     """

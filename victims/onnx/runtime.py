@@ -190,7 +190,8 @@ class OnnxCascade:
 
     def detect(self, frames: Sequence[Frame], proposals: ProposalsArg = "detector") -> list[Labels]:
         """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes,
-        i.e. proposals with ``source="gt"``)."""
+        i.e. proposals with ``source`` "gt", "gt-object" or "gt-append"; the last adds each box's
+        ``extra_points`` to its frustum), as :meth:`FPointNetCascade.detect`."""
         return detect_frames(frames, proposals, detect_2d=self.detect_2d, car_class=self.car_class,
                              stages=self.frustum_stages, settings=self.settings, num_points=self.num_points,
                              num_object_points=self.num_object_points)
