@@ -9,6 +9,10 @@ victim x attack cell::
     attack.prepare(victim)                       # once; only white-box attacks use the victim
     attacked = attack.apply(frame, targets, rng) # per frame, in frame order
 
+or, for the proposal sources whose boxes or frustums the harness builds from the object's placement
+(``gt-object``, ``gt-append``), ``attacked, record = attack.apply_recorded(frame, targets, rng)``: the same
+frame and an :class:`~robustbench3d.attacks.record.ObjectRecord` of where the object went (harness-side only).
+
 ``targets`` are the frame's target cars (:func:`target_cars`, rect frame) and ``rng`` a
 ``numpy.random.Generator`` seeded from (run seed, frame id) only, so every attack and every victim
 sees the same placement randomness for a frame (common random numbers across cells). Attacks must
@@ -22,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from robustbench3d.attacks.record import ObjectRecord, nominal_record
 from robustbench3d.kitti.dataset import Frame, KittiDataset
 from robustbench3d.kitti.labels import Labels
 
@@ -35,6 +40,16 @@ def target_cars(labels: Labels | None) -> Labels:
     if labels is None:
         return Labels.empty()
     return labels.of_types(TARGET_TYPES)
+
+
+#: Third entropy word of the attack generators (separates them from other uses of the seed).
+ATTACK_STREAM = 0x41545443  # "ATTC"
+
+
+def attack_rng(seed: int, frame_id: str) -> np.random.Generator:
+    """The generator of frame ``frame_id``'s attack in a benchmark cell (seeded from the run seed and the frame
+    id only): the same for every attack and victim."""
+    return np.random.default_rng([int(seed), int(frame_id), ATTACK_STREAM])
 
 
 class Attack(ABC):
@@ -59,6 +74,14 @@ class Attack(ABC):
             targets: the target cars, rect frame (:func:`target_cars`).
             rng: the only source of randomness (placement, sensor noise, lighting).
         """
+
+    def apply_recorded(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> tuple[Frame, ObjectRecord]:
+        """The attacked frame (as :meth:`apply`, the same bytes from the same ``rng``) and the record of what was
+        placed on each target (:class:`~robustbench3d.attacks.record.ObjectRecord`). Default: :meth:`apply` and
+        the nominal record (the default 0.40 m object's bounds at the roof-centre placement, no returns:
+        :func:`~robustbench3d.attacks.record.nominal_record`); an attack that places its own object overrides it.
+        The record is the harness's: it must not be reachable from the returned frame."""
+        return self.apply(frame, targets, rng), nominal_record(frame, targets)
 
     @abstractmethod
     def describe(self) -> dict[str, Any]:

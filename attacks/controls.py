@@ -1,7 +1,9 @@
 """Control attacks: the reference cells attacked results are compared against.
 
-``none`` places no object: frames reach the victim unchanged (the clean AP). ``benign-sphere``
-(the undeformed grey sphere) and ``random-shape`` (a seeded random smooth deformation with random
+``none`` places no object: frames reach the victim unchanged (the clean AP); its record
+(:meth:`~robustbench3d.attacks.base.Attack.apply_recorded`) is the nominal one, so the clean cell of the
+``gt-object`` protocol gets the default object's union boxes and that of ``gt-append`` the bare GT frustums.
+``benign-sphere`` (the undeformed grey sphere) and ``random-shape`` (a seeded random smooth deformation with random
 colours, param ``seed`` in [0, 2**32 - 1]) put a physical but unoptimised object on every target car
 (:class:`~robustbench3d.attacks.roof.RoofObjectAttack`): how much AP a mere object costs.
 ``object-file`` (param ``path``) applies any object file (:mod:`robustbench3d.attacks.objectfile`);
@@ -21,6 +23,7 @@ import numpy as np
 
 from robustbench3d.attacks import ATTACKS, register_attack
 from robustbench3d.attacks.base import Attack
+from robustbench3d.attacks.record import ObjectRecord, nominal_record
 from robustbench3d.attacks.roof import roof_settings, settings_parameters
 from robustbench3d.attacks.spec import MAX_SEED, AttackRequirements, AttackSpec, AttackSpecError
 from robustbench3d.errors import RobustBenchError
@@ -39,6 +42,12 @@ class NoAttack(Attack):
 
     def apply(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> Frame:
         return frame
+
+    def apply_recorded(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> tuple[Frame, ObjectRecord]:
+        """The frame itself and the nominal record (:func:`~robustbench3d.attacks.record.nominal_record`: the
+        default object's bounds at the roof-centre placement, no returns), so the clean cell of a frustum protocol
+        gets the union boxes of an attacked default-bounds cell without EOT, and no added points."""
+        return frame, nominal_record(frame, targets)
 
     def describe(self) -> dict[str, Any]:
         return {"object": None}

@@ -53,6 +53,7 @@ from robustbench3d.attacks.placement import (
     place_on_roof,
     sample_jitter,
 )
+from robustbench3d.attacks.record import ObjectRecord, added_rows, placed_object_boxes, target_rows
 from robustbench3d.kitti.dataset import Frame, KittiDataset, LazyImageFrame
 from robustbench3d.kitti.labels import Labels
 
@@ -197,8 +198,14 @@ class RoofObjectAttack(Attack):
         return lidar_depth_map(frame.scan, frame.calib, frame.image_size)
 
     def apply(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> Frame:
+        return self.apply_recorded(frame, targets, rng)[0]
+
+    def apply_recorded(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> tuple[Frame, ObjectRecord]:
+        """The attacked frame (what :meth:`apply` returns: the one code path) and the record of each placement:
+        the image-2 box of the object's bounds box as placed and the rows of the attacked scan the render added
+        for that car (:mod:`robustbench3d.attacks.record`). The record is kept apart from the frame."""
         if len(targets) == 0:
-            return frame
+            return frame, ObjectRecord.empty()
         from robustbench3d.attacks.depth_cache import depth_for_render
         from robustbench3d.sensors.lidar_render import render_lidar
         from robustbench3d.sensors.pattern_cache import default_pattern_cache
@@ -218,7 +225,11 @@ class RoofObjectAttack(Attack):
             photo=frame.make_image if isinstance(frame, LazyImageFrame) else frame.image, calib=frame.calib,
             meshes=tuple((v, faces, colors) for v in vertices), scene_depth=depth, supersample=self.supersample,
             full_image=not self.cull)
-        return LazyImageFrame(frame.frame_id, scan, frame.calib, frame.labels, frame.image_size, render)
+        record = ObjectRecord(
+            placed_object_boxes(self.obj.bounds, [pose for _, pose in placed], frame.calib, frame.image_size),
+            added_rows(len(frame.scan), len(lidar.removed_index), lidar.object_index, len(placed)),
+            target_rows(frame.labels, targets))
+        return LazyImageFrame(frame.frame_id, scan, frame.calib, frame.labels, frame.image_size, render), record
 
     def describe(self) -> dict[str, Any]:
         """Object, placement and sensor settings; the jitter ranges appear with EOT on or when not the defaults,

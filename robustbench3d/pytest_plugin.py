@@ -14,7 +14,8 @@ victim, attacks (the clean cell ``none`` is added), proposal sources and the fir
 the split (default: the embedded dataset's val split; only those frames are generated on first use)
 into a session temporary directory, and returns a :class:`BenchmarkResult`. Tests with the same marker
 arguments share one run. Marker keywords: ``victim`` (required), ``attacks`` (default none),
-``frames`` (default 8), ``proposals`` (default ``("detector",)``), ``data`` (a KITTI-layout root),
+``frames`` (default 8), ``proposals`` (default ``("detector",)``; any of ``detector``, ``gt``, ``gt-object``,
+``gt-append``: :data:`robustbench3d.victims.spec.PROTOCOL_LABELS`), ``data`` (a KITTI-layout root),
 ``split`` ("val"), ``seed`` (0), ``victim_args`` / ``attack_args`` (factory keyword arguments,
 ``{name: {key: value}}`` or for the victim just ``{key: value}``). ``frames`` is an integer >= 1 and
 ``seed`` one in [0, 2**63 - 1] (:data:`robustbench3d.victims.zoo.SEED_RANGE`); anything else is a usage
@@ -197,6 +198,20 @@ def _marker_int(kw: dict[str, Any], key: str, default: int, lo: int, hi: int | N
     return value
 
 
+def _marker_sources(kw: dict[str, Any]) -> tuple[str, ...]:
+    """Pop the ``proposals`` marker keyword (default ``("detector",)``): proposal sources of
+    :data:`~robustbench3d.victims.spec.PROPOSAL_SOURCES`; another name is a usage error listing them."""
+    from robustbench3d.runner.config import describe_sources
+    from robustbench3d.victims.spec import PROPOSAL_SOURCES
+
+    sources = _names(kw.pop("proposals", None), ("detector",))
+    bad = [s for s in sources if s not in PROPOSAL_SOURCES]
+    if bad:
+        raise pytest.UsageError(f"@pytest.mark.{MARKER}: proposals={bad[0]!r} is not a proposal source; choose from "
+                                f"{describe_sources()}")
+    return sources
+
+
 def _config_from_marker(marker: pytest.Mark, out: Path) -> Any:
     from robustbench3d.runner import RunConfig
 
@@ -213,7 +228,7 @@ def _config_from_marker(marker: pytest.Mark, out: Path) -> Any:
 
     frames = _marker_int(kw, "frames", DEFAULT_FRAMES, 1)
     seed = _marker_int(kw, "seed", 0, *SEED_RANGE)
-    config = RunConfig(victims=(victim,), attacks=attacks, proposals=_names(kw.pop("proposals", None), ("detector",)),
+    config = RunConfig(victims=(victim,), attacks=attacks, proposals=_marker_sources(kw),
                        out=out, data=kw.pop("data", None), split=kw.pop("split", "val"), max_frames=frames, seed=seed,
                        victim_args=victim_args, attack_args=kw.pop("attack_args", None) or {}, workers=1,
                        progress=False)

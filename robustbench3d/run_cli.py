@@ -1,5 +1,13 @@
 """``robustbench3d run``: every victim x attack x proposal-source cell on one dataset split.
 
+A run file (TOML) holds a run's configuration with the keys of its provenance (``RunConfig.as_dict()``,
+each cell's ``provenance.run`` in ``summary.json``; :data:`RUN_KEYS`): ``run --print-config`` writes it,
+``run --config FILE`` runs it, ``run --config-from RUN_DIR`` takes it from a finished run. Options given on
+the command line override the file's values (``--victim-arg``/``--attack-arg`` key by key). TOML has no
+null: a missing ``data`` is the embedded dataset, ``max_frames = "all"`` every frame of the split (a missing
+``max_frames``: the command line's default); relative paths are taken from the current directory, as on
+the command line.
+
 Standard library only at module level (numpy and the registries load inside :func:`run`).
 """
 
@@ -7,8 +15,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
+import sys
+from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
+from robustbench3d.errors import DataFormatError, RobustBenchError
+from robustbench3d.logs import add_verbosity_arguments, cli_logging, verbosity
 from robustbench3d.ranges import (
     BATCH_RANGE,
     FRAMES_RANGE,
@@ -28,8 +42,6 @@ def _names(text: str) -> list[str]:
 def parse_factory_args(items: list[str] | None, option: str) -> dict[str, dict[str, Any]]:
     """``["NAME:KEY=VALUE", ...]`` -> ``{NAME: {KEY: VALUE}}``; VALUE is parsed as JSON when it is
     valid JSON (numbers, true/false, null, lists), else kept as a string (paths)."""
-    from robustbench3d.errors import RobustBenchError
-
     out: dict[str, dict[str, Any]] = {}
     for item in items or []:
         name, sep, assignment = item.partition(":")
@@ -44,13 +56,14 @@ def parse_factory_args(items: list[str] | None, option: str) -> dict[str, dict[s
     return out
 
 
-def frames_line(max_frames: int | None, requested: int | None, full: bool, data: str | None, split: str) -> str:
+def frames_line(max_frames: int | None, requested: int | None, full: bool, data: str | None, split: str,
+                source: str = "--max-frames") -> str:
     """The line ``run`` prints first: which frames of which split it evaluates (``max_frames``: the run's,
     from :func:`~robustbench3d.runner.config.default_max_frames`; ``requested``: the ``--max-frames``
-    given), and how to get all."""
+    given, or the run file's ``max_frames``, named by ``source``), and how to get all."""
     if data is not None:
         where = f"split {split} of {data}"
-        return (f"frames: the first {max_frames} of {where} (--max-frames)" if max_frames is not None
+        return (f"frames: the first {max_frames} of {where} ({source})" if max_frames is not None
                 else f"frames: every frame of {where}")
     from robustbench3d.datasets import EMBEDDED, embedded_split
 
@@ -60,40 +73,46 @@ def frames_line(max_frames: int | None, requested: int | None, full: bool, data:
     where = f"the embedded {split} split"
     if max_frames is None or max_frames >= len(ids):
         return f"frames: all {len(ids)} frames of {where}{' (--full)' if full else ''}"
-    how = "--max-frames" if requested is not None else "the quick default, runner.config.DEFAULT_VAL_FRAMES"
+    how = source if requested is not None else "the quick default, runner.config.DEFAULT_VAL_FRAMES"
     return (f"frames: the first {max_frames} of the {len(ids)} frames of {where}, {ids[0]}..{ids[max_frames - 1]} "
             f"({how}); --full runs all {len(ids)}")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    # options that are run-file keys default to None: given ones override the file (DEFAULTS fills the rest)
     frames, seeds, batch, procs, resamples = FRAMES_RANGE, SEED_RANGE, BATCH_RANGE, PROCESSES_RANGE, RESAMPLES_RANGE
-    parser.add_argument("--victims", required=True, metavar="NAME[,NAME...]",
-                        help="registered victims, or ONNX victim directories (registered under their directory name)")
-    parser.add_argument("--attacks", default="none", metavar="NAME[,NAME...]",
+    parser.add_argument("--victims", metavar="NAME[,NAME...]",
+                        help="registered victims, or ONNX victim directories (registered under their directory name); "
+                             "required unless the run file names them")
+    parser.add_argument("--attacks", metavar="NAME[,NAME...]",
                         help="registered attacks, or object files NAME.ply (registered under NAME) "
                              "(default: none, the clean control)")
-    parser.add_argument("--proposals", default="detector", metavar="SRC[,SRC...]",
-                        help="2D proposal sources: detector (the victim's own) and/or gt (ground-truth boxes); "
-                             "a victim that does not support a source gets a skipped cell (default: detector)")
-    parser.add_argument("--out", required=True, metavar="DIR",
+    from robustbench3d.victims.spec import PROPOSAL_SOURCES, PROTOCOL_LABELS
+
+    parser.add_argument("--proposals", metavar="SRC[,SRC...]",
+                        help="2D proposal sources (frustum protocols), any of: "
+                             + "; ".join(f"{s}: {PROTOCOL_LABELS[s]}" for s in PROPOSAL_SOURCES)
+                             + ". A victim that does not support a source gets a skipped cell (default: detector)")
+    parser.add_argument("--out", metavar="DIR",
                         help="output directory (cell files, summary.json, results.csv, seed_table.md); "
-                             "an interrupted run resumes: finished cells of the same configuration are kept")
+                             "an interrupted run resumes: finished cells of the same configuration are kept; "
+                             "required unless the run file gives it")
     parser.add_argument("--force", action="store_true",
                         help="replace finished cells in --out that were computed with another configuration "
                              "(without it the run refuses them up front; each replaced cell is named)")
     parser.add_argument("--data", metavar="DIR",
                         help="KITTI-layout dataset root (default: the embedded procedural dataset in the cache, "
                              "generated if missing)")
-    parser.add_argument("--split", default="val", help="split name, ImageSets/<split>.txt (default: val)")
+    parser.add_argument("--split", help="split name, ImageSets/<split>.txt (default: val)")
     parser.add_argument("--max-frames", type=int, metavar="N",
                         help=f"evaluate only the first N frames of the split, {frames[0]}..{frames[1]} (default on "
                              "the embedded val split: the first DEFAULT_VAL_FRAMES, see --full; elsewhere: all)")
     parser.add_argument("--full", action="store_true",
                         help="evaluate the whole split (the embedded val split's default is a first-N slice)")
-    parser.add_argument("--seed", type=int, default=0, metavar="S",
+    parser.add_argument("--seed", type=int, metavar="S",
                         help=f"run seed, {seeds[0]}..{seeds[1]}: attack randomness per frame, and seed= of victims "
                              "that take one (default 0)")
-    parser.add_argument("--batch-size", type=int, default=4, metavar="B",
+    parser.add_argument("--batch-size", type=int, metavar="B",
                         help=f"frames per detect call, {batch[0]}..{batch[1]} (default 4)")
     parser.add_argument("--victim-arg", action="append", metavar="NAME:KEY=VALUE",
                         help="keyword argument of a victim's factory, e.g. fpointnet-v1:weights=cascade.pt "
@@ -113,53 +132,312 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a running Ray cluster to join (--executor ray): HOST:PORT (the head's GCS port, "
                              "e.g. 6379), ray://HOST:PORT (Ray Client), auto (the cluster `ray start` recorded on "
                              "this machine) or local (start one, as without --address); checked up front")
-    parser.add_argument("--bootstrap", type=int, default=1000, metavar="R",
+    parser.add_argument("--bootstrap", type=int, metavar="R",
                         help="bootstrap resamples of the frames for the 95 %% confidence interval of every AP and "
                              f"(paired) AP drop, {resamples[0]}..{resamples[1]}; 0: none (default 1000)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars on stderr")
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--config", metavar="FILE",
+                        help="run file (TOML, the keys of the run's provenance; see --print-config); options given "
+                             "with it override its values (--victim-arg/--attack-arg key by key)")
+    source.add_argument("--config-from", metavar="RUN_DIR",
+                        help="take the run file from a finished run's summary.json (the configuration whose grid "
+                             "covers all its cells), e.g. with --print-config or another --out")
+    parser.add_argument("--print-config", action="store_true",
+                        help="print the run's configuration as a run file (TOML) on stdout and exit without running")
+    add_verbosity_arguments(parser)
 
 
 def check_numbers(args: argparse.Namespace) -> None:
-    """Every numeric option of ``run`` in its range (:data:`FRAMES_RANGE` ...), before any work."""
+    """Every numeric option of ``run`` given in its range (:data:`FRAMES_RANGE` ...), before any work."""
     if args.max_frames is not None:
         check_range("--max-frames", args.max_frames, *FRAMES_RANGE, "frames")
-    check_range("--seed", args.seed, *SEED_RANGE, "run seed")
-    check_range("--batch-size", args.batch_size, *BATCH_RANGE, "frames per detect call")
+    if args.seed is not None:
+        check_range("--seed", args.seed, *SEED_RANGE, "run seed")
+    if args.batch_size is not None:
+        check_range("--batch-size", args.batch_size, *BATCH_RANGE, "frames per detect call")
     check_range("--workers", args.workers, *PROCESSES_RANGE, "dataset generation processes")
     check_range("--jobs", args.jobs, *PROCESSES_RANGE, "worker processes")
-    check_bootstrap(args.bootstrap)
+    if args.bootstrap is not None:
+        check_bootstrap(args.bootstrap)
 
 
-def run(args: argparse.Namespace) -> int:
-    import sys
+# --- run files ---------------------------------------------------------------------------------------
 
-    from robustbench3d.attacks.controls import resolve_attack_references
-    from robustbench3d.fileio import check_output_dir, remove_created_dir
-    from robustbench3d.runner import RunConfig, run_benchmark, summary_table
+#: The keys of a run file: exactly those of ``RunConfig.as_dict()`` (a cell's ``provenance.run``).
+RUN_KEYS = ("victims", "attacks", "proposals", "out", "data", "split", "max_frames", "seed", "batch_size",
+            "victim_args", "attack_args", "classes", "bootstrap")
+#: The values of the keys neither the run file nor the command line gives (``run``'s option defaults;
+#: ``max_frames``: :func:`~robustbench3d.runner.config.default_max_frames`).
+DEFAULTS: dict[str, Any] = {"attacks": ["none"], "proposals": ["detector"], "data": None, "split": "val",
+                            "seed": 0, "batch_size": 4, "victim_args": {}, "attack_args": {}, "classes": ["Car"],
+                            "bootstrap": 1000}
+#: How a run file spells ``max_frames = None`` (every frame of the split): TOML has no null.
+ALL_FRAMES = "all"
+#: Largest run file read (bytes): a run file is a few hundred bytes; a bigger file is not one.
+RUN_FILE_MAX_BYTES = 1 << 20
+_NAME_LISTS = ("victims", "attacks", "proposals", "classes")
+_STRINGS = ("out", "data", "split")
+_ARG_TABLES = ("victim_args", "attack_args")
+#: Options that are not run-file keys (how a run executes, not what it computes): named when one is a key.
+_EXECUTION = "--workers, --executor, --jobs, --address, --force, --no-progress"
+
+
+def _key_line(text: str, key: str) -> int | None:
+    """The first line (1-based) of ``text`` that assigns top-level ``key`` or opens a table under it."""
+    pattern = re.compile(rf"""^\s*\[*\s*(["']?){re.escape(key)}\1\s*[=.\]]""")
+    return next((n for n, line in enumerate(text.splitlines(), start=1) if pattern.match(line)), None)
+
+
+def _toml_error(path: Path, exc: ValueError, text: str) -> DataFormatError:
+    """tomllib's syntax error as :class:`DataFormatError` at its line (its message ends ``(at line L, column
+    C)``, or ``(at end of document)``: the last line)."""
+    message = str(exc)
+    where = re.search(r"\(at line (\d+), column (\d+)\)$", message)
+    if where is not None:
+        problem = f"{message[:where.start()].rstrip()} (column {where.group(2)})"
+        return DataFormatError(path, f"not valid TOML: {problem}", line=int(where.group(1)))
+    end = message.endswith("(at end of document)")
+    return DataFormatError(path, f"not valid TOML: {message}", line=max(1, len(text.splitlines())) if end else None)
+
+
+def _plain_json(value: Any, where: str) -> str | None:
+    """Where in ``value`` (a factory-argument value) a TOML-only type sits (dates, times), or None."""
+    if isinstance(value, dict):
+        return next((bad for k, v in value.items() if (bad := _plain_json(v, f"{where}.{k}")) is not None), None)
+    if isinstance(value, list):
+        return next((bad for i, v in enumerate(value) if (bad := _plain_json(v, f"{where}[{i}]")) is not None), None)
+    return None if value is None or isinstance(value, str | int | float | bool) else where
+
+
+def _check_value(key: str, value: Any) -> str | None:
+    """What is wrong with run-file ``key``'s ``value`` (one phrase), or None."""
+    from robustbench3d.ranges import RESAMPLES_RANGE
+
+    if key in _NAME_LISTS:
+        if not (isinstance(value, list) and value and all(isinstance(v, str) and v.strip() for v in value)):
+            return "expected a non-empty list of names, e.g. [\"none\", \"adv-shape\"]"
+        if key == "classes":
+            from robustbench3d.eval.rules import CLASSES
+
+            if unknown := [v for v in value if v not in CLASSES]:
+                return f"unknown class {unknown[0]!r}; choose from {', '.join(CLASSES)}"
+        return None
+    if key in _STRINGS:
+        return None if isinstance(value, str) and value.strip() else "expected a non-empty string"
+    if key in _ARG_TABLES:
+        if not (isinstance(value, dict) and all(isinstance(v, dict) for v in value.values())):
+            return "expected tables of keyword arguments, e.g. [victim_args.fpointnet-v1] weights = \"cascade.pt\""
+        bad = _plain_json(value, key)
+        return None if bad is None else f"{bad} is a TOML date or time; give it as a string"
+    if key == "max_frames" and value == ALL_FRAMES:
+        return None
+    low, high, what = {"max_frames": (*FRAMES_RANGE, f'frames, or "{ALL_FRAMES}"'), "seed": (*SEED_RANGE, "run seed"),
+                       "batch_size": (*BATCH_RANGE, "frames per detect call"),
+                       "bootstrap": (0, RESAMPLES_RANGE[1], f"0: none, else {RESAMPLES_RANGE[0]}..")}[key]
+    if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+        return f"must be an integer in {low}..{high} ({what}), got {value!r}"
+    if key == "bootstrap" and 0 < value < RESAMPLES_RANGE[0]:
+        return f"must be 0 (no intervals) or in {RESAMPLES_RANGE[0]}..{high} (bootstrap resamples), got {value!r}"
+    return None
+
+
+def load_run_file(path: str | Path) -> dict[str, Any]:
+    """The settings of run file ``path`` (keys of :data:`RUN_KEYS`; ``max_frames`` may be ``"all"``).
+
+    Raises:
+        DataFormatError: one line naming the file and, where known, the line and key: a missing or
+            unreadable file, bad TOML, an unknown key, a value of the wrong type or out of its range.
+    """
+    from robustbench3d.fileio import data_file_errors, read_data_text
+
+    path = Path(path)
+    with data_file_errors(path):
+        size = path.stat().st_size
+    if size > RUN_FILE_MAX_BYTES:
+        raise DataFormatError(path, f"{size} bytes: not a run file (a run file is under {RUN_FILE_MAX_BYTES} bytes)")
+    text = read_data_text(path)
+    try:
+        data = _tomllib().loads(text)
+    except ValueError as exc:  # tomllib.TOMLDecodeError
+        raise _toml_error(path, exc, text) from None
+    for key, value in data.items():
+        if key not in RUN_KEYS:
+            raise DataFormatError(path, f"unknown key; a run file has the keys {', '.join(RUN_KEYS)} (execution "
+                                        f"settings are options: {_EXECUTION})", _key_line(text, key), key)
+        problem = _check_value(key, value)
+        if problem is not None:
+            raise DataFormatError(path, problem, _key_line(text, key), key)
+    return data
+
+
+def _tomllib() -> Any:
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover - Python 3.10: the tomli backport, a dependency there
+        import tomli as tomllib
+    return tomllib
+
+
+def _cli_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """The run-file keys the command line gives (unresolved references, as typed)."""
+    given: dict[str, Any] = {}
+    for key in ("victims", "attacks", "proposals"):
+        if getattr(args, key) is not None:
+            given[key] = _names(getattr(args, key))
+    for key in ("out", "data", "split", "seed", "batch_size", "bootstrap"):
+        if getattr(args, key) is not None:
+            given[key] = getattr(args, key)
+    given["victim_args"] = parse_factory_args(args.victim_arg, "--victim-arg")
+    given["attack_args"] = parse_factory_args(args.attack_arg, "--attack-arg")
+    return given
+
+
+def _merge_args(base: Mapping[str, Mapping[str, Any]], over: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """Factory arguments per name: ``over``'s keys replace ``base``'s, the others are kept."""
+    out = {name: dict(kwargs) for name, kwargs in base.items()}
+    for name, kwargs in over.items():
+        out.setdefault(name, {}).update(kwargs)
+    return out
+
+
+def run_settings(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """The run's settings (the keys of :data:`RUN_KEYS`, ``max_frames`` resolved; victims and attacks as
+    typed: names or paths) from :data:`DEFAULTS`, the run file and the command line, in rising precedence;
+    and what set ``max_frames`` (for :func:`frames_line`)."""
     from robustbench3d.runner.config import default_max_frames
-    from robustbench3d.runner.executors import make_executor
-    from robustbench3d.seed_table import SEED_TABLE_FILE, seed_table_text
+
+    if args.config is not None:
+        file, origin = load_run_file(args.config), f"max_frames in {args.config}"
+    elif args.config_from is not None:
+        file, origin = config_from_run(args.config_from), f"max_frames of {args.config_from}"
+    else:
+        file, origin = {}, "--max-frames"
+    cli = _cli_settings(args)
+    settings = {**DEFAULTS, **{k: v for k, v in file.items() if k != "max_frames"},
+                **{k: v for k, v in cli.items() if k not in _ARG_TABLES}}
+    for key in _ARG_TABLES:
+        settings[key] = _merge_args(file.get(key, {}), cli[key])
+    if args.max_frames is not None or args.full or "max_frames" not in file:
+        settings["max_frames"] = default_max_frames(args.max_frames, args.full, settings["data"], settings["split"])
+        origin = "--max-frames"
+    else:
+        settings["max_frames"] = None if file["max_frames"] == ALL_FRAMES else file["max_frames"]
+    for key, option in (("victims", "--victims"), ("out", "--out")):
+        if key not in settings:
+            raise RobustBenchError(f"{option} is required (or {key} in the --config run file)")
+    return {key: settings[key] for key in RUN_KEYS}, origin
+
+
+def run_file_text(settings: Mapping[str, Any]) -> str:
+    """The run file of ``settings`` (:func:`run_settings`): a comment, then TOML (``tomli_w``) with the keys
+    in :data:`RUN_KEYS` order (tables last); ``data`` None is left out, ``max_frames`` None is ``"all"``.
+
+    Raises:
+        RobustBenchError: a factory argument is null (TOML cannot hold it).
+    """
+    import tomli_w
+
+    for key in _ARG_TABLES:
+        for name, kwargs in settings[key].items():
+            for arg, value in kwargs.items():
+                if value is None:
+                    raise RobustBenchError(f"--print-config: {key}.{name}.{arg} is null, which TOML cannot hold; "
+                                           "leave the argument out (its factory default) or give a value")
+    data = {k: v for k, v in settings.items() if not (k == "data" and v is None)}
+    if data["max_frames"] is None:
+        data["max_frames"] = ALL_FRAMES
+    return ("# robustbench3d run file: `robustbench3d run --config FILE` runs it; options given with --config\n"
+            "# override its values. Keys: those of the run's provenance (RunConfig.as_dict()); no data: the\n"
+            f"# embedded dataset; max_frames = \"{ALL_FRAMES}\": every frame of the split.\n" + tomli_w.dumps(data))
+
+
+def _covers(run: Mapping[str, Any], cells: list[dict[str, Any]]) -> bool:
+    return all(c["victim"] in run["victims"] and c["attack"] in run["attacks"] and c["proposals"] in run["proposals"]
+               for c in cells)
+
+
+def config_from_run(run_dir: str | Path) -> dict[str, Any]:
+    """The run file's settings of a finished run: from ``RUN_DIR/summary.json``, the recorded run
+    configuration (``provenance.run``) whose grid holds every cell of the summary, the most recently
+    finished if several do (a directory that several runs added cells to has none: refused)."""
+    from robustbench3d.results import read_summary
+
+    path = Path(run_dir) / "summary.json"
+    cells = read_summary(path)
+    runs = sorted((c["provenance"]["finished"], json.dumps(c["provenance"]["run"], sort_keys=True))
+                  for c in cells if isinstance(c.get("provenance", {}).get("run"), dict))
+    found = [json.loads(run) for _, run in reversed(runs) if _covers(json.loads(run), cells)]
+    if not found:
+        raise DataFormatError(path, f"no recorded run configuration (provenance.run) covers all {len(cells)} cells "
+                                    "(cells of several runs): write the run file by hand (see --print-config)")
+    settings = dict(found[0])
+    if settings["max_frames"] is None:
+        settings["max_frames"] = ALL_FRAMES
+    if settings["data"] is None:
+        del settings["data"]
+    return settings
+
+
+def _check_run_names(victims: list[str], attacks: list[str]) -> None:
+    """Unknown victim or attack names, refused before ``--print-config`` prints (as the run refuses them)."""
+    from robustbench3d.attacks import ATTACKS
+    from robustbench3d.victims import VICTIMS
+
+    for name in victims:
+        VICTIMS.entry(name)
+    for name in attacks:
+        ATTACKS.entry(name)
+
+
+def run_config(settings: Mapping[str, Any], args: argparse.Namespace) -> Any:
+    """The :class:`~robustbench3d.runner.RunConfig` of ``settings`` (object files and ONNX directories
+    registered under their names) with the command line's execution options."""
+    from robustbench3d.attacks.controls import resolve_attack_references
+    from robustbench3d.runner import RunConfig
     from robustbench3d.victims import resolve_victim_references
 
-    out = check_output_dir(args.out, "--out")
-    check_numbers(args)
-    created = not out.exists()
-
-    victims, victim_args = resolve_victim_references(_names(args.victims),
-                                                     parse_factory_args(args.victim_arg, "--victim-arg"))
-    attacks, attack_args = resolve_attack_references(_names(args.attacks),
-                                                     parse_factory_args(args.attack_arg, "--attack-arg"))
-    max_frames = default_max_frames(args.max_frames, args.full, args.data, args.split)
-    config = RunConfig(
-        victims=tuple(victims), attacks=tuple(attacks),
-        proposals=tuple(_names(args.proposals)), out=args.out, data=args.data, split=args.split,
-        max_frames=max_frames, seed=args.seed, batch_size=args.batch_size,
-        victim_args=victim_args,
-        attack_args=attack_args,
-        workers=args.workers, progress=not args.no_progress, bootstrap=args.bootstrap, force=args.force,
+    victims, _ = resolve_victim_references(list(settings["victims"]), {})
+    _, victim_args = resolve_victim_references([], dict(settings["victim_args"]))
+    attacks, _ = resolve_attack_references(list(settings["attacks"]), {})
+    _, attack_args = resolve_attack_references([], dict(settings["attack_args"]))
+    return RunConfig(
+        victims=tuple(victims), attacks=tuple(attacks), proposals=tuple(settings["proposals"]), out=settings["out"],
+        data=settings["data"], split=settings["split"], max_frames=settings["max_frames"], seed=settings["seed"],
+        batch_size=settings["batch_size"], victim_args=victim_args, attack_args=attack_args,
+        classes=tuple(settings["classes"]), workers=args.workers,
+        progress=not (args.no_progress or args.quiet), bootstrap=settings["bootstrap"], force=args.force,
     )
+
+
+# --- the command ----------------------------------------------------------------------------------------
+
+def run(args: argparse.Namespace) -> int:
+    with cli_logging(verbosity(args)):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
+    import logging
+
+    from robustbench3d.fileio import check_output_dir, remove_created_dir
+    from robustbench3d.runner import run_benchmark
+    from robustbench3d.runner.executors import make_executor
+
+    log = logging.getLogger("robustbench3d.run")
+    check_numbers(args)
+    settings, origin = run_settings(args)
+    config = run_config(settings, args)
+    if args.print_config:
+        _check_run_names(list(config.victims), list(config.attacks))
+        sys.stdout.write(run_file_text(settings))
+        return 0
+    out = check_output_dir(config.out, "--out")
+    created = not out.exists()
     executor = make_executor(args.executor, args.jobs, args.address)  # a Ray address is checked here
-    print(frames_line(max_frames, args.max_frames, args.full, args.data, args.split), file=sys.stderr, flush=True)
+    requested = config.max_frames if args.max_frames is not None or origin != "--max-frames" else None
+    log.info(frames_line(config.max_frames, requested, args.full, settings["data"], config.split, origin))
+    log.debug(f"run configuration: {json.dumps(config.as_dict(), sort_keys=True)}")
     if executor is None:  # one intra-op thread, as in every worker process: the same result files
         from robustbench3d.runner.shards import worker_setup
 
@@ -174,15 +452,38 @@ def run(args: argparse.Namespace) -> int:
         if created:  # a run that failed before writing any result leaves no directory behind
             remove_created_dir(out)
         raise
-    print(summary_table(report.summary))
-    print(f"results: {report.out / 'summary.json'}, {report.out / 'results.csv'}")
-    if report.earlier or report.left_out:
-        print(f"{len(report.earlier)} of these cells come from earlier runs into {report.out}; "
-              f"{len(report.left_out)} cell(s) there are left out (not comparable with this run, listed above)")
-    print()
-    print(seed_table_text(report.summary))
-    print(f"seed table: {report.out / SEED_TABLE_FILE}")
+    _print_results(report)
     if report.failed:
-        print(f"robustbench3d: {len(report.failed)} of {len(report.outcomes)} cells failed", file=sys.stderr)
+        log.error(f"robustbench3d: {len(report.failed)} of {len(report.outcomes)} cells failed")
         return 1
     return 0
+
+
+def _print_results(report: Any, write: Callable[[str], None] = print) -> None:
+    """The run's tables and result paths on stdout: on a terminal folded to its width (``rich``,
+    :func:`~robustbench3d.runner.table.fold_table`), else (a file, a pipe, CI) the plain text tables."""
+    from functools import partial
+
+    from robustbench3d.runner.table import fold_table, summary_table, terminal_width
+    from robustbench3d.seed_table import SEED_TABLE_FILE, seed_table_text
+
+    width = terminal_width() if sys.stdout.isatty() else None
+    if width is not None:  # the prose lines wrapped too (at spaces: paths are never split)
+        write = partial(_fitted, write=write, width=width)
+    write(summary_table(report.summary, width=width))
+    write(f"results: {report.out / 'summary.json'}, {report.out / 'results.csv'}")
+    if report.earlier or report.left_out:
+        write(f"{len(report.earlier)} of these cells come from earlier runs into {report.out}; "
+              f"{len(report.left_out)} cell(s) there are left out (not comparable with this run, listed above)")
+    write("")
+    if width is None:
+        write(seed_table_text(report.summary))
+    else:
+        write(seed_table_text(report.summary, table=partial(fold_table, width=width, key=2)))
+    write(f"seed table: {report.out / SEED_TABLE_FILE}")
+
+
+def _fitted(text: str, write: Callable[[str], None], width: int) -> None:
+    from robustbench3d.runner.table import fit_lines
+
+    write(fit_lines(text, width))

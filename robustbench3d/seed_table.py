@@ -5,7 +5,11 @@ the registered attacks as :data:`SEED_ROWS` says: ``none`` (clean), the controls
 ``random-shape`` (no counterpart in the paper), ``adv-shape`` (LiDAR-only, scored with ground-truth 2D
 boxes: proposals ``gt``), ``adv-texture`` (image-only) and ``adv-object`` (both), the last two with the
 victim's own 2D detector (proposals ``detector``). Clean and control rows appear for every proposal
-source. Per victim, one row per ``ok`` summary cell of that map:
+source. The LiDAR-only row appears for each LiDAR protocol the summary has (:func:`layout_rows`): ``adv-shape``
+under ``gt`` (GT 2D boxes, the object outside the frustum), and under a further protocol such as ``gt-object``
+or ``gt-append`` the shape trained for it (``adv-shape-gt-object``, ``adv-shape-gt-append``) and ``adv-shape``
+itself, each beside the paper's row, with that protocol's clean and control rows (``benign-sphere``: the grey
+sphere). Per victim, one row per ``ok`` summary cell of that map:
 
 * BEV AP R40 and R11 (easy moderate hard, percent);
 * the clean reference: BEV AP R40 of the ``none`` cell with the same proposals, as the cell's
@@ -16,8 +20,8 @@ source. Per victim, one row per ``ok`` summary cell of that map:
 
 Rows appear only for cells the summary has; a victim without attacked cells of the map gets one line
 naming the attacks that would fill its table instead. :func:`victim_layout` gives the same rows as numbers
-(``robustbench3d report``'s Table 1 block); there :func:`layout_rows` adds, for a proposal source beyond
-``detector`` and ``gt`` (a further LiDAR protocol), the rows ``gt`` has. Standard library only.
+(``robustbench3d report``'s Table 1 block). A summary with only ``detector`` and ``gt`` cells gets
+:data:`SEED_ROWS` exactly. Standard library only.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from robustbench3d.eval.rules import DIFFICULTIES
 from robustbench3d.fileio import atomic_write_text
 from robustbench3d.results import CellResult
 from robustbench3d.texttable import format_table
+from robustbench3d.victims.spec import PROTOCOL_LABELS
 
 #: File name of the markdown table next to ``summary.json``.
 SEED_TABLE_FILE = "seed_table.md"
@@ -80,28 +85,52 @@ CLEAN_ATTACK = "none"
 DETECTOR_PROPOSALS = "detector"
 #: The proposal source whose rows :func:`layout_rows` repeats for a further LiDAR protocol.
 GT_PROPOSALS = "gt"
-#: How a reader is told each proposal source; a source not named here (a LiDAR protocol added later, e.g.
-#: ``gt-object``) is shown as ``<name> proposals``.
-PROPOSAL_LABELS: dict[str, str] = {
-    DETECTOR_PROPOSALS: "the victim's 2D detector",
-    GT_PROPOSALS: "GT 2D boxes (object outside the frustum)",
-}
+#: The attack of the paper's LiDAR-only row under ``gt``; under a further protocol ``P`` the shape trained for it
+#: is shipped as ``adv-shape-P`` (:func:`protocol_shape`).
+LIDAR_SHAPE = "adv-shape"
+#: How a reader is told each proposal source (the protocols' words, :data:`robustbench3d.victims.spec.PROTOCOL_LABELS`);
+#: a source not named there is shown as ``<name> proposals``.
+PROPOSAL_LABELS: dict[str, str] = dict(PROTOCOL_LABELS)
 
 
 def proposal_label(source: str) -> str:
-    """A proposal source as a reader is told it (:data:`PROPOSAL_LABELS`)."""
-    return PROPOSAL_LABELS.get(source, f"{source} proposals")
+    """A proposal source as a reader is told it: its protocol's words (:data:`PROPOSAL_LABELS`), after its name
+    for a further LiDAR protocol (``"gt-object: GT 2D box united with ..."``, as ``--proposals`` names it)."""
+    if source not in PROPOSAL_LABELS:
+        return f"{source} proposals"
+    label = PROPOSAL_LABELS[source]
+    return label if source in (DETECTOR_PROPOSALS, GT_PROPOSALS) else f"{source}: {label}"
+
+
+def protocol_shape(source: str) -> str:
+    """The attack of the LiDAR-only shape trained under the LiDAR protocol ``source``: ``adv-shape`` for ``gt``,
+    else ``adv-shape-<source>`` (e.g. ``adv-shape-gt-object``)."""
+    return LIDAR_SHAPE if source == GT_PROPOSALS else f"{LIDAR_SHAPE}-{source}"
+
+
+def _further_rows(spec: SeedRow, source: str) -> list[SeedRow]:
+    """The rows a further LiDAR protocol ``source`` adds after the ``gt`` row ``spec``: the same control under
+    ``source``; for the LiDAR-only row, the shape trained for ``source`` (:func:`protocol_shape`), then the
+    ``gt`` shape evaluated under ``source``, both beside the paper's LiDAR-only row."""
+    if spec.attack != LIDAR_SHAPE:
+        return [SeedRow(spec.name, spec.attack, source, spec.paper)]
+    trained = protocol_shape(source)
+    return [SeedRow(trained, trained, source, spec.paper), SeedRow(spec.name, spec.attack, source, spec.paper)]
 
 
 def layout_rows(sources: Iterable[str] = ()) -> tuple[SeedRow, ...]:
-    """:data:`SEED_ROWS`, then for each source of ``sources`` that no row of it uses (a further LiDAR protocol:
-    ground-truth 2D boxes made another way) the rows :data:`GT_PROPOSALS` has, with that source: its clean
-    and control rows and an ``adv-shape`` row beside the paper's LiDAR-only row."""
+    """:data:`SEED_ROWS` and, for each source of ``sources`` that no row of it uses (a further LiDAR protocol:
+    ground-truth 2D boxes made another way, e.g. ``gt-object``, ``gt-append``), the rows :data:`GT_PROPOSALS`
+    has with that source, each right after its ``gt`` row: the clean and control rows, and beside the paper's
+    LiDAR-only row the shape trained for the protocol (``adv-shape-<source>``) and ``adv-shape`` itself.
+    Without further sources: :data:`SEED_ROWS` exactly."""
     known = {spec.proposals for spec in SEED_ROWS}
-    rows = list(SEED_ROWS)
-    for source in dict.fromkeys(s for s in sources if s not in known):
-        rows += [SeedRow(spec.name, spec.attack, source, spec.paper) for spec in SEED_ROWS
-                 if spec.proposals == GT_PROPOSALS]
+    further = list(dict.fromkeys(s for s in sources if s not in known))
+    rows: list[SeedRow] = []
+    for spec in SEED_ROWS:
+        rows.append(spec)
+        if spec.proposals == GT_PROPOSALS:
+            rows += [row for source in further for row in _further_rows(spec, source)]
     return tuple(rows)
 
 
@@ -277,11 +306,13 @@ class VictimSection:
     no_ap: list[str] = field(default_factory=list)
     #: Rows of the map the summary has no cell for.
     absent: list[SeedRow] = field(default_factory=list)
+    #: The rows of the map (:func:`layout_rows` of the summary's proposal sources).
+    specs: tuple[SeedRow, ...] = SEED_ROWS
 
     @property
     def has_attacked(self) -> bool:
         """Whether the summary has any attacked cell of the map for this victim (``ok`` or not)."""
-        return any(spec.attack != CLEAN_ATTACK and spec not in self.absent for spec in SEED_ROWS)
+        return any(spec.attack != CLEAN_ATTACK and spec not in self.absent for spec in self.specs)
 
 
 def sections(cells: Sequence[dict[str, Any]]) -> list[VictimSection]:
@@ -289,10 +320,11 @@ def sections(cells: Sequence[dict[str, Any]]) -> list[VictimSection]:
     by_victim: dict[str, dict[tuple[str, str], CellResult]] = {}
     for cell in map(CellResult, cells):
         by_victim.setdefault(cell.victim, {}).setdefault((cell.attack, cell.proposals), cell)
+    specs = layout_rows(c["proposals"] for c in cells)
     out = []
     for victim, have in by_victim.items():
-        section = VictimSection(victim, next(iter(have.values())).frames)
-        for spec in SEED_ROWS:
+        section = VictimSection(victim, next(iter(have.values())).frames, specs=specs)
+        for spec in specs:
             cell = have.get((spec.attack, spec.proposals))
             if cell is None:
                 section.absent.append(spec)
@@ -338,7 +370,8 @@ def _no_layout(secs: Sequence[VictimSection]) -> str | None:
     """The sentence that replaces the layout when no victim has an attacked cell of the map, else None."""
     if any(s.has_attacked for s in secs):
         return None
-    return f"no attacked cell of it in this run; these attacks fill it: {_fill_hint(SEED_ROWS)}"
+    specs = secs[0].specs if secs else SEED_ROWS
+    return f"no attacked cell of it in this run; these attacks fill it: {_fill_hint(specs)}"
 
 
 def _notes(section: VictimSection) -> list[str]:
@@ -350,12 +383,24 @@ def _notes(section: VictimSection) -> list[str]:
     return notes
 
 
+def _protocols(cells: Sequence[dict[str, Any]]) -> str:
+    """With a further LiDAR protocol among the cells' proposal sources, ``"; proposals: gt = ..., ..."`` (each
+    source with its protocol's words, :data:`PROPOSAL_LABELS`), else ''."""
+    sources = list(dict.fromkeys(c["proposals"] for c in cells))
+    if all(s in (DETECTOR_PROPOSALS, GT_PROPOSALS) for s in sources):
+        return ""
+    return "; proposals: " + ", ".join(f"{s} = {PROPOSAL_LABELS.get(s, 'another source')}" for s in sources)
+
+
 def _legend(cells: Sequence[dict[str, Any]]) -> str:
-    """The legend, plus what ``[lo, hi]`` means when some cell carries bootstrap intervals."""
+    """The legend, plus what ``[lo, hi]`` means when some cell carries bootstrap intervals, and each proposal
+    source's protocol when there is a further one (``seed paper`` then stands beside every source)."""
     meta = interval_meta(cells)
+    protocols = _protocols(cells)
+    legend = LEGEND.replace("both proposal sources", "every proposal source") + protocols if protocols else LEGEND
     if meta is None:
-        return LEGEND
-    return (f"{LEGEND}; [lo, hi] = {100 * meta['level']:.0f} % bootstrap interval over frames "
+        return legend
+    return (f"{legend}; [lo, hi] = {100 * meta['level']:.0f} % bootstrap interval over frames "
             f"({meta['resamples']} resamples)")
 
 
@@ -408,8 +453,9 @@ def write_seed_table(path: str | Path, cells: Sequence[dict[str, Any]]) -> str:
 
 
 __all__ = [
-    "CLEAN_ATTACK", "DETECTOR_PROPOSALS", "GT_PROPOSALS", "HEADER", "LEGEND", "PAPER_BOTH", "PAPER_CLEAN",
-    "PAPER_IMAGE", "PAPER_LIDAR", "PROPOSAL_LABELS", "SEED_ROWS", "SEED_TABLE_FILE", "TITLE", "MeasuredRow",
-    "PaperRow", "SeedRow", "VictimSection", "interval_meta", "layout_rows", "measured_row", "paper_relative_drop",
-    "proposal_label", "sections", "seed_table_markdown", "seed_table_text", "victim_layout", "write_seed_table",
+    "CLEAN_ATTACK", "DETECTOR_PROPOSALS", "GT_PROPOSALS", "HEADER", "LEGEND", "LIDAR_SHAPE", "PAPER_BOTH",
+    "PAPER_CLEAN", "PAPER_IMAGE", "PAPER_LIDAR", "PROPOSAL_LABELS", "SEED_ROWS", "SEED_TABLE_FILE", "TITLE",
+    "MeasuredRow", "PaperRow", "SeedRow", "VictimSection", "interval_meta", "layout_rows", "measured_row",
+    "paper_relative_drop", "proposal_label", "protocol_shape", "sections", "seed_table_markdown", "seed_table_text",
+    "victim_layout", "write_seed_table",
 ]

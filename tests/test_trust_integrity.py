@@ -1,7 +1,8 @@
 """Benchmark integrity: a victim never receives labels, GT proposals are exactly the 2D label
-boxes, a cheating plugin scores nothing -- on clean and attacked frames, whose deferred images hold
-data, not closures over the harness, and on the frames ``attack train`` hands its victim; the summary
-covers every comparable finished cell of the output directory; a rejected (NaN) result is reported
+boxes (the frustum protocols': the GT box united with the object's projected box, or the GT box and the row
+indices of the object's returns), a cheating plugin scores nothing -- on clean and attacked frames, whose
+deferred images hold data, not closures over the harness, and on the frames ``attack train`` hands its
+victim; the summary covers every comparable finished cell of the output directory; a rejected (NaN) result is reported
 without naming a file that is gone."""
 
 from __future__ import annotations
@@ -99,7 +100,7 @@ class SnoopingVictim:
     detector mode), hunts it for labels (the frames' ``labels``, any :class:`Labels` or file path
     reachable from its arguments) and returns whatever ground truth it found, as Cars with score 1."""
 
-    supported_proposals = ("detector", "gt")
+    supported_proposals = ("detector", "gt", "gt-object", "gt-append")
 
     def detect(self, frames, proposals="detector"):
         if proposals == "detector":
@@ -194,7 +195,7 @@ def test_victims_never_receive_labels_and_gt_mode_gets_exactly_the_2d_boxes(data
             assert frame_strings == {f.frame_id for f in call["frames"]}  # nothing but the frame ids
             if mode == "detector":
                 assert call["proposals"] == "detector" and strings == frame_strings | {"detector"}
-    assert {f.name for f in dataclasses.fields(Proposals)} == {"boxes", "scores", "source", "types"}
+    assert {f.name for f in dataclasses.fields(Proposals)} == {"boxes", "scores", "source", "types", "extra_points"}
     for call in by_mode["gt"] + probes["gt"]:
         props = call["proposals"]
         assert isinstance(props, list) and len(props) == len(call["frames"])
@@ -223,7 +224,7 @@ def test_a_cheating_victim_cannot_return_the_labels(dataset, tmp_path, monkeypat
     # the probe is not vacuous: a harness that leaks the labels (as before) lets it score 100
     import robustbench3d.runner.cell as cell_module
 
-    def leaky(frames, labels, source):
+    def leaky(frames, labels, source, objects=None):
         return [dataclasses.replace(f, labels=lab if source == "gt" else None)
                 for f, lab in zip(frames, labels, strict=True)], source
 
@@ -236,6 +237,47 @@ def test_a_cheating_victim_cannot_return_the_labels(dataset, tmp_path, monkeypat
                             for g in gt])
     assert cheated["metrics"]["Car"]["3d"] == perfect["Car"]["3d"]
     assert perfect["Car"]["3d"]["R40"]["moderate"] > 40.0
+
+
+def test_frustum_protocols_hand_the_victim_boxes_and_object_rows_only(dataset, tmp_path, cache):
+    """``gt-object`` and ``gt-append``, clean and attacked: no label, path, 3D box or object record reachable;
+    the proposals hold boxes, scores, source, types and extra points only; the union boxes are the label file's
+    GT box united with the default object's projected box (computed here from the label and calib files)."""
+    from test_frustum_protocols import nominal_boxes_from_files
+
+    from robustbench3d.attacks.record import ObjectRecord
+
+    RECORD.clear()
+    report = run(dataset, tmp_path / "run", ("gt-object", "gt-append"), attacks=("none", "benign-sphere"))
+    assert [(c["attack"], c["proposals"], c["status"]) for c in report.cells] == [
+        (a, p, "ok") for a in ("none", "benign-sphere") for p in ("gt-object", "gt-append")]
+    assert all(sum(c["metrics"]["meta"]["detections"].values()) == 0 for c in report.cells)
+    boxes_2d, boxes_3d = gt_boxes(dataset)
+    seen = {"gt-object": 0, "gt-append": 0}
+    for call in RECORD:
+        props = call["proposals"]
+        assert isinstance(props, list) and len(props) == len(call["frames"])
+        assert not any(isinstance(o, Labels | ObjectRecord) for o in call["reachable"])
+        assert call["paths"] == []
+        assert holding(reachable(call["frames"]), boxes_2d) == [] and holding(call["reachable"], boxes_3d) == []
+        for frame, p in zip(call["frames"], props, strict=True):
+            rows, gt, want = nominal_boxes_from_files(dataset, frame.frame_id)
+            seen[p.source] += 1
+            assert list(p.types) == [r[0] for r in rows] and np.array_equal(p.scores, np.ones(len(rows)))
+            arrays = [o for o in reachable(p) if isinstance(o, np.ndarray)]
+            floats = [a for a in arrays if a.dtype.kind == "f"]
+            assert {a.shape for a in floats} <= {(len(rows),), (len(rows), 4)}  # boxes and scores: nothing 3D
+            if p.source == "gt-object":
+                assert p.extra_points is None and not [a for a in arrays if a.dtype.kind in "iu"]
+                ok = ~np.isnan(want[:, 0])
+                assert ok.sum() >= 1
+                np.testing.assert_allclose(p.boxes[ok], want[ok], rtol=0, atol=1e-9)
+            else:
+                assert np.array_equal(p.boxes, gt) and len(p.extra_points) == len(rows)
+                for extra in p.extra_points:  # row indices into the frame's own scan, nothing else
+                    assert extra.dtype == np.int64 and extra.ndim == 1
+                    assert len(extra) == 0 or (extra.min() >= 0 and extra.max() < len(frame.scan))
+    assert seen["gt-object"] > 0 and seen["gt-append"] > 0
 
 
 class _Holder:

@@ -4,7 +4,11 @@ Frames are read one batch at a time (labels come from the :class:`GroundTruth` r
 Each frame is attacked with a generator seeded from (run seed, frame id) only, then handed to the
 victim *without* labels in every mode (:func:`~robustbench3d.victims.base.victim_inputs`): for
 ``proposals="gt"`` the victim gets the ground-truth 2D boxes (and their types) as
-:class:`~robustbench3d.victims.base.Proposals` and nothing 3D, so it cannot peek at the answers.
+:class:`~robustbench3d.victims.base.Proposals` and nothing 3D, so it cannot peek at the answers. For the
+frustum protocols of :data:`RECORDED_SOURCES` (``gt-object``: each target car's GT box united with its
+object's projected box; ``gt-append``: the GT-box frustum plus that car's object returns) the frame is
+attacked with :meth:`~robustbench3d.attacks.base.Attack.apply_recorded` and the harness builds the proposals
+from its :class:`~robustbench3d.attacks.record.ObjectRecord`; the record itself never reaches the victim.
 Detections are written as KITTI result files into ``data.partial/`` (one file per frame, empty
 for no detection), parsed back and evaluated: the metrics are those of the files on disk.
 ``data.partial/`` becomes ``data/`` once the cell is done.
@@ -23,31 +27,30 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from robustbench3d.attacks.base import Attack, target_cars
+from robustbench3d.attacks.base import ATTACK_STREAM, Attack, attack_rng, target_cars  # noqa: F401 (re-exported)
+from robustbench3d.attacks.record import ObjectRecord
 from robustbench3d.datasets import GroundTruth
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import atomic_write_text
 from robustbench3d.kitti.dataset import DeferredImageError, Frame, KittiDataset
 from robustbench3d.kitti.labels import RESULT_PRECISION, Labels, parse_labels
 from robustbench3d.victims.base import victim_inputs
+from robustbench3d.victims.spec import OBJECT_PROPOSAL_SOURCES
 
-#: Third entropy word of the attack generators (separates them from other uses of the seed).
-ATTACK_STREAM = 0x41545443  # "ATTC"
+# ATTACK_STREAM and attack_rng (the attack generators) belong to the attack contract (attacks.base), shared with
+# attack train's held-out curve; imported above for this module and its users (grid, attack_apply, show).
 PARTIAL = "data.partial"
 DATA = "data"
 #: Per-shard completion records of a cell computed in frame shards (:mod:`robustbench3d.runner.shards`).
 SHARD_MARKS = "shards.partial"
+#: The proposal sources whose boxes or frustums the harness builds from each object's placement
+#: (:data:`~robustbench3d.victims.spec.OBJECT_PROPOSAL_SOURCES`): their cells attack with
+#: ``Attack.apply_recorded`` and pass the records to ``victim_inputs``.
+RECORDED_SOURCES: tuple[str, ...] = OBJECT_PROPOSAL_SOURCES
 
 
 class CellFailure(RobustBenchError):
     """The victim or the attack of a cell failed; the run records an error cell and goes on."""
-
-
-def attack_rng(seed: int, frame_id: str) -> np.random.Generator:
-    """The generator of frame ``frame_id``'s attack: the same for every attack and victim."""
-    return np.random.default_rng([int(seed), int(frame_id), ATTACK_STREAM])
 
 
 @dataclass(frozen=True)
@@ -64,21 +67,37 @@ class CellInputs:
     bootstrap: int = 0
 
 
-def _attacked(attack: Attack, name: str, frame: Frame, gt: Labels, seed: int) -> Frame:
+def _attacked(attack: Attack, name: str, frame: Frame, gt: Labels, seed: int,
+              recorded: bool = False) -> tuple[Frame, ObjectRecord | None]:
+    """The attacked frame of ``frame`` and, when ``recorded``, the attack's record of its placements (else None).
+    Raises :class:`CellFailure` when the attack fails or returns something else."""
+    targets = target_cars(gt)
+    rng = attack_rng(seed, frame.frame_id)
+    record = None
     try:
-        out = attack.apply(frame, target_cars(gt), attack_rng(seed, frame.frame_id))
+        if recorded:
+            out, record = attack.apply_recorded(frame, targets, rng)
+        else:
+            out = attack.apply(frame, targets, rng)
     except Exception as exc:
         raise CellFailure(f"attack {name!r} failed on frame {frame.frame_id}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(out, Frame) or out.frame_id != frame.frame_id:
         raise CellFailure(f"attack {name!r} returned {type(out).__name__} for frame {frame.frame_id}; "
                           "expected a Frame with the same frame_id")
-    return out
+    if recorded and (not isinstance(record, ObjectRecord) or len(record) != len(targets)):
+        got = f"{len(record)} targets" if isinstance(record, ObjectRecord) else type(record).__name__
+        raise CellFailure(f"attack {name!r} recorded {got} for frame {frame.frame_id}; expected an ObjectRecord "
+                          f"of its {len(targets)} target cars")
+    return out, record
 
 
 def _detect(victim: Any, name: str, frames: Sequence[Frame], labels: Sequence[Labels], proposals: str,
-            attack_name: str) -> list[Labels]:
+            attack_name: str, records: Sequence[ObjectRecord | None] | None = None) -> list[Labels]:
     ids = f"{frames[0].frame_id}..{frames[-1].frame_id}"
-    bare, given = victim_inputs(frames, labels, proposals)
+    if records is None:
+        bare, given = victim_inputs(frames, labels, proposals)
+    else:
+        bare, given = victim_inputs(frames, labels, proposals, objects=list(records))
     try:
         out = victim.detect(bare, given)
     except DeferredImageError as exc:  # an attacked image is rendered when the victim first reads it
@@ -122,17 +141,22 @@ def detect_frames(victim: Any, victim_name: str, attack: Attack, attack_name: st
                   out_dir: Path, done: Callable[[int], object] | None = None) -> list[tuple[str, Labels]]:
     """Attack, detect and write ``out_dir/NNNNNN.txt`` (atomically) for every frame of ``pairs``
     (frame id, ground truth), in batches of ``batch_size`` counted from the first pair; return each
-    frame's result-file text and the detections parsed back from it. ``attack`` must be prepared.
+    frame's result-file text and the detections parsed back from it. ``attack`` must be prepared. A source of
+    :data:`RECORDED_SOURCES` attacks with ``apply_recorded`` (the same frames) and hands the records to
+    ``victim_inputs``; the others call ``apply`` and ``victim_inputs`` as they always did.
     Raises :class:`CellFailure` if the victim or the attack fails."""
     found_all: list[tuple[str, Labels]] = []
+    recorded = proposals in RECORDED_SOURCES
     for start in range(0, len(pairs), batch_size):
         batch = pairs[start:start + batch_size]
-        frames = []
+        frames, records = [], []
         for fid, gt in batch:
             clean = kitti.lazy_frame(fid, gt)  # the image is decoded only if the victim or the attack reads it
-            frames.append(_attacked(attack, attack_name, clean, gt, seed))
+            frame, record = _attacked(attack, attack_name, clean, gt, seed, recorded)
+            frames.append(frame)
+            records.append(record)
         labels = [gt for _, gt in batch]
-        found = _detect(victim, victim_name, frames, labels, proposals, attack_name)
+        found = _detect(victim, victim_name, frames, labels, proposals, attack_name, records if recorded else None)
         for frame, det in zip(frames, found, strict=True):
             path = out_dir / f"{frame.frame_id}.txt"
             text, parsed = _as_result_file(det, path, victim_name)

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import RobustBenchError
-from robustbench3d.victims.spec import PROPOSAL_SOURCES
+from robustbench3d.victims.spec import PROPOSAL_SOURCES, PROTOCOL_LABELS
 
 #: Frames a ``robustbench3d run`` on the embedded ``val`` split evaluates by default: the first N ids
 #: of the split (``--full``: all of them; ``--max-frames`` sets another N). The quick default: the
@@ -30,6 +30,12 @@ def default_max_frames(max_frames: int | None, full: bool, data: str | Path | No
     return DEFAULT_VAL_FRAMES
 
 
+def describe_sources(sources: tuple[str, ...] = PROPOSAL_SOURCES) -> str:
+    """``"detector: the victim's own 2D detector; gt: GT 2D boxes (object outside the frustum); ..."``: each
+    proposal source with its protocol's words (:data:`~robustbench3d.victims.spec.PROTOCOL_LABELS`)."""
+    return "; ".join(f"{s}: {PROTOCOL_LABELS[s]}" for s in sources)
+
+
 def _unique(values: tuple[str, ...], what: str) -> None:
     if not values:
         raise RobustBenchError(f"--{what}: give at least one name")
@@ -45,7 +51,7 @@ class RunConfig:
     Attributes:
         victims: registered victim names, in table order.
         attacks: registered attack names.
-        proposals: proposal sources, a subset of :data:`PROPOSAL_SOURCES`.
+        proposals: proposal sources, a subset of :data:`PROPOSAL_SOURCES` (:func:`describe_sources`).
         out: output directory.
         data: KITTI-layout dataset root, or None for the embedded dataset (generated if missing).
         split: split name (``ImageSets/<split>.txt``).
@@ -87,7 +93,7 @@ class RunConfig:
             _unique(getattr(self, what), what)
         bad = [p for p in self.proposals if p not in PROPOSAL_SOURCES]
         if bad:
-            raise RobustBenchError(f"--proposals: unknown source {bad[0]!r}; choose from {', '.join(PROPOSAL_SOURCES)}")
+            raise RobustBenchError(f"--proposals: unknown source {bad[0]!r}; choose from {describe_sources()}")
         self._check_numbers()
         for what, args, names in (("victim", self.victim_args, self.victims),
                                   ("attack", self.attack_args, self.attacks)):

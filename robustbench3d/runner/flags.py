@@ -172,15 +172,23 @@ def attack_flags(attack: Attack) -> list[Flag]:
 def determinism(victim: Any, proposals: str, kitti: KittiDataset, frame_id: str, gt: Labels,
                 runs: int = 2) -> list[Flag]:
     """``victim-nondeterministic`` from ``runs`` ``detect`` calls on frame ``frame_id`` (clean; ``gt`` only
-    feeds ``proposals="gt"``), for the process that holds ``victim``. Never raises: a failing re-run is
-    itself flagged (the victim has just worked through a cell)."""
+    feeds the GT-box sources, ``gt-object`` and ``gt-append`` with the clean control's nominal record), for the
+    process that holds ``victim``. Never raises: a failing re-run is itself flagged (the victim has just worked
+    through a cell)."""
+    from robustbench3d.attacks.base import target_cars
+    from robustbench3d.attacks.record import nominal_record
     from robustbench3d.kitti.labels import RESULT_PRECISION
+    from robustbench3d.runner.cell import RECORDED_SOURCES
     from robustbench3d.victims.base import victim_inputs
 
     texts = []
     try:
         for _ in range(runs):
-            bare, given = victim_inputs([kitti.lazy_frame(frame_id, gt)], [gt], proposals)
+            frame = kitti.lazy_frame(frame_id, gt)
+            if proposals in RECORDED_SOURCES:  # the clean frame's record: the clean control's (nominal) one
+                bare, given = victim_inputs([frame], [gt], proposals, objects=[nominal_record(frame, target_cars(gt))])
+            else:
+                bare, given = victim_inputs([frame], [gt], proposals)
             texts.append(victim.detect(bare, given)[0].to_text(RESULT_PRECISION))
     except Exception as exc:
         return [flag(VICTIM_NONDETERMINISTIC, f"the determinism re-run failed: {type(exc).__name__}: {exc}")]

@@ -32,7 +32,6 @@ arguments, proposals, dataset and frames, seed, batch size, evaluation, versions
 from __future__ import annotations
 
 import contextlib
-import sys
 import time
 import traceback
 from collections.abc import Callable, Iterator
@@ -44,6 +43,7 @@ from robustbench3d.attacks import ATTACKS, create_attack
 from robustbench3d.attacks.base import Attack
 from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
 from robustbench3d.errors import DataFormatError, RobustBenchError
+from robustbench3d.logs import LineLog, line_log, warn
 from robustbench3d.provenance import (
     determinism_flags,
     host_provenance,
@@ -217,7 +217,7 @@ def _check_finished(out: Path, cells: list[CellKey], cfgs: list[dict[str, Any]],
                                f"configuration (on disk vs this run: {why}); pass --force to replace it, or choose "
                                "another --out (nothing was changed)")
     for key, why in changed:
-        log(f"replacing finished cell {key.dirname} (--force): on disk vs this run: {why}")
+        warn(log, f"replacing finished cell {key.dirname} (--force): on disk vs this run: {why}")
     if kept:
         log(f"keeping {kept} finished cell(s) already in {out} (same configuration fingerprint: not recomputed)")
 
@@ -256,13 +256,15 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
 
     Args:
         config: what to run.
-        print_fn: receives one progress line per cell (default: stderr).
+        print_fn: receives the run's lines (one per cell, what was kept or replaced, warnings); default: the
+            ``robustbench3d.runner`` logger (:mod:`robustbench3d.logs`; stderr when logging is not set up).
+            Detail lines (fingerprints, shards) go only to the logger, at DEBUG.
         executor: where frame shards of the cells run (:mod:`robustbench3d.runner.executors`; the
             caller closes it); None: every cell in this process, one after another.
     Raises:
         RobustBenchError: unknown names, bad arguments, an unusable dataset (before any cell runs).
     """
-    log = print_fn or (lambda line: print(line, file=sys.stderr, flush=True))
+    log = line_log(__name__, print_fn)
     _check_names(config)
     if with_clean_cells(config) is not config:
         config = with_clean_cells(config)
@@ -316,7 +318,7 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
         if report.earlier:
             log(f"the summary also lists {len(report.earlier)} finished cell(s) of earlier runs in {out}")
         for line in report.left_out:
-            log(f"left out of the summary: {line}")
+            log.warning(f"left out of the summary: {line}")
         _record_effects(report, out / "cells", inputs, log)
         record_flags(report, out / "cells", attacks, log, CELL_FILE)
         summary = write_validated(out / SUMMARY_FILE, report.summary)
@@ -352,7 +354,7 @@ class _RunContext:
     inputs: CellInputs
     identity: dict[str, Any]
     host: dict[str, Any]
-    log: Callable[[str], None]
+    log: LineLog
 
 
 @dataclass(frozen=True)
@@ -390,7 +392,7 @@ def _failure(exc: CellFailure, log: Callable[[str], None]) -> _Verdict:
     cause = exc.__cause__ or exc
     tb = "".join(traceback.format_exception(type(cause), cause, cause.__traceback__))
     if not isinstance(cause, RobustBenchError):  # an unexpected exception: show where it came from
-        log(tb.rstrip())
+        warn(log, tb.rstrip())
     return _Verdict("error", str(exc), traceback=tb)
 
 
@@ -430,6 +432,7 @@ def _run_one(run: _RunContext, key: CellKey, cfg: dict[str, Any], slot: _VictimS
              cell_dir: Path) -> CellOutcome:
     """Reuse the finished cell if its fingerprint is unchanged, else compute and record it."""
     want = fingerprint(cfg)
+    run.log.debug(f"{key}: fingerprint {want[:12]}, directory {cell_dir}")
     old = _reusable(cell_dir, run.log, want, run.inputs.gt.frame_ids)
     if old is not None:
         return CellOutcome(key, old, reused=True)

@@ -132,6 +132,8 @@ def run_cells(run: _RunContext, cells: Sequence[CellKey], cfgs: Sequence[dict[st
                     path, problem, line, fld = result.bad_input
                     raise DataFormatError(path, problem, line, fld)
                 pending.results[result.index] = result
+                run.log.debug(f"shard {result.index + 1}/{len(pending.shards)} of {result.cell}: "
+                              f"{len(result.frame_ids)} frame(s), {result.status}, on {result.host}:{result.pid}")
                 if len(pending.results) == len(pending.shards):
                     del waiting[result.cell]
                     done(pending.position, _assemble(run, pending, executor))
@@ -172,7 +174,7 @@ def _assemble(run: _RunContext, cell: _Cell, executor: Executor) -> CellOutcome:
     skips = [r for r in results if r.status == "skipped"]
     if errors:
         if errors[0].unexpected and errors[0].traceback is not None:
-            run.log(errors[0].traceback.rstrip())
+            run.log.warning(errors[0].traceback.rstrip())
         verdict = grid._Verdict("error", errors[0].reason, traceback=errors[0].traceback)
     elif skips:
         verdict = grid._Verdict("skipped", skips[0].reason)

@@ -21,7 +21,9 @@ def threads_range() -> tuple[int, int]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from robustbench3d.ranges import BATCH_RANGE, FRAMES_RANGE, RESAMPLES_RANGE, SEED_RANGE
+    from robustbench3d.runner.config import describe_sources
     from robustbench3d.tradeoff.sweeps import SWEEP_NAMES
+    from robustbench3d.victims.spec import PROPOSAL_SOURCES
 
     parser.add_argument("--out", required=True, metavar="DIR",
                         help="output directory (tradeoff.json/.csv/.md/.png; cells/ for resuming): new, empty, or "
@@ -32,8 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--victim", default="fpointnet-v1-lite", help="registered victim (default fpointnet-v1-lite)")
     parser.add_argument("--attack", default="adv-object", help="registered attack scored with the clean control "
                                                                 "(default adv-object)")
-    parser.add_argument("--proposals", default="detector", choices=("detector", "gt"),
-                        help="2D proposal source (default detector)")
+    parser.add_argument("--proposals", default="detector", choices=PROPOSAL_SOURCES,
+                        help=f"2D proposal source, one of {describe_sources()} (default detector)")
     parser.add_argument("--frames", type=int, default=50, metavar="N",
                         help=f"evaluate the first N frames of the split, {FRAMES_RANGE[0]}..{FRAMES_RANGE[1]} "
                              "(default 50)")

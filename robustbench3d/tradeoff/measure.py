@@ -30,6 +30,7 @@ import numpy as np
 from robustbench3d import __version__
 from robustbench3d.attacks import create_attack
 from robustbench3d.attacks.base import Attack, target_cars
+from robustbench3d.attacks.record import ObjectRecord
 from robustbench3d.datasets import GroundTruth
 from robustbench3d.fileio import atomic_write_text
 from robustbench3d.kitti.dataset import Frame, KittiDataset
@@ -56,7 +57,7 @@ CELL_FILE = "cell.json"
 class DecimatedScan(Attack):
     """``inner``'s attacked frame with every ``k``-th azimuth column of each laser kept
     (:func:`robustbench3d.sensors.scan_density.decimate_azimuth`): a sensor of k x coarser horizontal
-    resolution seeing the same scene and object."""
+    resolution seeing the same scene and object (its record's object returns renumbered in the sparser scan)."""
 
     def __init__(self, inner: Attack, k: int):
         self.inner, self.k = inner, int(k)
@@ -77,14 +78,36 @@ class DecimatedScan(Attack):
         self.inner.prepare(victim)
 
     def apply(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> Frame:
-        from robustbench3d.sensors.scan_density import decimate_azimuth
-
         out = self.inner.apply(frame, targets, rng)
+        return dataclasses.replace(out, scan=self._decimated(out.scan)[0])
+
+    def apply_recorded(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> tuple[Frame, ObjectRecord]:
+        """``inner``'s attacked frame and record, decimated: each car's object returns renumbered to the rows they
+        keep in the sparser scan (those dropped with their column leave it)."""
+        out, record = self.inner.apply_recorded(frame, targets, rng)
+        scan, keep = self._decimated(out.scan)
+        if keep is None:
+            return dataclasses.replace(out, scan=scan), record
+        row = np.cumsum(keep) - 1  # the new row of each kept old row
+        returns = tuple(row[r[keep[r]]] for r in record.returns)
+        return dataclasses.replace(out, scan=scan), ObjectRecord(record.boxes, returns, record.target_index)
+
+    def _decimated(self, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(the rows of ``scan`` :func:`~robustbench3d.sensors.scan_density.decimate_azimuth` keeps, the (N,) mask
+        of them, None when every row is kept: k = 1), the time spent counted in :meth:`take_spent`."""
+        from robustbench3d.sensors.scan_density import decimate_azimuth, point_columns
+
         w, c = time.perf_counter(), time.process_time()
-        scan = decimate_azimuth(out.scan, self.k)
+        keep = None
+        if self.k == 1:
+            out = decimate_azimuth(scan, self.k)
+        else:
+            _, column, _ = point_columns(scan)
+            keep = (column >= 0) & (column % self.k == 0)
+            out = np.asarray(scan)[keep]
         self._spent[0] += time.perf_counter() - w
         self._spent[1] += time.process_time() - c
-        return dataclasses.replace(out, scan=scan)
+        return out, keep
 
     def describe(self) -> dict[str, Any]:
         return {**self.inner.describe(), "scan_decimation": self.k}

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.fileio import atomic_write_bytes, atomic_write_text
+from robustbench3d.victims.spec import PROTOCOL_LABELS
 
 JSON_FILE = "tradeoff.json"
 CSV_FILE = "tradeoff.csv"
@@ -51,7 +52,8 @@ def markdown(doc: dict[str, Any]) -> str:
     default = next((x for x in rows if x["sweep"] != "frames" and x["default"]), None)
     lines = [
         "# Speed/accuracy trade", "",
-        f"Victim `{cfg['victim']}`, attack `{cfg['attack']}`, {cfg['proposals']} proposals, "
+        f"Victim `{cfg['victim']}`, attack `{cfg['attack']}`, proposals `{cfg['proposals']}` "
+        f"({PROTOCOL_LABELS.get(cfg['proposals'], 'unknown source')}), "
         f"{doc['dataset']['frames']} frames of `{doc['dataset']['split']}` (labels sha256 "
         f"{doc['dataset']['sha256'][:12]}), seed {cfg['seed']}, {cfg['threads']} torch thread(s), "
         f"{cfg['resamples']} bootstrap resamples.",
