@@ -74,7 +74,8 @@ def benchmark(victim: Any, attacks: Sequence[str] = DEFAULT_ATTACKS, frames: int
         victim: a registered victim name, or a detector object (see the module docstring).
         attacks: registered attack names or object files (``F.ply``); ``"none"`` (clean) is added when missing.
         frames: the first N frames of the split (None: all of them).
-        proposals: proposal sources (default: every source the victim supports).
+        proposals: proposal sources (default: ``detector`` and ``gt``, those the victim supports; the frustum
+            protocols ``gt-object`` and ``gt-append`` when named).
         name: the name the object is run and reported under (default ``user-<class name>``).
         capabilities: what the object declares (default: its ``capabilities`` attribute, else camera+LiDAR,
             backend "other", no gradients, deterministic — checked by the runner's probe as for any victim).
@@ -118,7 +119,7 @@ def benchmark(victim: Any, attacks: Sequence[str] = DEFAULT_ATTACKS, frames: int
         if proposals is None:
             supported = (detector if detector is not None else VICTIMS.get(run_name).create(
                 **dict(victim_args or {}))).supported_proposals
-            proposals = tuple(supported)
+            proposals = tuple(p for p in ("detector", "gt") if p in supported) or tuple(supported)
         names, attack_args = resolve_attack_references(list(attacks), {})
         attack_list = tuple(names) if "none" in names else ("none", *names)
         with tempfile.TemporaryDirectory(prefix="rb3d-benchmark-") as tmp, _one_thread():
