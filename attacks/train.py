@@ -4,7 +4,9 @@ One object for every target car of a training split: vertex displacements throug
 parametrisation (:func:`~robustbench3d.attacks.object.tanh_vertices`) and per-vertex colours as
 ``sigmoid(logits)``, both float64, optimised with Adam (one parameter group each). Settings and modes:
 :mod:`~robustbench3d.attacks.train_config`; the loop, checkpoints and output:
-:mod:`~robustbench3d.attacks.train_run`. Modes:
+:mod:`~robustbench3d.attacks.train_run`; the held-out curve (frames cut off before the trainer is built,
+evaluated with :meth:`UniversalTrainer.heldout_losses` and the victim's ``detect``):
+:mod:`~robustbench3d.attacks.train_curve`. Modes:
 
 * ``adv-shape``: LiDAR loss + Laplacian; shape optimised, colour fixed at the neutral grey;
 * ``adv-texture``: image loss; colours optimised on the undeformed sphere;
@@ -81,6 +83,7 @@ from robustbench3d.attacks.placement import (
     rect_to_velo,
     sample_jitter,
 )
+from robustbench3d.attacks.record import target_rows
 from robustbench3d.attacks.train_config import (
     BATCH_STREAM,
     BEV_IOU_DETECTED,
@@ -91,6 +94,9 @@ from robustbench3d.attacks.train_config import (
     EOT_DROPOUT,
     EOT_RANGE_NOISE_M,
     EOT_STREAM,
+    HELDOUT_STREAM,
+    LEGACY_IDENTITY,
+    OBJECT_LIDAR_BOXES,
     SCORE_DETECTED,
     TrainConfig,
     TrainingError,
@@ -105,16 +111,33 @@ def _velo_to_rect_torch(points: torch.Tensor, m: np.ndarray) -> torch.Tensor:
     return points @ t[:3, :3].T + t[:3, 3]
 
 
-def _proposal_index(boxes: np.ndarray, targets: Labels) -> list[int | None]:
-    """Index into ``boxes`` of each target's 2D box (equal rows, in order of occurrence), None if absent."""
+def _proposal_index(boxes: np.ndarray, targets: Labels, target_boxes: np.ndarray | None = None) -> list[int | None]:
+    """Index into ``boxes`` of each target's 2D box (``target_boxes``, default the labels' boxes; equal rows, in
+    order of occurrence), None if absent."""
     used: set[int] = set()
     out: list[int | None] = []
-    for box in targets.bbox:
+    for box in targets.bbox if target_boxes is None else target_boxes:
         hits = [j for j in np.flatnonzero(np.all(boxes == box, axis=1)).tolist() if j not in used]
         out.append(hits[0] if hits else None)
         if hits:
             used.add(hits[0])
     return out
+
+
+def _object_proposals(attacked: Frame, labels: Labels, targets: Labels, poses: list[Any], res: Any,
+                      source: str) -> Any:
+    """The ``gt-object`` / ``gt-append`` proposals of an attacked training frame, as the runner builds them for
+    a cell: the :class:`~robustbench3d.attacks.record.ObjectRecord` of the placed bounds boxes (each car's union
+    partner) and of the render's returns (``res``, a ``LidarRenderResult``: each car's appended rows)."""
+    from robustbench3d.attacks.object import BOUNDS
+    from robustbench3d.attacks.record import ObjectRecord, added_rows, placed_object_boxes
+    from robustbench3d.victims.base import object_proposals
+
+    record = ObjectRecord(placed_object_boxes(BOUNDS, poses, attacked.calib, attacked.image_size),
+                          added_rows(len(res.scan) + len(res.removed_index) - len(res.added), len(res.removed_index),
+                                     res.object_index, len(targets)),
+                          target_rows(labels, targets))
+    return object_proposals(attacked, labels, record, source)
 
 
 def _matched_index(boxes: np.ndarray, targets: Labels, min_iou: float = 0.5) -> list[int | None]:
@@ -140,6 +163,18 @@ def _bev_iou_per_target(det: Labels, targets: Labels) -> np.ndarray:
         return np.column_stack([lab.dimensions, lab.location, lab.rotation_y])
 
     return bev_iou(boxes(targets), boxes(det)).max(axis=1)
+
+
+@dataclass
+class _FrameTerms:
+    """One frame's part of a step: its weighted loss (a tensor, differentiable in the parameters), the
+    unweighted sums of its terms (``lidar``, ``image``; absent when the frame has none), which chosen cars are
+    still detected and which reference cars are detected clean."""
+
+    loss: torch.Tensor
+    sums: dict[str, float]
+    ok: np.ndarray
+    clean_ok: np.ndarray
 
 
 @dataclass
@@ -187,6 +222,8 @@ class UniversalTrainer:
         self._reference = {self.cars[int(i)] for i in first}
         self.ckpt: Path | None = None  # where checkpoints go (set by train_universal)
         self._saved_step = 0
+        #: The run loop's own state, saved with the checkpoint (train_run: the held-out curve, the best state).
+        self.run_state: dict[str, Any] = {}
 
     # ---- the object ---------------------------------------------------------------------------
     def vertices(self) -> torch.Tensor:
@@ -203,8 +240,13 @@ class UniversalTrainer:
 
     def current_object(self) -> RoofObject:
         """The object at the current parameters, at file precision."""
+        return self.object_at(self.delta, self.colour_logit)
+
+    def object_at(self, delta: torch.Tensor, colour_logit: torch.Tensor) -> RoofObject:
+        """The object at parameters ``delta`` and ``colour_logit`` (e.g. a kept best state), at file precision."""
         with torch.no_grad():
-            return RoofObject.from_vertices(self.vertices().numpy(), self.colours().numpy())
+            vertices = tanh_vertices(delta) if self.config.kind.shape else torch.from_numpy(template_vertices().copy())
+            return RoofObject.from_vertices(vertices.numpy(), torch.sigmoid(colour_logit).numpy())
 
     # ---- randomness ---------------------------------------------------------------------------
     def batch(self, step: int) -> list[tuple[int, int]]:
@@ -237,49 +279,15 @@ class UniversalTrainer:
         g_attack = [torch.zeros_like(p) for p in self.params]
         detected = clean_cars = detected_clean = 0
         for fi, chosen in by_frame.items():
-            frame = self._frame(self.frame_ids[fi], with_image=m.image or cfg.lidar_boxes == "detector")
-            targets = target_cars(frame.labels)
-            verts, colours = self.vertices(), self.colours()  # a fresh graph per frame
-            placed = []
-            for car in cars_of(targets):
-                jitter = sample_jitter(rng, POSITION_JITTER_M, YAW_JITTER_RAD) if "jitter" in cfg.eot else None
-                placed.append(place_on_roof(verts, car, jitter)[0])
-            ok = np.ones(len(chosen), dtype=bool)
             ref = [t for t in chosen if (fi, t) in self._reference]  # cars of the clean reference sample
-            clean_ok = np.ones(len(ref), dtype=bool)
-            frame_loss = torch.zeros((), dtype=torch.float64)
-            attacked_image: np.ndarray | None = None
-            if m.image:
-                terms_t, score, attacked_image = self._image(frame, targets, chosen, placed, colours)
-                image = terms_t.sum()
-                sums["image"] += image.item()
-                frame_loss = frame_loss + weights["image"] / n * image
-                ok &= score >= SCORE_DETECTED
-                if ref:
-                    clean_ok &= self._clean_value(frame, targets, "image")[ref] >= SCORE_DETECTED
-            if m.lidar:
-                if cfg.lidar_boxes == "detector" and attacked_image is None:
-                    attacked_image = self._render_image(frame, targets, placed, colours)
-                try:
-                    terms, iou = self._lidar(frame, targets, chosen, placed, colours, rng, attacked_image)
-                except ValueError as exc:  # the loss refuses non-finite logits (a diverged victim)
-                    raise TrainingError(f"step {step}: the loss of frame {frame.frame_id} is not finite ({exc}); "
-                                        f"stopping ({self._resume_hint()})") from exc
-                if terms:
-                    lidar = torch.stack(terms).sum()
-                    sums["lidar"] += lidar.item()
-                    frame_loss = frame_loss + weights["lidar"] / n * lidar
-                ok &= iou >= BEV_IOU_DETECTED
-                if ref:
-                    clean_ok &= self._clean_value(frame, targets, "lidar")[ref] >= BEV_IOU_DETECTED
-            if not math.isfinite(frame_loss.item()):
-                raise TrainingError(f"step {step}: the loss of frame {frame.frame_id} is not finite (NaN or inf); "
-                                    f"stopping ({self._resume_hint()})")
-            for acc, g in zip(g_attack, _grads(frame_loss, self.params), strict=True):
+            terms = self._frame_terms(f"step {step}", self.frame_ids[fi], chosen, rng, n, ref)
+            for key, value in terms.sums.items():
+                sums[key] += value
+            for acc, g in zip(g_attack, _grads(terms.loss, self.params), strict=True):
                 acc += g
-            detected += int(ok.sum())
+            detected += int(terms.ok.sum())
             clean_cars += len(ref)
-            detected_clean += int(clean_ok.sum())
+            detected_clean += int(terms.clean_ok.sum())
         losses = {k: sums[k] / n for k, used in (("lidar", m.lidar), ("image", m.image)) if used}
         total = sum(weights[k] * v for k, v in losses.items())
         g_lap = [torch.zeros_like(p) for p in self.params]
@@ -299,6 +307,83 @@ class UniversalTrainer:
         grads = [ga + gl for ga, gl in zip(g_attack, g_lap, strict=True)]
         return StepResult(losses, n, detected, clean_cars, detected_clean, grads, zero_grad)
 
+    def _frame_terms(self, when: str, frame_id: str, chosen: list[int], rng: np.random.Generator, n: int,
+                     ref: list[int]) -> _FrameTerms:
+        """The attack terms of the ``chosen`` targets of frame ``frame_id`` (the object on every target car,
+        EOT draws from ``rng``), weighted and divided by ``n`` (the cars of the whole batch) into one loss
+        tensor; which chosen cars are still detected, and which ``ref`` cars (a subset) are detected clean.
+        ``when`` names the step in error messages."""
+        cfg, m = self.config, self.config.kind
+        weights = cfg.weights()
+        frame = self._frame(frame_id, with_image=m.image or cfg.lidar_boxes == "detector")
+        targets = target_cars(frame.labels)
+        verts, colours = self.vertices(), self.colours()  # a fresh graph per frame
+        placed, poses = [], []
+        for car in cars_of(targets):
+            jitter = sample_jitter(rng, POSITION_JITTER_M, YAW_JITTER_RAD) if "jitter" in cfg.eot else None
+            vertices, pose = place_on_roof(verts, car, jitter)
+            placed.append(vertices)
+            poses.append(pose)
+        ok = np.ones(len(chosen), dtype=bool)
+        clean_ok = np.ones(len(ref), dtype=bool)
+        sums: dict[str, float] = {}
+        frame_loss = torch.zeros((), dtype=torch.float64)
+        attacked_image: np.ndarray | None = None
+        if m.image:
+            terms_t, score, attacked_image = self._image(frame, targets, chosen, placed, colours)
+            image = terms_t.sum()
+            sums["image"] = image.item()
+            frame_loss = frame_loss + weights["image"] / n * image
+            ok &= score >= SCORE_DETECTED
+            if ref:
+                clean_ok &= self._clean_value(frame, targets, "image")[ref] >= SCORE_DETECTED
+        if m.lidar:
+            if cfg.lidar_boxes == "detector" and attacked_image is None:
+                attacked_image = self._render_image(frame, targets, placed, colours)
+            try:
+                terms, iou = self._lidar(frame, targets, chosen, placed, poses, colours, rng, attacked_image)
+            except ValueError as exc:  # the loss refuses non-finite logits (a diverged victim)
+                raise TrainingError(f"{when}: the loss of frame {frame.frame_id} is not finite ({exc}); "
+                                    f"stopping ({self._resume_hint()})") from exc
+            if terms:
+                lidar = torch.stack(terms).sum()
+                sums["lidar"] = lidar.item()
+                frame_loss = frame_loss + weights["lidar"] / n * lidar
+            ok &= iou >= BEV_IOU_DETECTED
+            if ref:
+                clean_ok &= self._clean_value(frame, targets, "lidar")[ref] >= BEV_IOU_DETECTED
+        if not math.isfinite(frame_loss.item()):
+            raise TrainingError(f"{when}: the loss of frame {frame.frame_id} is not finite (NaN or inf); "
+                                f"stopping ({self._resume_hint()})")
+        return _FrameTerms(frame_loss, sums, ok, clean_ok)
+
+    def heldout_losses(self, frame_ids: list[str], when: str) -> dict[str, float]:
+        """The training loss of the current object on every target car of ``frame_ids`` (frames the sampler
+        never draws, :mod:`~robustbench3d.attacks.train_curve`), without gradients: per term the mean over
+        the cars, the Laplacian and the weighted total as in a step. EOT draws come from one generator per
+        frame, ``default_rng([seed, i, HELDOUT_STREAM])`` for the i-th frame, so the value is a function of
+        the object alone. ``when`` names the evaluation in error messages."""
+        m, weights = self.config.kind, self.config.weights()
+        sums = {"lidar": 0.0, "image": 0.0}
+        cars = 0
+        with torch.no_grad():
+            for i, fid in enumerate(frame_ids):
+                chosen = list(range(len(target_cars(self.kitti.labels(fid)))))
+                if not chosen:
+                    continue
+                rng = np.random.default_rng([self.config.seed, i, HELDOUT_STREAM])
+                terms = self._frame_terms(when, fid, chosen, rng, 1, [])
+                for key, value in terms.sums.items():
+                    sums[key] += value
+                cars += len(chosen)
+            losses = {k: sums[k] / max(cars, 1) for k, used in (("lidar", m.lidar), ("image", m.image)) if used}
+            total = sum(weights[k] * v for k, v in losses.items())
+            if m.shape:
+                losses["laplacian"] = laplacian_loss(self.vertices(), 1.0).item()
+                total += weights["laplacian"] * losses["laplacian"]
+        losses["total"] = total
+        return losses
+
     def _frame(self, frame_id: str, with_image: bool) -> Frame:
         """The frame; without ``with_image`` its image is a black placeholder of the right size (the LiDAR
         branch uses only its size), which saves decoding the PNG."""
@@ -312,10 +397,11 @@ class UniversalTrainer:
                      self.kitti.calib(frame_id), self.kitti.labels(frame_id))
 
     def _lidar(self, frame: Frame, targets: Labels, chosen: list[int], placed: list[torch.Tensor],
-               colours: torch.Tensor, rng: np.random.Generator,
+               poses: list[Any], colours: torch.Tensor, rng: np.random.Generator,
                attacked_image: np.ndarray | None) -> tuple[list[torch.Tensor], np.ndarray]:
         """LiDAR loss terms of the chosen targets and their attacked BEV IoUs (``attacked_image``: the
-        attacked camera image, needed for ``lidar_boxes="detector"``)."""
+        attacked camera image, needed for ``lidar_boxes="detector"``; ``poses``: each target's placement, for the
+        frustum protocols ``gt-object`` / ``gt-append``, whose proposals are built as the runner builds them)."""
         from robustbench3d.sensors.lidar_render import render_lidar
         from robustbench3d.victims.base import gt_proposals
 
@@ -336,6 +422,11 @@ class UniversalTrainer:
                 props = self.victim.proposals([attacked], "detector")[0]
                 index = _matched_index(props.boxes, targets)
                 scored = props
+            elif cfg.lidar_boxes in OBJECT_LIDAR_BOXES:
+                scored = _object_proposals(attacked, frame.labels, targets, poses, res, cfg.lidar_boxes)
+                enumerate_ = getattr(self.victim, "proposals", None)
+                props = enumerate_([attacked], [scored])[0] if callable(enumerate_) else scored.of_types(("Car",))
+                index = _proposal_index(props.boxes, targets, scored.boxes[target_rows(frame.labels, targets)])
             else:
                 props = self._proposals(frame)
                 index = _proposal_index(props.boxes, targets)
@@ -350,7 +441,9 @@ class UniversalTrainer:
             j = index[t]
             if j is None:
                 continue
-            where = dict(frame_id=frame.frame_id, proposal=j)
+            where: dict[str, Any] = dict(frame_id=frame.frame_id, proposal=j)
+            if props.extra_points is not None:  # gt-append: the car's object returns join its frustum
+                where["extra_points"] = props.extra_points[j]
             if cfg.lidar_loss == "seed":
                 fl = self.victim.frustum_logits(points, calib, frame.image_size, props.boxes[j], **where)
                 if fl is not None:
@@ -371,6 +464,7 @@ class UniversalTrainer:
                colours: torch.Tensor) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
         """(len(chosen),) image loss terms of the chosen targets, their best candidate scores and the
         attacked image as uint8 (rounded as :func:`~robustbench3d.sensors.camera_render.render_camera` does)."""
+        from robustbench3d.attacks.losses import SUM_MIN_IOU
         from robustbench3d.sensors.camera_render import render_camera_torch
 
         image = torch.from_numpy(frame.image.astype(np.float64) / 255.0)
@@ -378,7 +472,10 @@ class UniversalTrainer:
                                        scene_depth=self._depth.scene_depth(frame, targets),
                                        supersample=self.config.supersample)
         boxes = targets.bbox[chosen]
-        cands = self.victim.objectness(rendered.permute(2, 0, 1)[None].float(), [boxes])
+        # "sum" and the scores read only candidates of IoU >= 0.5, all of which a threshold of 0.5 returns (the same
+        # terms, bit for bit) while a cropping victim then reads less of the image; "mean" averages the 0.3 set
+        threshold = min(SUM_MIN_IOU, CANDIDATE_IOU) if self.config.image_loss == "sum" else 0.3
+        cands = self.victim.objectness(rendered.permute(2, 0, 1)[None].float(), [boxes], iou_threshold=threshold)
         terms = image_target_losses(cands, len(chosen), 0, self.config.use_class,
                                     self.config.image_loss).to(torch.float64)
         as_uint8 = np.clip(np.round(rendered.detach().numpy() * 255.0), 0, 255).astype(np.uint8)
@@ -402,15 +499,26 @@ class UniversalTrainer:
         bare = replace(frame, labels=None)
         return enumerate_([bare], [props])[0] if callable(enumerate_) else props.of_types(("Car",))
 
+    def _clean_proposals(self, frame: Frame, targets: Labels) -> Any:
+        """The clean frame's GT-box proposals under ``lidar_boxes``: ``gt`` and ``gt-append`` (no object, no
+        returns) the GT boxes, ``gt-object`` the union with the nominal object's box, as the clean cell gets."""
+        from robustbench3d.victims.base import gt_proposals, object_proposals
+
+        if self.config.lidar_boxes != "gt-object":
+            return gt_proposals(frame.labels)
+        from robustbench3d.attacks.record import nominal_record
+
+        return object_proposals(frame, frame.labels, nominal_record(frame, targets), "gt-object")
+
     def _clean_value(self, frame: Frame, targets: Labels, branch: str) -> np.ndarray:
         """Per target of ``frame``: clean BEV IoU (``lidar``) or best candidate score (``image``), cached."""
         key = f"{branch}:{frame.frame_id}"
         if key not in self._clean:
             with torch.no_grad():
                 if branch == "lidar":
-                    from robustbench3d.victims.base import gt_proposals
 
-                    source = "detector" if self.config.lidar_boxes == "detector" else [gt_proposals(frame.labels)]
+                    source = ("detector" if self.config.lidar_boxes == "detector"
+                              else [self._clean_proposals(frame, targets)])
                     det = self.victim.detect([replace(frame, labels=None)], source)[0]
                     self._clean[key] = _bev_iou_per_target(det, targets)
                 else:
@@ -454,7 +562,7 @@ class UniversalTrainer:
         return {"format": CHECKPOINT_FORMAT, "identity": identity, "step": self.step,
                 "delta": self.delta.detach().clone(), "colour_logit": self.colour_logit.detach().clone(),
                 "optimizer": self.optimizer.state_dict(), "history": self.history, "zero_run": self.zero_run,
-                "elapsed_s": self.elapsed_s}
+                "elapsed_s": self.elapsed_s, "run": self.run_state}
 
     def save_checkpoint(self, path: Path, identity: dict[str, Any]) -> None:
         from robustbench3d.fileio import atomic_write_bytes
@@ -473,8 +581,11 @@ class UniversalTrainer:
             raise DataFormatError(path, f"not a readable training checkpoint ({type(exc).__name__})") from None
         if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
             raise DataFormatError(path, f"expected {CHECKPOINT_FORMAT!r}", field="format")
-        if state.get("identity") != identity:
-            have = state.get("identity") or {}
+        have = state.get("identity")
+        if isinstance(have, dict) and isinstance(have.get("config"), dict):  # fields it predates: LEGACY_IDENTITY
+            have = {**have, "config": {**LEGACY_IDENTITY, **have["config"]}}
+        if have != identity:
+            have = have or {}
             diff = sorted(k for k in set(have) | set(identity) if k != "config" and have.get(k) != identity.get(k))
             hc, wc = have.get("config") or {}, identity["config"]
             diff += sorted(f"config.{k}" for k in set(hc) | set(wc) if hc.get(k) != wc.get(k))
@@ -486,6 +597,7 @@ class UniversalTrainer:
         self.optimizer.load_state_dict(state["optimizer"])
         self.step, self.history = int(state["step"]), list(state["history"])
         self.zero_run, self.elapsed_s = int(state["zero_run"]), float(state["elapsed_s"])
+        self.run_state = dict(state.get("run") or {})
         self._saved_step = self.step
 
 

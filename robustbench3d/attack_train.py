@@ -2,13 +2,17 @@
 
     robustbench3d attack train adv-shape|adv-texture|adv-object --victim V --out OBJ.ply
         [--data DIR] [--split train] [--steps N] [--batch-cars B] [--seed S] [--eot jitter,range-noise,dropout]
-        [--resume] [--force]
+        [--eval-every K] [--eval-frames N] [--plateau-window W] [--plateau-tol T] [--resume] [--force]
 
 Writes the object file ``OBJ.ply`` and its sidecar (losses and weights, victim, training data, config,
-seed, steps, wall time); ``OBJ.train.pt`` beside it is the checkpoint ``--resume`` continues from. See
-:mod:`robustbench3d.attacks.train` for the optimisation. None of the three files is replaced without
-``--force``, except by ``--resume`` continuing the training that wrote them
-(:mod:`robustbench3d.attacks.train_run`). Numeric options have ranges
+seed, steps, wall time, the held-out curve's summary and why training stopped); ``OBJ.train.pt`` beside it is
+the checkpoint ``--resume`` continues from. Every ``K`` steps the object is evaluated on the last ``N`` frames
+of the split, which are never trained on: ``OBJ.curve.csv`` and ``OBJ.curve.png`` hold the training and
+held-out losses, the held-out relative drop and ASR; ``OBJ.ply`` is the state of lowest held-out loss, and
+training stops once that loss improved by less than ``T`` (relative) over ``W`` steps
+(:mod:`robustbench3d.attacks.train_curve`). See :mod:`robustbench3d.attacks.train` for the optimisation.
+None of the files is replaced without ``--force``, except by ``--resume`` continuing the training that wrote
+them (:mod:`robustbench3d.attacks.train_run`). Numeric options have ranges
 (:data:`robustbench3d.attacks.train_config.INT_RANGES`, ``FLOAT_RANGES``), checked before any work.
 
 Standard library only at module level.
@@ -53,9 +57,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"expectation over transformation: {', '.join(EOT_NAMES)} or all (default: none)")
     parser.add_argument("--occlusion", choices=("scan", "none"), default="scan",
                         help="camera occlusion of the object by the scene, as in the benchmark (default scan)")
-    parser.add_argument("--lidar-boxes", choices=("gt", "detector"), default="gt",
-                        help="2D boxes of the LiDAR loss's frustums: the cars' ground-truth boxes, or the victim's "
-                             "own detections on the attacked image (default gt)")
+    parser.add_argument("--lidar-boxes", choices=("gt", "detector", "gt-object", "gt-append"), default="gt",
+                        help="2D boxes of the LiDAR loss's frustums: the cars' ground-truth boxes (gt: the object "
+                             "outside "
+                             "the frustum), the victim's own detections on the attacked image, or a frustum protocol "
+                             "that holds the object: gt-object (GT box united with the object's box), gt-append (the "
+                             "car's object returns added to its GT-box frustum) (default gt)")
     parser.add_argument("--lidar-loss", choices=("seed", "box", "seed+box"), default="seed",
                         help="LiDAR loss terms: the seed paper's segmentation term, the regressed box's BEV IoU "
                              "with the ground truth, or both (default seed)")
@@ -64,6 +71,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="image loss per car: the mean over its 2D candidates, or the sum over those of IoU "
                              ">= 0.5 with it (default mean)")
     parser.add_argument("--checkpoint-every", type=int, default=25, metavar="K", help="steps per checkpoint (25)")
+    parser.add_argument("--eval-every", type=int, default=25, metavar="K",
+                        help="evaluate on the held-out frames every K steps (0 to 1000000; default 25; 0: no "
+                             "evaluation, no curve, every frame trains)")
+    parser.add_argument("--eval-frames", type=int, default=5, metavar="N",
+                        help="hold out the last N frames of the split, never trained on, for the curve (1 to "
+                             "10000, at most a fifth of the split; default 5)")
+    parser.add_argument("--plateau-window", type=int, default=60, metavar="W",
+                        help="stop when the best held-out loss fell by less than --plateau-tol over the last W "
+                             "steps (1 to 1000000; default 60)")
+    parser.add_argument("--plateau-tol", type=float, default=0.004, metavar="T",
+                        help="relative improvement of the plateau stop (0 to 1; default 0.004; 0: never stop)")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the checkpoint OBJ.train.pt if it exists (its configuration must match; "
                              "--steps may grow), replacing OBJ.ply and OBJ.json if that training wrote them")
@@ -100,7 +118,9 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
                        lambda_img=args.lambda_img, use_class=not args.no_class_prob, eot=_eot(args.eot),
                        occlusion=args.occlusion, lidar_boxes=args.lidar_boxes, lidar_loss=args.lidar_loss,
                        lambda_box=args.lambda_box, image_loss=args.image_loss,
-                       checkpoint_every=args.checkpoint_every)
+                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
+                       eval_frames=args.eval_frames, plateau_window=args.plateau_window,
+                       plateau_tol=args.plateau_tol)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -112,7 +132,8 @@ def run(args: argparse.Namespace) -> int:
 
     config = config_from_args(args)
     check_max_frames(args.max_frames)
-    check_outputs(args.out, force=args.force, resume=args.resume)  # again, with its notes, in train_universal
+    # again, with its notes, in train_universal
+    check_outputs(args.out, force=args.force, resume=args.resume, curve=config.eval_every > 0)
     out = Path(args.out)
     kwargs = _victim_kwargs(args.victim_arg)
     spec = VICTIMS.get(args.victim)
@@ -133,4 +154,12 @@ def run(args: argparse.Namespace) -> int:
           f"({made_by['wall_time_s']:.1f} s); last step: "
           + ", ".join(f"{k} {v:.4g}" for k, v in last.items() if k in ("lidar", "image", "laplacian", "total"))
           + (f"; running drop estimate {drop:.0%}" if drop is not None else ""))
+    curve = made_by["curve"]
+    if curve is not None:
+        best = curve["best"]
+        rel = "n/a" if best["relative_drop"] is None else f"{best['relative_drop']:.1%}"
+        asr = "n/a" if best["asr"] is None else f"{best['asr']:.1%}"
+        print(f"{out}: the state of step {curve['best_step']} (lowest held-out loss {best['heldout_loss']:.4g}; "
+              f"held-out relative drop {rel}, ASR {asr}); stopped at step {made_by['stopped']['step']} "
+              f"({made_by['stopped']['reason']}); curve in {curve['files']['csv']} and {curve['files']['png']}")
     return 0

@@ -221,6 +221,44 @@ class APResult:
                         yield APValue(cls, metric, recall, diff, self.data[cls][metric][recall][diff])
 
 
+#: The attack-success-rate criterion: class, metric, difficulty (the IoU is the evaluator's for the metric).
+SUCCESS_CLASS, SUCCESS_METRIC, SUCCESS_DIFFICULTY = "Car", "bev", "moderate"
+
+
+def drop_tables(clean: APResult, attacked: APResult) -> tuple[dict, dict, dict]:
+    """Clean AP, drop (clean - attacked, points) and relative drop (drop / clean AP, a fraction; None where
+    the clean AP is 0), each ``{class: {metric: {recall: {difficulty: value}}}}``, for every value both
+    evaluations have (an attack effect's ``clean``, ``drop`` and ``relative_drop``)."""
+    out: tuple[dict, dict, dict] = ({}, {}, {})
+    for v in clean.values():
+        if v.cls not in attacked.classes or v.metric not in attacked.metrics(v.cls):
+            continue
+        drop = v.ap - attacked.ap(v.cls, v.metric, v.recall, v.difficulty)
+        for table, value in zip(out, (v.ap, drop, drop / v.ap if v.ap > 0 else None), strict=True):
+            table.setdefault(v.cls, {}).setdefault(v.metric, {}).setdefault(v.recall, {})[v.difficulty] = value
+    return out
+
+
+def success_rate(gt: Sequence[Any], clean: Sequence[Any], attacked: Sequence[Any], iou: float) -> dict[str, Any]:
+    """The attack success rate (an attack effect's ``success`` record) from the frames' GT and both cells'
+    detections (one :class:`~robustbench3d.kitti.labels.Labels` per frame each): of the Cars matched clean,
+    the share not matched attacked; "matched" is the evaluator's greedy matching
+    (:mod:`robustbench3d.eval.matches`) at :data:`SUCCESS_CLASS`, :data:`SUCCESS_METRIC`,
+    :data:`SUCCESS_DIFFICULTY`, at the score threshold that maximises F1 on the clean detections (the same
+    threshold for the attacked ones). ``rate`` is None when nothing is matched clean."""
+    from robustbench3d.eval.matches import best_f1_threshold, matched_ground_truth
+
+    crit = {"cls": SUCCESS_CLASS, "metric": SUCCESS_METRIC, "difficulty": SUCCESS_DIFFICULTY}
+    threshold = best_f1_threshold(gt, clean, **crit)
+    before = matched_ground_truth(gt, clean, threshold, **crit).matched
+    after = matched_ground_truth(gt, attacked, threshold, **crit).matched
+    n_clean = int(sum(int(b.sum()) for b in before))
+    missed = int(sum(int((b & ~a).sum()) for b, a in zip(before, after, strict=True)))
+    return {"class": SUCCESS_CLASS, "metric": SUCCESS_METRIC, "iou": iou, "difficulty": SUCCESS_DIFFICULTY,
+            "score_threshold": threshold, "clean_matched": n_clean, "attacked_missed": missed,
+            "rate": missed / n_clean if n_clean else None}
+
+
 @dataclass(frozen=True)
 class CellResult:
     """Typed read access to one summary cell (see the module docstring)."""
@@ -344,7 +382,8 @@ def write_long_csv(path: str | Path, cells: Sequence[dict[str, Any]]) -> list[di
 
 
 __all__ = [
-    "CSV_COLUMNS", "RECALL_POINTS", "SCHEMA_VERSION", "APResult", "APValue", "CellResult", "dumps", "load_schema",
-    "long_csv_text", "long_rows", "read_json", "read_summary", "schema_errors", "validate_summary", "write_long_csv",
+    "CSV_COLUMNS", "RECALL_POINTS", "SCHEMA_VERSION", "SUCCESS_CLASS", "SUCCESS_DIFFICULTY", "SUCCESS_METRIC",
+    "APResult", "APValue", "CellResult", "drop_tables", "dumps", "load_schema", "long_csv_text", "long_rows",
+    "read_json", "read_summary", "schema_errors", "success_rate", "validate_summary", "write_long_csv",
     "write_validated",
 ]

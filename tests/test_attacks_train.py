@@ -280,9 +280,11 @@ def test_box_terms_weight_the_seed_term_by_the_box_detect_reports_for_the_car(vi
     frame = trainer._frame(trainer.frame_ids[0], with_image=True)
     targets = target_cars(frame.labels)
     chosen = list(range(len(targets)))
-    placed = [place_on_roof(trainer.vertices(), car)[0] for car in cars_of(targets)]
+    placed, poses = zip(*[place_on_roof(trainer.vertices(), car) for car in cars_of(targets)], strict=True)
+    placed = list(placed)
     attacked_image = trainer._render_image(frame, targets, placed, trainer.colours())
-    terms, iou = trainer._lidar(frame, targets, chosen, placed, trainer.colours(), trainer.eot_rng(0), attacked_image)
+    terms, iou = trainer._lidar(frame, targets, chosen, placed, list(poses), trainer.colours(), trainer.eot_rng(0),
+                                attacked_image)
     # the reference: the attacked scan rendered again (no EOT noise in this config), the victim's own proposals
     albedo = trainer.colours().detach().numpy()
     scan = render_lidar(frame.scan, [(rect_to_velo(p, frame.calib), trainer._faces, albedo) for p in placed]).scan
@@ -359,3 +361,49 @@ def _rendered(trainer, frame, targets, placed) -> torch.Tensor:
                               scene_depth=trainer._depth.scene_depth(frame, targets),
                               supersample=trainer.config.supersample)
     return out.permute(2, 0, 1)[None].float()
+
+
+@pytest.mark.parametrize("source", ["gt-object", "gt-append"])
+def test_training_under_a_frustum_protocol_builds_the_cells_proposals(victim, data, source):
+    """``--lidar-boxes gt-object|gt-append``: the proposals of the LiDAR term are those a benchmark cell of the
+    same object hands the victim (the runner's ``apply_recorded`` record through ``victim_inputs``): the same
+    union boxes, the same appended rows of the same attacked scan."""
+    from dataclasses import replace
+
+    from robustbench3d.attacks.base import attack_rng
+    from robustbench3d.attacks.placement import rect_to_velo
+    from robustbench3d.attacks.roof import RoofObjectAttack
+    from robustbench3d.attacks.train import _object_proposals
+    from robustbench3d.sensors.lidar_render import render_lidar
+    from robustbench3d.victims.base import victim_inputs
+
+    resolved, gt = data
+    cfg = TrainConfig(**{**FAST, "mode": "adv-shape", "lidar_boxes": source, "eval_every": 0})
+    trainer = UniversalTrainer(victim, resolved.kitti(), gt.frame_ids, gt.labels, cfg)
+    frame = trainer._frame(trainer.frame_ids[0], with_image=True)
+    targets = target_cars(frame.labels)
+    assert len(targets) >= 2
+    placed, poses = zip(*[place_on_roof(trainer.vertices(), car) for car in cars_of(targets)], strict=True)
+    albedo = trainer.colours().detach().numpy()
+    res = render_lidar(frame.scan, [(rect_to_velo(p, frame.calib), trainer._faces, albedo) for p in placed])
+    attacked = replace(frame, scan=np.ascontiguousarray(res.scan, dtype=np.float32), labels=None)
+    mine = _object_proposals(attacked, frame.labels, targets, list(poses), res, source)
+
+    cell_frame, record = RoofObjectAttack(trainer.current_object()).apply_recorded(
+        frame, targets, attack_rng(0, frame.frame_id))
+    assert cell_frame.scan.shape == attacked.scan.shape
+    assert np.allclose(cell_frame.scan, attacked.scan, rtol=0, atol=1e-5)
+    _, (theirs,) = victim_inputs([cell_frame], [frame.labels], source, objects=[record])
+    assert mine.source == theirs.source == source
+    assert np.allclose(mine.boxes, theirs.boxes, rtol=0, atol=1e-4)
+    if source == "gt-object":
+        assert mine.extra_points is None and not np.array_equal(mine.boxes, gt_proposals_of(frame).boxes)
+    else:
+        assert all(np.array_equal(a, b) for a, b in zip(mine.extra_points, theirs.extra_points, strict=True))
+        assert sum(len(a) for a in mine.extra_points) == len(res.added) > 0
+
+
+def gt_proposals_of(frame):
+    from robustbench3d.victims.base import gt_proposals
+
+    return gt_proposals(frame.labels)

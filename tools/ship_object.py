@@ -42,7 +42,9 @@ TRAIN_TOOL = "robustbench3d attack train"
 _OPTIONS = {"steps": "--steps", "seed": "--seed", "batch_cars": "--batch-cars", "lr_shape": "--lr-shape",
             "lr_color": "--lr-color", "lambda_lap": "--lambda-lap", "lambda_img": "--lambda-img",
             "eot": "--eot", "occlusion": "--occlusion", "lidar_boxes": "--lidar-boxes",
-            "lidar_loss": "--lidar-loss", "lambda_box": "--lambda-box", "image_loss": "--image-loss"}
+            "lidar_loss": "--lidar-loss", "lambda_box": "--lambda-box", "image_loss": "--image-loss",
+            "eval_every": "--eval-every", "eval_frames": "--eval-frames", "plateau_window": "--plateau-window",
+            "plateau_tol": "--plateau-tol"}
 #: Config fields that do not change the object (left out of the command).
 _IRRELEVANT = ("mode", "checkpoint_every")
 #: Always written, even at their default value.
@@ -55,9 +57,9 @@ def training_command(name: str, made_by: dict[str, Any]) -> str:
     the default; the embedded dataset is ``--data "$DATA"``, the output ``--out "$OUT/NAME.ply"`` (the
     variables of ``attacks/objects/reproduce.sh``). Raises :class:`RobustBenchError` for a config an
     option cannot express (give ``--command``)."""
-    from robustbench3d.attacks.train_config import TrainConfig
+    from robustbench3d.attacks.train_config import RECORD_DEFAULTS, TrainConfig
 
-    config = dict(made_by["config"])
+    config = {**RECORD_DEFAULTS, **made_by["config"]}  # fields the record predates: the values it implies
     defaults = asdict(TrainConfig(mode=config["mode"]))
     defaults["eot"] = list(defaults["eot"])
     unknown = sorted(set(config) - {f.name for f in fields(TrainConfig)})

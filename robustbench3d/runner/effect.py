@@ -34,12 +34,13 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.kitti.labels import Labels, read_labels
-from robustbench3d.results import APResult
+from robustbench3d.results import SUCCESS_CLASS, SUCCESS_METRIC, APResult, success_rate
+from robustbench3d.results import drop_tables as _tables
 from robustbench3d.runner.config import CellKey, RunConfig, config_differences
 
 CLEAN_ATTACK = "none"
-#: The success-rate criterion: class, metric, difficulty (the IoU is the evaluator's for the metric).
-SUCCESS_CLASS, SUCCESS_METRIC, SUCCESS_DIFFICULTY = "Car", "bev", "moderate"
+# The drop tables and the success rate are results' (pure functions of evaluations and detections), so that
+# ``attack train``'s held-out curve (robustbench3d.attacks, below the runner) computes them the same way.
 
 
 def with_clean_cells(config: RunConfig) -> RunConfig:
@@ -65,34 +66,6 @@ def reference_mismatch(clean: dict[str, Any], attacked: dict[str, Any]) -> str |
 def read_results(data_dir: Path, frame_ids: Sequence[str]) -> list[Labels]:
     """A cell's detections, one :class:`Labels` per frame (its result files)."""
     return [read_labels(data_dir / f"{fid}.txt", scored=True) for fid in frame_ids]
-
-
-def _tables(clean: APResult, attacked: APResult) -> tuple[dict, dict, dict]:
-    """Clean AP, drop and relative drop for every value both evaluations have."""
-    out: tuple[dict, dict, dict] = ({}, {}, {})
-    for v in clean.values():
-        if v.cls not in attacked.classes or v.metric not in attacked.metrics(v.cls):
-            continue
-        drop = v.ap - attacked.ap(v.cls, v.metric, v.recall, v.difficulty)
-        for table, value in zip(out, (v.ap, drop, drop / v.ap if v.ap > 0 else None), strict=True):
-            table.setdefault(v.cls, {}).setdefault(v.metric, {}).setdefault(v.recall, {})[v.difficulty] = value
-    return out
-
-
-def success_rate(gt: Sequence[Labels], clean: Sequence[Labels], attacked: Sequence[Labels],
-                 iou: float) -> dict[str, Any]:
-    """The ``success`` record of the module doc from the frames' GT and both cells' detections."""
-    from robustbench3d.eval.matches import best_f1_threshold, matched_ground_truth
-
-    crit = {"cls": SUCCESS_CLASS, "metric": SUCCESS_METRIC, "difficulty": SUCCESS_DIFFICULTY}
-    threshold = best_f1_threshold(gt, clean, **crit)
-    before = matched_ground_truth(gt, clean, threshold, **crit).matched
-    after = matched_ground_truth(gt, attacked, threshold, **crit).matched
-    n_clean = int(sum(int(b.sum()) for b in before))
-    missed = int(sum(int((b & ~a).sum()) for b, a in zip(before, after, strict=True)))
-    return {"class": SUCCESS_CLASS, "metric": SUCCESS_METRIC, "iou": iou, "difficulty": SUCCESS_DIFFICULTY,
-            "score_threshold": threshold, "clean_matched": n_clean, "attacked_missed": missed,
-            "rate": missed / n_clean if n_clean else None}
 
 
 class Intervals:
