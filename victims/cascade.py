@@ -76,7 +76,7 @@ from robustbench3d.victims.torchfile import (
     stored_part,
 )
 from robustbench3d.victims.yolo.config import YoloConfig
-from robustbench3d.victims.yolo.detector import YoloDetector, candidates_for_targets
+from robustbench3d.victims.yolo.detector import YoloDetector
 from robustbench3d.victims.yolo.model import Darknet
 
 #: Inference precisions of :meth:`FPointNetCascade.detect`'s frustum stages (victim kwarg ``precision``).
@@ -166,6 +166,8 @@ class FPointNetCascade:
         self.precision = "float32"
         self._fpn64: FrustumPointNetV1 | None = None
         self._num_points: int | None = None
+        #: :meth:`objectness` runs the 2D network on crops around the targets unless told otherwise.
+        self.objectness_crop = True
 
     def with_precision(self, precision: str) -> FPointNetCascade:
         """Set the precision of :meth:`detect`'s frustum stages (one of :data:`PRECISIONS`): "bfloat16"
@@ -266,12 +268,14 @@ class FPointNetCascade:
     # ---- Detector ----------------------------------------------------------------------
     def proposals(self, frames: Sequence[Frame], source: ProposalsArg) -> list[Proposals]:
         """2D proposals per frame: YOLO Car detections for ``"detector"``, else the given list with
-        ground-truth sets (``source="gt"``) reduced to ``settings.gt_types``."""
+        ground-truth sets (``source`` "gt", "gt-object" or "gt-append") reduced to ``settings.gt_types``
+        (:func:`~robustbench3d.victims.fpointnet.pipeline.make_proposals`)."""
         return make_proposals(frames, source, self.yolo.detect, self.car_class, self.settings.gt_types)
 
     def detect(self, frames: Sequence[Frame], proposals: ProposalsArg = "detector") -> list[Labels]:
         """KITTI Car rows per frame (rect frame; score = 2D score, or the 3D score for GT boxes,
-        i.e. proposals with ``source="gt"``)."""
+        i.e. proposals with ``source`` "gt", "gt-object" or "gt-append"; the last adds each box's
+        ``extra_points`` to its frustum, see :mod:`~robustbench3d.victims.fpointnet.pipeline`)."""
         stages: TorchFrustumStages
         if self.precision == "float64":
             assert self._fpn64 is not None
@@ -284,25 +288,24 @@ class FPointNetCascade:
 
     # ---- ImageObjectnessOracle --------------------------------------------------------
     def objectness(self, images: torch.Tensor, targets: Sequence[np.ndarray], *,
-                   iou_threshold: float = 0.3) -> ObjectnessCandidates:
-        """Objectness / Car logits of the priors around each target box (see base protocol)."""
+                   iou_threshold: float = 0.3, crop: bool | None = None) -> ObjectnessCandidates:
+        """Objectness / Car logits of the priors around each target box (see base protocol). With flip TTA
+        the detector also sees the mirrored image: its priors count too, their boxes mirrored back as the
+        numpy glue does. ``crop`` (default :attr:`objectness_crop`): run the 2D network only on the slices
+        of the input that its candidates read (:meth:`YoloDetector.target_candidates`; the same candidates,
+        values and gradients as the whole input, bit for bit)."""
         if len(targets) != images.shape[0]:
             raise ValueError(f"{len(targets)} target sets for {images.shape[0]} images")
         parts: dict[str, list[torch.Tensor]] = {k: [] for k in ("obj", "cls", "boxes", "iou", "image", "target")}
-        views = (False, True) if self.yolo.cfg.flip_tta else (False,)
-        for mirrored in views:  # with flip TTA the detector also sees the mirrored image: its priors count too
-            pred, geo = self.yolo.predictions(torch.flip(images, dims=[-1]) if mirrored else images)
-            if mirrored:  # its priors mirrored back into this image's letterbox, as the numpy glue does
-                pred = replace(pred, boxes=torch.cat([geo.mirror_x(pred.boxes[..., :1]), pred.boxes[..., 1:]], -1))
-            for b, tgt in enumerate(targets):
-                c = candidates_for_targets(pred, geo, torch.as_tensor(np.asarray(tgt, dtype=np.float64)),
-                                           iou_threshold, b)
-                parts["obj"].append(pred.obj_logit[b, c["prior"]])
-                parts["cls"].append(pred.cls_logit[b, c["prior"], self.car_class])
-                parts["boxes"].append(c["boxes"].float())
-                parts["iou"].append(c["iou"].float())
-                parts["image"].append(torch.full_like(c["prior"], b))
-                parts["target"].append(c["target"])
+        found = self.yolo.target_candidates(images, targets, iou_threshold,
+                                            self.objectness_crop if crop is None else crop)
+        for c in found:
+            parts["obj"].append(c.obj_logit)
+            parts["cls"].append(c.cls_logit[:, self.car_class])
+            parts["boxes"].append(c.boxes.float())
+            parts["iou"].append(c.iou.float())
+            parts["image"].append(torch.full_like(c.prior, c.image))
+            parts["target"].append(c.target)
         return ObjectnessCandidates(
             objectness_logit=torch.cat(parts["obj"]), class_logit=torch.cat(parts["cls"]),
             boxes=torch.cat(parts["boxes"]).reshape(-1, 4), iou=torch.cat(parts["iou"]),
@@ -311,12 +314,14 @@ class FPointNetCascade:
 
     # ---- FrustumSegmentationOracle / FrustumBoxOracle ----------------------------------
     def _frustum(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
-                 box2d: np.ndarray, frame_id: str, proposal: int,
-                 class_id: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, float, np.random.Generator] | None:
-        """Frustum-frame points (1, N, 4) of ``box2d`` resampled as ``detect`` does, their one-hot,
-        sample indices, rotation angle and the generator (positioned for the object-point gather)."""
+                 box2d: np.ndarray, frame_id: str, proposal: int, class_id: int,
+                 extra_points: np.ndarray | None = None,
+                 ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, float, np.random.Generator] | None:
+        """Frustum-frame points (1, N, 4) of ``box2d`` (plus the rows ``extra_points`` of ``points_rect`` in
+        front of the camera) resampled as ``detect`` does, their one-hot, sample indices, rotation angle and
+        the generator (positioned for the object-point gather)."""
         projected = project_rect_points(points_rect.detach().cpu().double().numpy(), calib, image_size)
-        fr = extract_frustum(projected, np.asarray(box2d, dtype=np.float64), calib)
+        fr = extract_frustum(projected, np.asarray(box2d, dtype=np.float64), calib, extra_points)
         if len(fr) == 0:
             return None
         rng = frustum_rng(self.settings.seed, frame_id, proposal)
@@ -327,10 +332,13 @@ class FPointNetCascade:
         return pts[None], one_hot, idx, fr.rot_angle, rng
 
     def frustum_logits(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
-                       box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0) -> FrustumLogits | None:
-        """Seg logits of the frustum of ``box2d`` over (P, 4) rect points (differentiable), resampled
-        with :func:`frustum_rng` of ``settings.seed``, ``frame_id`` and ``proposal`` as ``detect`` does."""
-        got = self._frustum(points_rect, calib, image_size, box2d, frame_id, proposal, class_id)
+                       box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0,
+                       extra_points: np.ndarray | None = None) -> FrustumLogits | None:
+        """Seg logits of the frustum of ``box2d`` (with the rows ``extra_points`` of ``points_rect`` in front
+        of the camera, as ``detect`` adds a ``gt-append`` box's extra points) over (P, 4) rect points
+        (differentiable), resampled with :func:`frustum_rng` of ``settings.seed``, ``frame_id`` and
+        ``proposal`` as ``detect`` does."""
+        got = self._frustum(points_rect, calib, image_size, box2d, frame_id, proposal, class_id, extra_points)
         if got is None:
             return None
         pts, one_hot, idx, rot, _ = got
@@ -338,13 +346,15 @@ class FPointNetCascade:
         return FrustumLogits(logits=logits, sample_index=idx, rot_angle=rot, points=pts[0])
 
     def frustum_box(self, points_rect: torch.Tensor, calib: Calibration, image_size: tuple[int, int],
-                    box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0) -> FrustumBox | None:
-        """The box ``detect`` regresses for the frustum of ``box2d`` (same resampling and object-point
+                    box2d: np.ndarray, *, frame_id: str, proposal: int, class_id: int = 0,
+                    extra_points: np.ndarray | None = None) -> FrustumBox | None:
+        """The box ``detect`` regresses for the frustum of ``box2d`` (and ``extra_points``, as in
+        :meth:`frustum_logits`; same resampling and object-point
         gather), differentiable w.r.t. ``points_rect``: the whole network in eval mode in its own dtype,
         the argmax heading bin and size template held fixed, the mask straight-through
         (:data:`BOX_ORACLE_TEMPERATURE`; its forward values are the hard mask), decoded as
         :func:`~robustbench3d.victims.fpointnet.to_kitti.decode` and rotated back to the rect frame."""
-        got = self._frustum(points_rect, calib, image_size, box2d, frame_id, proposal, class_id)
+        got = self._frustum(points_rect, calib, image_size, box2d, frame_id, proposal, class_id, extra_points)
         if got is None:
             return None
         pts, one_hot, _, rot, rng = got
