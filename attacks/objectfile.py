@@ -229,8 +229,9 @@ def _check_size(path: Path, missing: str) -> None:
                                     f"(a 162-vertex object is about 7 KB)")
 
 
-def _parse_ply(path: Path, raw: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(vertices, faces, colours in [0, 1]) of a PLY file's bytes."""
+def ply_mesh(path: Path, raw: bytes) -> Any:
+    """The one triangle mesh of a PLY file's bytes, as loaded (a ``trimesh.Trimesh``, not processed);
+    :class:`DataFormatError` naming ``path`` on unreadable bytes or anything but one triangle mesh."""
     import trimesh
 
     try:
@@ -239,6 +240,12 @@ def _parse_ply(path: Path, raw: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarr
         raise DataFormatError(path, f"not a readable PLY mesh ({type(exc).__name__}: {exc})") from None
     if not isinstance(mesh, trimesh.Trimesh):
         raise DataFormatError(path, f"expected one triangle mesh, got a {type(mesh).__name__}")
+    return mesh
+
+
+def _parse_ply(path: Path, raw: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices, faces, colours in [0, 1]) of a PLY file's bytes."""
+    mesh = ply_mesh(path, raw)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     colors = _raw_colors(mesh)

@@ -1,4 +1,5 @@
-"""What an attack placed on each target car, for the harness's frustum protocols (standard library and numpy only).
+"""What an attack placed on each target car, for the harness's frustum protocols (standard library, numpy and
+the scan-row check of :mod:`robustbench3d.kitti.velodyne` only).
 
 An :class:`ObjectRecord` is the harness-side account of one attacked frame: per target car (in
 :func:`~robustbench3d.attacks.base.target_cars` order) the image-2 box of the object's **bounds box** as placed
@@ -28,6 +29,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from robustbench3d.kitti.velodyne import row_indices
 
 if TYPE_CHECKING:
     from robustbench3d.attacks.placement import Pose
@@ -83,20 +86,10 @@ class ObjectRecord:
         returns = tuple(self.returns)
         if len(returns) != t:
             raise ValueError(f"ObjectRecord: field 'returns': expected {t} arrays (one per target), got {len(returns)}")
-        rows = []
-        for k, r in enumerate(returns):
-            arr = np.asarray(r)
-            if arr.ndim != 1 or (arr.size and arr.dtype.kind not in "iu"):
-                raise ValueError(f"ObjectRecord: field 'returns': target {k}: expected 1-D integer row indices, "
-                                 f"got {arr.shape} {arr.dtype}")
-            arr = arr.astype(np.int64)
-            if arr.size and (arr.min() < 0 or np.any(np.diff(arr) <= 0)):
-                raise ValueError(f"ObjectRecord: field 'returns': target {k}: row indices must be >= 0, sorted "
-                                 "and unique")
-            rows.append(_frozen(arr))
+        rows = tuple(row_indices(r, f"ObjectRecord: field 'returns': target {k}") for k, r in enumerate(returns))
         object.__setattr__(self, "boxes", _frozen(boxes))
         object.__setattr__(self, "target_index", _frozen(index.astype(np.int64)))
-        object.__setattr__(self, "returns", tuple(rows))
+        object.__setattr__(self, "returns", rows)
 
     def __len__(self) -> int:
         return len(self.boxes)

@@ -34,7 +34,6 @@ vertices and faces, finite positions). ``--max-frames`` is an integer in [1, 100
 from __future__ import annotations
 
 import argparse
-import io
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -184,20 +183,15 @@ def read_objects(attacked: Path, frame_id: str, marker: dict[str, int]) -> Any:
     """The checked objects PLY of ``frame_id`` (module doc) as a trimesh mesh; ``marker``: its
     :func:`read_marker`."""
     import numpy as np
-    import trimesh
 
+    from robustbench3d.attacks.objectfile import ply_mesh
     from robustbench3d.errors import DataFormatError
     from robustbench3d.fileio import read_data_bytes
 
     path = attacked / "training" / "objects" / f"{frame_id}.ply"
     raw = read_data_bytes(path, missing=f"objects PLY not found (its marker {marker_path(attacked, frame_id).name} "
                                         f"records {marker['objects']} objects)")
-    try:
-        mesh = trimesh.load(io.BytesIO(raw), file_type="ply", process=False)
-    except Exception as exc:  # trimesh raises many types on bad bytes
-        raise DataFormatError(path, f"not a readable PLY mesh ({type(exc).__name__}: {exc})") from None
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise DataFormatError(path, f"expected one triangle mesh, got a {type(mesh).__name__}")
+    mesh = ply_mesh(path, raw)
     n = marker["objects"]
     for what, have, per in (("vertices", len(mesh.vertices), marker["vertices_per_object"]),
                             ("faces", len(mesh.faces), marker["faces_per_object"])):

@@ -11,14 +11,11 @@ from __future__ import annotations
 
 import argparse
 import inspect
-import json
-import sys
 from typing import Any
 
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
-    parser.add_argument("pattern", nargs="?", default="*", help="glob over names (default: all)")
+# the options of ``victims list``, and its way of printing the listing
+from robustbench3d.victims.list_command import add_arguments as add_arguments
+from robustbench3d.victims.list_command import print_listing
 
 
 def factory_parameters(factory: Any) -> list[str]:
@@ -75,8 +72,4 @@ def attacks_table(items: list[dict[str, Any]]) -> str:
 def run(args: argparse.Namespace) -> int:
     from robustbench3d.attacks import ATTACKS
 
-    items = rows(args.pattern)
-    for why in ATTACKS.rejected():
-        print(f"robustbench3d: warning: {why}", file=sys.stderr)
-    print(json.dumps(items, indent=2) if args.json else attacks_table(items))
-    return 1 if any(r["error"] for r in items) else 0
+    return print_listing(ATTACKS, rows(args.pattern), attacks_table, args.json)

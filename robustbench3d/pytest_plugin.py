@@ -201,8 +201,7 @@ def _marker_int(kw: dict[str, Any], key: str, default: int, lo: int, hi: int | N
 def _marker_sources(kw: dict[str, Any]) -> tuple[str, ...]:
     """Pop the ``proposals`` marker keyword (default ``("detector",)``): proposal sources of
     :data:`~robustbench3d.victims.spec.PROPOSAL_SOURCES`; another name is a usage error listing them."""
-    from robustbench3d.runner.config import describe_sources
-    from robustbench3d.victims.spec import PROPOSAL_SOURCES
+    from robustbench3d.victims.spec import PROPOSAL_SOURCES, describe_sources
 
     sources = _names(kw.pop("proposals", None), ("detector",))
     bad = [s for s in sources if s not in PROPOSAL_SOURCES]

@@ -18,7 +18,7 @@ import csv
 import io
 import json
 import math
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
@@ -68,18 +68,25 @@ def schema_errors(summary: Any, cell_only: bool = False) -> list[str]:
     return [f"{_json_path(e.absolute_path)}: {e.message}" for e in errors]
 
 
+def _first_path(obj: Any, match: Callable[[Any], bool],
+                parts: tuple[Any, ...] = ()) -> tuple[tuple[Any, ...], Any] | None:
+    """(JSON path parts, value) of the first value in ``obj`` (itself, then lists and dicts walked in order)
+    that ``match``es, or None."""
+    if match(obj):
+        return parts, obj
+    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, list) else ()
+    for key, value in items:
+        found = _first_path(value, match, (*parts, key))
+        if found is not None:
+            return found
+    return None
+
+
 def non_finite_path(obj: Any, parts: tuple[Any, ...] = ()) -> tuple[tuple[Any, ...], float] | None:
     """(JSON path parts, value) of the first NaN or infinite float in ``obj`` (lists and dicts walked in
     order), or None. JSON has no such numbers, and JSON Schema cannot refuse them: ``NaN`` compares
     false with every bound, so ``{"minimum": 0, "maximum": 100}`` lets a NaN AP through."""
-    if isinstance(obj, float):
-        return None if math.isfinite(obj) else (parts, obj)
-    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, list) else ()
-    for key, value in items:
-        found = non_finite_path(value, (*parts, key))
-        if found is not None:
-            return found
-    return None
+    return _first_path(obj, lambda v: isinstance(v, float) and not math.isfinite(v), parts)
 
 
 def validate_summary(summary: Any, source: str | Path = "summary.json", cell_only: bool = False) -> None:
@@ -130,18 +137,6 @@ class _NonFiniteToken:
         self.token = token
 
 
-def _token_path(obj: Any, parts: tuple[Any, ...] = ()) -> tuple[tuple[Any, ...], str] | None:
-    """(JSON path parts, token) of the first :class:`_NonFiniteToken` in ``obj``, or None."""
-    if isinstance(obj, _NonFiniteToken):
-        return parts, obj.token
-    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, list) else ()
-    for key, value in items:
-        found = _token_path(value, (*parts, key))
-        if found is not None:
-            return found
-    return None
-
-
 def read_json(path: str | Path) -> Any:
     """Parse a JSON file; :class:`DataFormatError` naming it on a missing or unreadable file (a
     directory, no permission), bad JSON (the message gives line and column), or a ``NaN`` /
@@ -159,7 +154,7 @@ def read_json(path: str | Path) -> Any:
     except json.JSONDecodeError as exc:
         raise DataFormatError(path, f"not valid JSON ({exc})") from None
     if tokens:
-        found = _token_path(data)
+        found = _first_path(data, lambda v: isinstance(v, _NonFiniteToken))
         field = _json_path(found[0]) if found is not None else None
         raise DataFormatError(path, f"{tokens[0]} is not JSON (numbers must be finite)", field=field)
     return data

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -34,3 +35,20 @@ def cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     monkeypatch.setenv("ROBUSTBENCH3D_CACHE", str(tmp_path / "cache"))
     return tmp_path / "cache"
 
+
+
+@pytest.fixture
+def fed_frustums(monkeypatch: pytest.MonkeyPatch) -> list[np.ndarray]:
+    """Filled during the test with every frustum the F-PointNet pipeline feeds its segmentation stage (one
+    (num_points, 4) array each, in order), recorded around ``pipeline.run_frustum_stages``."""
+    from robustbench3d.victims.fpointnet import pipeline
+
+    fed: list[np.ndarray] = []
+    real = pipeline.run_frustum_stages
+
+    def recording(stages, points, *args, **kwargs):
+        fed.extend(np.array(p) for p in points)
+        return real(stages, points, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "run_frustum_stages", recording)
+    return fed

@@ -8,14 +8,15 @@ import json
 from pathlib import Path
 
 import pytest
+from cell_builders import hand_provenance, write_run
 
 from robustbench3d.cli import main
 from robustbench3d.errors import DataFormatError
 from robustbench3d.gate import FORMAT, baseline_from_run, compare, read_baseline, read_run
-from robustbench3d.results import validate_summary
 
 SHA = "ab" * 32
 DIFFS = ("easy", "moderate", "hard")
+EVALUATION = {"evaluator": "robustbench3d.eval", "classes": ["Car"]}  # the cells' configured evaluation
 
 
 def by_diff(values: tuple[float, float, float]) -> dict[str, float]:
@@ -37,20 +38,7 @@ def cell(attack: str, proposals: str, bev: tuple | None, d3: tuple | None = None
         "dataset": {"root": "/data", "split": "val", "frames": 10, "split_frames": 10, "sha256": SHA,
                     "embedded": None, "manifest": None},
         "metrics": metrics(bev, d3 or bev) if status == "ok" else None,
-        "provenance": {
-            "fingerprint": SHA,
-            "config": {"victim": {"name": "v", "origin": "x", "kwargs": {}, "capabilities": None,
-                                  "weights_sha256": SHA, "weight_files": {}},
-                       "attack": {"name": attack, "origin": "x", "params": {}, "object": {},
-                                  "requirements": {"needs_gradients": False, "needs_camera": False,
-                                                   "needs_lidar": False}},
-                       "proposals": proposals, "dataset": {}, "seed": 0, "batch_size": 1,
-                       "evaluation": {"evaluator": "robustbench3d.eval", "classes": ["Car"]}},
-            "run": {"victims": ["v"], "attacks": [attack], "proposals": [proposals]},
-            "package": {"name": "robustbench3d", "version": "0"}, "git": {"commit": None, "dirty": None},
-            "versions": {"python": "3", "numpy": "2", "torch": None, "onnxruntime": None},
-            "platform": {"system": "Linux", "machine": "x", "cpu": None, "cpu_count": 2}, "seed": 0,
-            "determinism": {}, "started": "2026-01-01T00:00:00Z", "finished": "2026-01-01T00:00:01Z", "seconds": 1.0},
+        "provenance": hand_provenance("v", attack, proposals, SHA, weights_sha256=SHA, evaluation=EVALUATION),
     }
     if drop is not None:
         def table(values: tuple[float, float]) -> dict:
@@ -70,13 +58,6 @@ def summary() -> list[dict]:
     return [cell("none", "detector", (80.0, 64.0, 50.0), (70.0, 52.0, 40.0)),
             cell("adv", "detector", (60.0, 48.0, 40.0), (58.0, 40.0, 30.0), drop=(16.0, 12.0)),
             cell("none", "gt", None, status="skipped")]
-
-
-def write_run(root: Path, cells: list[dict]) -> Path:
-    validate_summary(cells)
-    root.mkdir(parents=True, exist_ok=True)
-    (root / "summary.json").write_text(json.dumps(cells), encoding="utf-8")
-    return root
 
 
 @pytest.fixture

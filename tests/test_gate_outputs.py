@@ -14,12 +14,13 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
+from cell_builders import hand_provenance, write_run
 
 from robustbench3d.cli import main
-from robustbench3d.results import validate_summary
 
 SHA, OTHER_SHA = "ab" * 32, "cd" * 32
 DIFFS = ("easy", "moderate", "hard")
+EVALUATION = {"evaluator": "robustbench3d.eval", "classes": ["Car"], "result_precision": 2}
 # the hand-made baseline's numbers: (victim+attack+proposals) -> metric -> (easy, moderate, hard)
 CLEAN = {"bev": (80.0, 64.0, 50.0), "3d": (70.0, 52.0, 40.0)}
 ADV = {"bev": (60.0, 48.0, 40.0), "3d": (58.0, 40.0, 30.0)}
@@ -47,20 +48,7 @@ def make_cell(attack: str, proposals: str, ap: dict | None, drop: dict[str, floa
                     "embedded": {"generator": "robustbench3d.synth", "generator_version": 1, "frames": 2000,
                                  "seed": 0, "val_fraction": 0.5}, "manifest": None},
         "metrics": {"Car": _ap_table(ap), "meta": meta} if status == "ok" else None,
-        "provenance": {
-            "fingerprint": SHA,
-            "config": {"victim": {"name": "v", "origin": "x", "kwargs": {}, "capabilities": None,
-                                  "weights_sha256": SHA, "weight_files": {}},
-                       "attack": {"name": attack, "origin": "x", "params": {}, "object": {},
-                                  "requirements": {"needs_gradients": False, "needs_camera": False,
-                                                   "needs_lidar": False}},
-                       "proposals": proposals, "dataset": {}, "seed": 0, "batch_size": 1,
-                       "evaluation": {"evaluator": "robustbench3d.eval", "classes": ["Car"], "result_precision": 2}},
-            "run": {"victims": ["v"], "attacks": [attack], "proposals": [proposals]},
-            "package": {"name": "robustbench3d", "version": "0"}, "git": {"commit": None, "dirty": None},
-            "versions": {"python": "3", "numpy": "2", "torch": None, "onnxruntime": None},
-            "platform": {"system": "Linux", "machine": "x", "cpu": None, "cpu_count": 2}, "seed": 0,
-            "determinism": {}, "started": "2026-01-01T00:00:00Z", "finished": "2026-01-01T00:00:01Z", "seconds": 1.0},
+        "provenance": hand_provenance("v", attack, proposals, SHA, weights_sha256=SHA, evaluation=EVALUATION),
     }
     if drop is not None:
         zero = _drop_table({m: 0.0 for m in drop})
@@ -76,13 +64,6 @@ def summary() -> list[dict]:
     """A clean cell, an attacked one, a skipped one."""
     return [make_cell("none", "detector", CLEAN), make_cell("adv", "detector", ADV, drop=ADV_DROP),
             make_cell("none", "gt", None, status="skipped")]
-
-
-def write_run(root: Path, cells: list[dict]) -> Path:
-    validate_summary(cells)
-    root.mkdir(parents=True, exist_ok=True)
-    (root / "summary.json").write_text(json.dumps(cells), encoding="utf-8")
-    return root
 
 
 @pytest.fixture

@@ -266,20 +266,11 @@ def test_empty_extra_points_and_empty_object_boxes_give_the_gt_result_bit_for_bi
             assert_same_rows(a, b)
 
 
-def test_gt_append_feeds_segmentation_the_hand_built_frustums(frames, lite, monkeypatch):
+def test_gt_append_feeds_segmentation_the_hand_built_frustums(frames, lite, fed_frustums):
     """The points the pipeline feeds the segmentation stage are, per usable Car, the hand-built frustum (scan
     points projecting into the GT box, in the image and 2 m ahead, united with the given rows 2 m ahead, in scan
     order) resampled with the frustum's generator and rotated by hand about rect y."""
-    from robustbench3d.victims.fpointnet import pipeline
-
-    fed: list[np.ndarray] = []
-    real = pipeline.run_frustum_stages
-
-    def recording(stages, points, *args, **kwargs):
-        fed.extend(np.array(p) for p in points)
-        return real(stages, points, *args, **kwargs)
-
-    monkeypatch.setattr(pipeline, "run_frustum_stages", recording)
+    fed = fed_frustums
     rows = [hand_extra_rows(f) for f in frames]
     records = [append_record(f, r) for f, r in zip(frames, rows, strict=True)]
     lite.detect(*victim_inputs(frames, [f.labels for f in frames], "gt-append", objects=records))
@@ -347,21 +338,13 @@ def scan_rect(frame: Frame, dtype: torch.dtype) -> torch.Tensor:
     return torch.tensor(rect, dtype=dtype, requires_grad=True)
 
 
-def test_oracles_build_the_gt_append_frustum_detect_scores(frames, lite, monkeypatch):
+def test_oracles_build_the_gt_append_frustum_detect_scores(frames, lite, fed_frustums):
     """With a box's extra points, ``frustum_logits`` samples the very rows ``detect`` feeds (the hand-built
     union), ``frustum_box`` is the row ``detect`` writes, and gradients reach the appended points; with empty
     extra points both are today's oracles."""
     from robustbench3d.geometry import wrap_angle
-    from robustbench3d.victims.fpointnet import pipeline
 
-    fed: list[np.ndarray] = []
-    real = pipeline.run_frustum_stages
-
-    def recording(stages, points, *args, **kwargs):
-        fed.extend(np.array(p) for p in points)
-        return real(stages, points, *args, **kwargs)
-
-    monkeypatch.setattr(pipeline, "run_frustum_stages", recording)
+    fed = fed_frustums
     frame = frames[0]
     extra = hand_extra_rows(frame)
     bare, given = victim_inputs([frame], [frame.labels], "gt-append", objects=[append_record(frame, extra)])

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 from browser import chromium_page
+from cell_builders import hand_provenance
 
 from robustbench3d.cli import main
 from robustbench3d.results import validate_summary
@@ -72,19 +73,7 @@ def make_cell(victim: str, attack: str, proposals: str, *, ci: bool = True, reas
         "dataset": {"root": "/d", "split": "val", "frames": 12, "split_frames": 40, "sha256": SHA, "embedded": None,
                     "manifest": None},
         "metrics": metrics,
-        "provenance": {
-            "fingerprint": fingerprint(name),
-            "config": {"victim": {"name": victim, "origin": "x", "kwargs": {}, "capabilities": None,
-                                  "weights_sha256": None, "weight_files": {}},
-                       "attack": {"name": attack, "origin": "x", "params": {}, "object": {},
-                                  "requirements": {"needs_gradients": False, "needs_camera": False,
-                                                   "needs_lidar": False}},
-                       "proposals": proposals, "dataset": {}, "seed": 0, "batch_size": 1, "evaluation": {}},
-            "run": {"victims": [victim], "attacks": [attack], "proposals": [proposals]},
-            "package": {"name": "robustbench3d", "version": "0"}, "git": {"commit": None, "dirty": None},
-            "versions": {"python": "3", "numpy": "2", "torch": None, "onnxruntime": None},
-            "platform": {"system": "Linux", "machine": "x", "cpu": None, "cpu_count": 2}, "seed": 0,
-            "determinism": {}, "started": "2026-01-01T00:00:00Z", "finished": "2026-01-01T00:00:01Z", "seconds": 1.0},
+        "provenance": hand_provenance(victim, attack, proposals, fingerprint(name)),
     }
     if ok and ci:
         cell["metrics_ci"] = {"meta": CI_META, "Car": {"bev": {r: {d: [metrics["Car"]["bev"][r][d] - 4.25,

@@ -145,6 +145,23 @@ def _assert_inert(doc: Tags, img_prefix: str) -> None:
             assert attrs["src"].startswith(img_prefix), attrs
 
 
+def _inert_report(out: Path, *, raw_markdown: bool = True) -> tuple[str, Tags]:
+    """The report in ``out`` checked as every hostile-strings test checks it: none of the hostile strings raw in
+    the page (nor, with ``raw_markdown``, in the markdown), the page's own sorting script its only one, its tags
+    inert; (the markdown, the page's tags)."""
+    md = (out / "leaderboard.md").read_text(encoding="utf-8")
+    page = (out / "leaderboard.html").read_text(encoding="utf-8")
+    if raw_markdown:
+        for raw in (SCRIPT, IMG, "<img", "<script>alert", LINK, IMAGE, "\n# heading"):
+            assert raw not in md, raw
+    for raw in (SCRIPT, IMG, "<img src=x", "<script>alert"):
+        assert raw not in page, raw
+    doc = _tags(page)
+    assert [t for t, _ in doc.tags].count("script") == 1
+    _assert_inert(doc, "data:image/png;base64,")
+    return md, doc
+
+
 def test_summary_strings_are_inert_in_markdown_and_html(partial, tmp_path):
     _, run, _ = partial
     hostile = shutil.copytree(run, tmp_path / "hostile")
@@ -156,15 +173,7 @@ def test_summary_strings_are_inert_in_markdown_and_html(partial, tmp_path):
     (hostile / "summary.json").write_text(json.dumps(cells))
     out = tmp_path / "rep"
     assert _report(hostile, out, "--title", f"t {SCRIPT} {LINK}") == 0
-    md = (out / "leaderboard.md").read_text(encoding="utf-8")
-    page = (out / "leaderboard.html").read_text(encoding="utf-8")
-    for raw in (SCRIPT, IMG, "<img", "<script>alert", LINK, IMAGE, "\n# heading"):
-        assert raw not in md, raw
-    for raw in (SCRIPT, IMG, "<img src=x", "<script>alert"):
-        assert raw not in page, raw
-    doc = _tags(page)
-    assert [t for t, _ in doc.tags].count("script") == 1  # the page's own sorting script
-    _assert_inert(doc, "data:image/png;base64,")
+    md, doc = _inert_report(out)
     # shown as given: the flag's tooltip, and the cell's JSON
     assert ("span", {"class": "flag", "title": HOSTILE}) in doc.tags
     assert json.dumps(HOSTILE, ensure_ascii=False) in "".join(doc.text)
@@ -203,13 +212,7 @@ def test_table1_and_cell_notes_strings_are_inert(partial, tmp_path):
     second = shutil.copytree(first, tmp_path / f"s{LINK}")  # the same cells again: merged, each named
     out = tmp_path / "rep"
     assert _report([first, second], out, "--scenes", "0") == 0
-    md = (out / "leaderboard.md").read_text(encoding="utf-8")
-    page = (out / "leaderboard.html").read_text(encoding="utf-8")
-    for raw in (SCRIPT, IMG, "<img src=x", "<script>alert"):
-        assert raw not in page, raw
-    doc = _tags(page)
-    assert [t for t, _ in doc.tags].count("script") == 1
-    _assert_inert(doc, "data:image/png;base64,")
+    md, doc = _inert_report(out, raw_markdown=False)
     text = "".join(doc.text)
     assert f"no AP: skipped: {HOSTILE}" in text  # Table 1's line for the clean cell
     i = next(k for k, c in enumerate(cells) if c["attack"] == "none")
@@ -264,15 +267,7 @@ def test_tradeoff_strings_are_inert_in_markdown_and_html(tmp_path):
     (trade / "tradeoff.json").write_text(json.dumps(doc), encoding="utf-8")
     out = tmp_path / "rep"
     assert main(["report", "--tradeoff", str(trade), "--out", str(out)]) == 0
-    md = (out / "leaderboard.md").read_text(encoding="utf-8")
-    page = (out / "leaderboard.html").read_text(encoding="utf-8")
-    for raw in (SCRIPT, IMG, "<img", "<script>alert", LINK, IMAGE, "\n# heading"):
-        assert raw not in md, raw
-    for raw in (SCRIPT, IMG, "<img src=x", "<script>alert"):
-        assert raw not in page, raw
-    tags = _tags(page)
-    assert [t for t, _ in tags.tags].count("script") == 1
-    _assert_inert(tags, "data:image/png;base64,")
+    md, tags = _inert_report(out)
     assert f"{SCRIPT} {LINK}" in "".join(tags.text) and f"({IMAGE} cores)" in "".join(tags.text)
     _, text = _rendered(md)
     assert f"v {IMG}" in text and f"{SCRIPT} {LINK}" in text and "a|b `c` *d* _e_ &amp;  # heading" in text

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from cell_builders import hand_provenance
 
 from robustbench3d.results import validate_summary
 from robustbench3d.seed_table import (
@@ -46,19 +47,7 @@ def cell(victim: str, attack: str, proposals: str, r40: tuple[float, ...] | None
         "dataset": {"root": "/d", "split": "val", "frames": frames, "split_frames": frames, "sha256": SHA,
                     "embedded": None, "manifest": None},
         "metrics": metrics,
-        "provenance": {
-            "fingerprint": SHA,
-            "config": {"victim": {"name": victim, "origin": "x", "kwargs": {}, "capabilities": None,
-                                  "weights_sha256": None, "weight_files": {}},
-                       "attack": {"name": attack, "origin": "x", "params": {}, "object": {},
-                                  "requirements": {"needs_gradients": False, "needs_camera": False,
-                                                   "needs_lidar": False}},
-                       "proposals": proposals, "dataset": {}, "seed": 0, "batch_size": 1, "evaluation": {}},
-            "run": {"victims": [victim], "attacks": [attack], "proposals": [proposals]},
-            "package": {"name": "robustbench3d", "version": "0"}, "git": {"commit": None, "dirty": None},
-            "versions": {"python": "3", "numpy": "2", "torch": None, "onnxruntime": None},
-            "platform": {"system": "Linux", "machine": "x", "cpu": None, "cpu_count": 2}, "seed": 0,
-            "determinism": {}, "started": "2026-01-01T00:00:00Z", "finished": "2026-01-01T00:00:01Z", "seconds": 1.0},
+        "provenance": hand_provenance(victim, attack, proposals, SHA),
     }
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from cli_checks import fails_cleanly
 
 from robustbench3d.attack_apply import apply_dataset
 from robustbench3d.attacks import create_attack
@@ -28,27 +29,6 @@ from robustbench3d.sensors.mesh import icosphere
 from robustbench3d.testing import synth_dataset
 
 OBJECTS = Path(__file__).resolve().parents[1] / "attacks" / "objects"
-
-
-def snapshot(root: Path) -> dict[str, bytes | None]:
-    """Every path under ``root`` with its bytes (None for directories and links)."""
-    return {str(p.relative_to(root)): None if p.is_dir() or p.is_symlink() else p.read_bytes()
-            for p in sorted(root.rglob("*"))}
-
-
-def fails_cleanly(watch: Path, capsys, argv: list[str], *names: str) -> str:
-    """Run the CLI; assert exit 2, one error line naming every ``names``, no traceback, ``watch`` unchanged."""
-    before = snapshot(watch)
-    rc = main(argv)
-    captured = capsys.readouterr()
-    assert rc == 2, captured.err
-    lines = [ln for ln in captured.err.splitlines() if ln.startswith("robustbench3d: error: ")]
-    assert len(lines) == 1, captured.err
-    assert "Traceback" not in captured.err + captured.out
-    for name in names:
-        assert name in lines[0], lines[0]
-    assert snapshot(watch) == before, "the failed command changed files"
-    return lines[0]
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_checks import fails_cleanly
 
-from robustbench3d.cli import main
 from robustbench3d.kitti import write_image, write_split
 from robustbench3d.testing import write_kitti_frame
 
@@ -43,28 +43,6 @@ def a_file(tmp_path: Path) -> Path:
     path = tmp_path / "a_file"
     path.write_text("keep me\n")
     return path
-
-
-def snapshot(root: Path) -> dict[str, bytes | None]:
-    """Every path under ``root`` (hidden ones too) with its bytes (None for directories)."""
-    return {str(p.relative_to(root)): None if p.is_dir() or p.is_symlink() else p.read_bytes()
-            for p in sorted(root.rglob("*"))}
-
-
-def fails_cleanly(tmp_path: Path, capsys, argv: list[str], *names: str) -> str:
-    """Run the CLI; assert exit 2, one error line naming every ``names``, and tmp_path unchanged."""
-    before = snapshot(tmp_path)
-    rc = main(argv)
-    captured = capsys.readouterr()
-    err = captured.err
-    assert rc == 2, err
-    lines = [ln for ln in err.splitlines() if ln.startswith("robustbench3d: error: ")]
-    assert len(lines) == 1, err
-    assert "Traceback" not in err + captured.out
-    for name in names:
-        assert name in lines[0], lines[0]
-    assert snapshot(tmp_path) == before, "the failed command left files behind"
-    return lines[0]
 
 
 # ---- --out / --json that cannot be written ---------------------------------------------------------

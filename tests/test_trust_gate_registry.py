@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cell_builders import hand_provenance, write_run
+from plugin_dists import write_dist
 
 from robustbench3d.cli import main
 from robustbench3d.errors import DataFormatError, RobustBenchError
@@ -29,6 +31,7 @@ from robustbench3d.victims.shipped import weights_dir
 
 SHA = "ab" * 32
 DIFFS = ("easy", "moderate", "hard")
+EVALUATION = {"evaluator": "robustbench3d.eval", "classes": ["Car"]}  # the cells' configured evaluation
 CAR = "Car 0.00 0 -1.57 500.00 150.00 700.00 250.00 1.50 1.60 3.90 0.00 1.65 15.00 -1.57\n"
 
 
@@ -47,20 +50,7 @@ def _cell(attack: str, bev: tuple[float, float, float], d3: tuple[float, float, 
                     "meta": {"evaluator": "robustbench3d.eval", "version": "1", "ap_unit": "percent", "frames": 10,
                              "classes": ["Car"], "metrics": ["bev", "3d"],
                              "min_overlap": {"Car": {"bev": 0.7, "3d": 0.7}}}},
-        "provenance": {
-            "fingerprint": SHA,
-            "config": {"victim": {"name": "v", "origin": "x", "kwargs": {}, "capabilities": None,
-                                  "weights_sha256": SHA, "weight_files": {}},
-                       "attack": {"name": attack, "origin": "x", "params": {}, "object": {},
-                                  "requirements": {"needs_gradients": False, "needs_camera": False,
-                                                   "needs_lidar": False}},
-                       "proposals": "detector", "dataset": {}, "seed": 0, "batch_size": 1,
-                       "evaluation": {"evaluator": "robustbench3d.eval", "classes": ["Car"]}},
-            "run": {"victims": ["v"], "attacks": [attack], "proposals": ["detector"]},
-            "package": {"name": "robustbench3d", "version": "0"}, "git": {"commit": None, "dirty": None},
-            "versions": {"python": "3", "numpy": "2", "torch": None, "onnxruntime": None},
-            "platform": {"system": "Linux", "machine": "x", "cpu": None, "cpu_count": 2}, "seed": 0,
-            "determinism": {}, "started": "2026-01-01T00:00:00Z", "finished": "2026-01-01T00:00:01Z", "seconds": 1.0},
+        "provenance": hand_provenance("v", attack, "detector", SHA, weights_sha256=SHA, evaluation=EVALUATION),
     }
 
 
@@ -68,13 +58,6 @@ def summary() -> list[dict]:
     """Two cells whose AP values are all distinct, so one can be found in the text and edited."""
     return [_cell("none", (80.5, 64.25, 50.5), (70.5, 52.5, 40.5)),
             _cell("adv", (60.5, 48.5, 40.25), (58.5, 40.75, 30.5))]
-
-
-def write_run(root: Path, cells: list[dict]) -> Path:
-    validate_summary(cells)
-    root.mkdir(parents=True, exist_ok=True)
-    (root / "summary.json").write_text(json.dumps(cells, indent=1), encoding="utf-8")
-    return root
 
 
 def one_error_line(err: str) -> str:
@@ -206,34 +189,35 @@ def shipped_onnx_copy(parent: Path) -> Path:
     return Path(shutil.copytree(src, parent / "onnx"))
 
 
+def parity_refusal(capsys, onnx: Path, *argv: str) -> str:
+    """The one error line of ``parity fpointnet-v1-lite --onnx ONNX ARGV``, which must exit 2."""
+    assert main(["parity", "fpointnet-v1-lite", "--onnx", str(onnx), *argv]) == 2
+    return one_error_line(capsys.readouterr().err)
+
+
 def test_parity_missing_onnx_dir_fails_before_any_work(tmp_path, capsys, no_parity_work):
     missing = tmp_path / "nowhere"
-    assert main(["parity", "fpointnet-v1-lite", "--onnx", str(missing)]) == 2
-    line = one_error_line(capsys.readouterr().err)
+    line = parity_refusal(capsys, missing)
     assert line == f"robustbench3d: error: {missing}: ONNX victim directory not found"
     empty = tmp_path / "empty"
     empty.mkdir()
-    assert main(["parity", "fpointnet-v1-lite", "--onnx", str(empty)]) == 2
-    assert f"{empty / 'manifest.json'}: manifest not found" in one_error_line(capsys.readouterr().err)
+    assert f"{empty / 'manifest.json'}: manifest not found" in parity_refusal(capsys, empty)
 
 
 def test_parity_onnx_dir_with_a_missing_or_changed_stage_fails_before_any_work(tmp_path, capsys, no_parity_work):
     onnx = shipped_onnx_copy(tmp_path)
     stage = onnx / "center_regression.onnx"
     stage.write_bytes(stage.read_bytes() + b"\0")
-    assert main(["parity", "fpointnet-v1-lite", "--onnx", str(onnx)]) == 2
-    assert f"{stage}: sha256 " in one_error_line(capsys.readouterr().err)
+    assert f"{stage}: sha256 " in parity_refusal(capsys, onnx)
     stage.unlink()
-    assert main(["parity", "fpointnet-v1-lite", "--onnx", str(onnx)]) == 2
-    assert f"{stage}: stage 'center_regression' file missing" in one_error_line(capsys.readouterr().err)
+    assert f"{stage}: stage 'center_regression' file missing" in parity_refusal(capsys, onnx)
 
 
 def test_parity_json_is_not_replaced_without_force(tmp_path, capsys, no_parity_work):
     onnx = shipped_onnx_copy(tmp_path)
     report = tmp_path / "parity.json"
     report.write_text("{}\n")
-    assert main(["parity", "fpointnet-v1-lite", "--onnx", str(onnx), "--json", str(report)]) == 2
-    assert f"--json {report}: exists; pass --force" in one_error_line(capsys.readouterr().err)
+    assert f"--json {report}: exists; pass --force" in parity_refusal(capsys, onnx, "--json", str(report))
     assert report.read_text() == "{}\n"
 
 
@@ -243,29 +227,18 @@ def test_parity_json_is_not_replaced_without_force(tmp_path, capsys, no_parity_w
 ])
 def test_parity_numeric_options_are_checked_before_any_work(tmp_path, capsys, no_parity_work, argv, named):
     onnx = shipped_onnx_copy(tmp_path)
-    assert main(["parity", "fpointnet-v1-lite", "--onnx", str(onnx), *argv]) == 2
-    assert named in one_error_line(capsys.readouterr().err)
+    assert named in parity_refusal(capsys, onnx, *argv)
 
 
 def test_parity_unknown_victim_argument_is_one_line_before_loading(tmp_path, capsys, monkeypatch):
     onnx = shipped_onnx_copy(tmp_path)
     monkeypatch.setattr("robustbench3d.victims.zoo._cascade", lambda *a, **k: pytest.fail("weights loaded"))
     monkeypatch.setattr("robustbench3d.datasets.resolve_dataset", lambda *a, **k: pytest.fail("dataset resolved"))
-    assert main(["parity", "fpointnet-v1-lite", "--onnx", str(onnx), "--victim-arg", "threads=2"]) == 2
-    line = one_error_line(capsys.readouterr().err)  # was a TypeError traceback
+    line = parity_refusal(capsys, onnx, "--victim-arg", "threads=2")  # was a TypeError traceback
     assert "victim 'fpointnet-v1-lite' takes no argument 'threads'" in line and "num_points" in line
 
 
 # ---- 5. a plugin entry point clashing with an in-tree victim ---------------------------------------------
-def write_dist(root: Path, dist: str, version: str, entry_points: dict[str, str]) -> None:
-    """A minimal installed distribution with ``robustbench3d.victims`` entry points under ``root``."""
-    meta = root / f"{dist.replace('-', '_')}-{version}.dist-info"
-    meta.mkdir(parents=True)
-    (meta / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: {version}\n")
-    lines = ["[robustbench3d.victims]"] + [f"{k} = {v}" for k, v in entry_points.items()]
-    (meta / "entry_points.txt").write_text("\n".join(lines) + "\n")
-
-
 def test_in_tree_clash_names_the_plugin_to_rename(tmp_path, monkeypatch):
     site = tmp_path / "site"
     write_dist(site, "rb3d-clash", "1.0", {"taken": "rb3d_clash_mod:SPEC"})

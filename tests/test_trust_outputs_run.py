@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_checks import fails_cleanly
 
 from robustbench3d.attacks import ATTACKS, register_attack
 from robustbench3d.attacks.base import Attack
@@ -49,32 +50,6 @@ class NoopAttack(Attack):
 def dataset(tmp_path_factory) -> Path:
     """Four generated frames, all in the val split."""
     return synth_dataset(tmp_path_factory.mktemp("synth"), 4, seed=5, val_fraction=1.0)
-
-
-def snapshot(root: Path) -> dict[str, bytes | None]:
-    """Every path under ``root`` (hidden ones too) with its bytes (None for directories and links)."""
-    return {str(p.relative_to(root)): None if p.is_dir() or p.is_symlink() else p.read_bytes()
-            for p in sorted(root.rglob("*"))}
-
-
-def error_line(capsys) -> str:
-    """The one ``robustbench3d: error:`` line of the last command (no traceback printed)."""
-    captured = capsys.readouterr()
-    lines = [ln for ln in captured.err.splitlines() if ln.startswith("robustbench3d: error: ")]
-    assert len(lines) == 1, captured.err
-    assert "Traceback" not in captured.err + captured.out
-    return lines[0]
-
-
-def fails_cleanly(root: Path, capsys, argv: list[str], *names: str) -> str:
-    """Run the CLI; assert exit 2, one error line naming every ``names``, and ``root`` unchanged."""
-    before = snapshot(root)
-    assert main(argv) == 2
-    line = error_line(capsys)
-    for name in names:
-        assert name in line, line
-    assert snapshot(root) == before, "the refused command changed files"
-    return line
 
 
 def run_argv(dataset: Path, out: Path, *extra: str, attacks: str = "none") -> list[str]:

@@ -17,6 +17,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from plugin_dists import write_dist
 
 from robustbench3d.cli import main
 from robustbench3d.errors import DataFormatError, RobustBenchError
@@ -30,15 +31,6 @@ from robustbench3d.victims.shipped import weights_dir
 REPO = Path(__file__).resolve().parents[1]
 BOM = "file starts with a UTF-8 byte-order mark; save it without BOM"
 LABEL = "Car 0.00 0 -1.58 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59\n"
-
-
-def write_dist(root: Path, dist: str, version: str, entry_points: dict[str, str]) -> None:
-    """A minimal installed distribution with ``robustbench3d.victims`` entry points under ``root``."""
-    meta = root / f"{dist.replace('-', '_')}-{version}.dist-info"
-    meta.mkdir(parents=True)
-    (meta / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: {version}\n")
-    lines = ["[robustbench3d.victims]"] + [f"{k} = {v}" for k, v in entry_points.items()]
-    (meta / "entry_points.txt").write_text("\n".join(lines) + "\n")
 
 
 def cli(*args: str, cache: Path, site: Path | None = None) -> subprocess.CompletedProcess:

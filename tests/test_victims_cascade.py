@@ -112,19 +112,10 @@ def test_frustum_oracle_is_differentiable(victim, frames):
                                  frame_id=frame.frame_id, proposal=0) is None
 
 
-def test_frustum_oracle_resamples_the_points_detect_scores(victim, frames, monkeypatch):
+def test_frustum_oracle_resamples_the_points_detect_scores(victim, frames, fed_frustums):
     """For every usable proposal of a frame, the oracle's network input is the one ``detect`` feeds
     the segmentation network (same resampled points, in the same order)."""
-    from robustbench3d.victims.fpointnet import pipeline
-
-    fed: list[np.ndarray] = []
-    real = pipeline.run_frustum_stages
-
-    def recording(stages, points, *args, **kwargs):
-        fed.extend(np.array(p) for p in points)
-        return real(stages, points, *args, **kwargs)
-
-    monkeypatch.setattr(pipeline, "run_frustum_stages", recording)
+    fed = fed_frustums
     scored = frames[2:5]  # three usable cars (GT proposals need one frustum point)
     victim.detect(scored, "gt")
     oracle = []

@@ -63,6 +63,7 @@ import numpy as np
 
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels, type_mask
+from robustbench3d.kitti.velodyne import row_indices
 from robustbench3d.victims.spec import (
     GT_PROPOSAL_SOURCES,
     OBJECT_PROPOSAL_SOURCES,
@@ -150,18 +151,7 @@ def _row_arrays(extra: Sequence[np.ndarray], count: int) -> tuple[np.ndarray, ..
                          f"got {type(extra).__name__}")
     if len(extra) != count:
         raise ValueError(f"Proposals: {count} boxes but {len(extra)} extra_points arrays")
-    rows = []
-    for k, e in enumerate(extra):
-        arr = np.asarray(e)
-        if arr.ndim != 1 or (arr.size and arr.dtype.kind not in "iu"):
-            raise ValueError(f"Proposals: extra_points of box {k}: expected a 1-D array of integer scan rows, "
-                             f"got shape {arr.shape} {arr.dtype}")
-        arr = np.array(arr, dtype=np.int64)
-        if arr.size and (arr[0] < 0 or np.any(np.diff(arr) <= 0)):
-            raise ValueError(f"Proposals: extra_points of box {k}: scan rows must be >= 0, sorted and unique")
-        arr.flags.writeable = False
-        rows.append(arr)
-    return tuple(rows)
+    return tuple(row_indices(e, f"Proposals: extra_points of box {k}") for k, e in enumerate(extra))
 
 
 #: A ``detect`` call's proposals: a mode name or one :class:`Proposals` per frame.

@@ -10,7 +10,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from robustbench3d.registry import Registry
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -53,11 +57,18 @@ def victims_table(items: list[dict[str, Any]]) -> str:
     return format_table(header, lines, rule=False)
 
 
+def print_listing(registry: Registry[Any], items: list[dict[str, Any]], table: Callable[[list[dict[str, Any]]], str],
+                  as_json: bool) -> int:
+    """Print why each of ``registry``'s rejected entry points was ignored (warnings on stderr), then ``items``
+    as JSON or ``table(items)`` on stdout; the exit status: 1 if an item failed to load (its ``error``), else 0.
+    The ``run`` of ``victims list`` and ``attack list``."""
+    for why in registry.rejected():
+        print(f"robustbench3d: warning: {why}", file=sys.stderr)
+    print(json.dumps(items, indent=2) if as_json else table(items))
+    return 1 if any(r["error"] for r in items) else 0
+
+
 def run(args: argparse.Namespace) -> int:
     from robustbench3d.victims import VICTIMS
 
-    items = rows(args.pattern)
-    for why in VICTIMS.rejected():
-        print(f"robustbench3d: warning: {why}", file=sys.stderr)
-    print(json.dumps(items, indent=2) if args.json else victims_table(items))
-    return 1 if any(r["error"] for r in items) else 0
+    return print_listing(VICTIMS, rows(args.pattern), victims_table, args.json)

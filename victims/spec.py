@@ -107,5 +107,22 @@ class VictimSpec(Spec["Detector"]):
         return victim
 
 
-__all__ = ["BACKENDS", "GT_PROPOSAL_SOURCES", "MODALITIES", "OBJECT_PROPOSAL_SOURCES", "PROPOSAL_SOURCES",
-           "PROTOCOL_LABELS", "Capabilities", "EntryInfo", "ProposalSource", "VictimSpec"]
+def describe_sources(sources: tuple[str, ...] = PROPOSAL_SOURCES) -> str:
+    """``"detector: the victim's own 2D detector; gt: GT 2D boxes (object outside the frustum); ..."``: each
+    proposal source with its protocol's words (:data:`PROTOCOL_LABELS`)."""
+    return "; ".join(f"{s}: {PROTOCOL_LABELS[s]}" for s in sources)
+
+
+__all__ = [
+    "BACKENDS",
+    "GT_PROPOSAL_SOURCES",
+    "MODALITIES",
+    "OBJECT_PROPOSAL_SOURCES",
+    "PROPOSAL_SOURCES",
+    "PROTOCOL_LABELS",
+    "Capabilities",
+    "EntryInfo",
+    "ProposalSource",
+    "VictimSpec",
+    "describe_sources",
+]

@@ -23,8 +23,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from robustbench3d.attacks.base import attack_rng, target_cars
 from robustbench3d.attacks.object import benign_sphere
 from robustbench3d.attacks.objectfile import load_object

@@ -36,3 +36,16 @@ def scan_rows(scan: np.ndarray) -> np.ndarray:
     compare with ``np.isin`` (e.g. which points an attack added or removed)."""
     return np.ascontiguousarray(scan, dtype="<f4").view(np.dtype((np.void, 16))).reshape(-1)
 
+
+
+def row_indices(value: np.ndarray, what: str) -> np.ndarray:
+    """``value`` as a read-only (M,) int64 copy of rows of a scan: 1-D integers, >= 0, strictly increasing
+    (sorted, unique); ValueError starting with ``what`` otherwise. An empty array of any dtype is allowed."""
+    arr = np.asarray(value)
+    if arr.ndim != 1 or (arr.size and arr.dtype.kind not in "iu"):
+        raise ValueError(f"{what}: expected a 1-D array of integer scan rows, got shape {arr.shape} {arr.dtype}")
+    arr = np.array(arr, dtype=np.int64)
+    if arr.size and (arr[0] < 0 or np.any(np.diff(arr) <= 0)):
+        raise ValueError(f"{what}: scan rows must be >= 0, sorted and unique")
+    arr.flags.writeable = False
+    return arr

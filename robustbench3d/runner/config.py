@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import RobustBenchError
-from robustbench3d.victims.spec import PROPOSAL_SOURCES, PROTOCOL_LABELS
+from robustbench3d.victims.spec import PROPOSAL_SOURCES, describe_sources
 
 #: Frames a ``robustbench3d run`` on the embedded ``val`` split evaluates by default: the first N ids
 #: of the split (``--full``: all of them; ``--max-frames`` sets another N). The quick default: the
@@ -28,12 +28,6 @@ def default_max_frames(max_frames: int | None, full: bool, data: str | Path | No
     if max_frames is not None or full or data is not None or split != "val":
         return max_frames
     return DEFAULT_VAL_FRAMES
-
-
-def describe_sources(sources: tuple[str, ...] = PROPOSAL_SOURCES) -> str:
-    """``"detector: the victim's own 2D detector; gt: GT 2D boxes (object outside the frustum); ..."``: each
-    proposal source with its protocol's words (:data:`~robustbench3d.victims.spec.PROTOCOL_LABELS`)."""
-    return "; ".join(f"{s}: {PROTOCOL_LABELS[s]}" for s in sources)
 
 
 def _unique(values: tuple[str, ...], what: str) -> None:
@@ -224,3 +218,17 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any], limit: in
     if len(diff) > limit:
         parts.append(f"{len(diff) - limit} more")
     return "; ".join(parts) if parts else "no entry differs"
+
+
+def refuse_changed_cells(out: Path, changed: list[tuple[str, str]], cell: str = "cell", done: str = "computed") -> None:
+    """Raise the one-line refusal of finished cells of another configuration (written-once rule, without
+    ``--force``): the first of ``changed`` (cell name, :func:`config_differences` text) named, the others
+    counted; ``cell``/``done``: how the command calls its cells and their making. Nothing when ``changed`` is
+    empty."""
+    if not changed:
+        return
+    name, why = changed[0]
+    more = f" (and {len(changed) - 1} more cell(s))" if len(changed) > 1 else ""
+    raise RobustBenchError(f"--out {out}: finished {cell} {name}{more} was {done} with another configuration "
+                           f"(on disk vs this run: {why}); pass --force to replace it, or choose another --out "
+                           "(nothing was changed)")

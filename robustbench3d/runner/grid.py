@@ -63,7 +63,7 @@ from robustbench3d.runner.cell import (
     victim_failure,
 )
 from robustbench3d.runner.collect import earlier_cells
-from robustbench3d.runner.config import CellKey, RunConfig, config_differences, fingerprint, grid
+from robustbench3d.runner.config import CellKey, RunConfig, config_differences, fingerprint, grid, refuse_changed_cells
 from robustbench3d.runner.effect import CLEAN_ATTACK, attach_effects, with_clean_cells
 from robustbench3d.runner.executors import Executor
 from robustbench3d.runner.flags import determinism, record_flags
@@ -176,16 +176,18 @@ def _check_names(config: RunConfig) -> None:
         ATTACKS.entry(name)
 
 
-def _finished(cell_dir: Path) -> dict | None:
-    """The cell's ``cell.json`` if it is there and schema-valid (else None: the cell is recomputed,
-    :func:`_reusable` says why)."""
+def _finished(cell_dir: Path, print_fn: Callable[[str], None] | None = None) -> dict | None:
+    """The cell's ``cell.json`` if it is there and schema-valid, else None: the cell is recomputed (an invalid
+    one is said through ``print_fn`` if given, as :func:`_reusable` does)."""
     path = cell_dir / CELL_FILE
     if not path.is_file():
         return None
     try:
         cell = read_json(path)
         validate_summary(cell, path, cell_only=True)
-    except DataFormatError:
+    except DataFormatError as exc:
+        if print_fn is not None:
+            print_fn(f"  recomputing: {exc}")
         return None
     return cell
 
@@ -207,17 +209,13 @@ def _check_finished(out: Path, cells: list[CellKey], cfgs: list[dict[str, Any]],
             if dependents:
                 why += (f"; {len(dependents)} attacked cell(s) of earlier runs are compared with it and lose their "
                         f"clean reference when it is replaced: {', '.join(dependents)}")
-            changed.append((key, why))
+            changed.append((key.dirname, why))
         elif old["status"] == "skipped" or results_complete(cell_dir, frame_ids):
             kept += 1
-    if changed and not force:
-        key, why = changed[0]
-        more = f" (and {len(changed) - 1} more cell(s))" if len(changed) > 1 else ""
-        raise RobustBenchError(f"--out {out}: finished cell {key.dirname}{more} was computed with another "
-                               f"configuration (on disk vs this run: {why}); pass --force to replace it, or choose "
-                               "another --out (nothing was changed)")
-    for key, why in changed:
-        warn(log, f"replacing finished cell {key.dirname} (--force): on disk vs this run: {why}")
+    if not force:
+        refuse_changed_cells(out, changed)
+    for name, why in changed:
+        warn(log, f"replacing finished cell {name} (--force): on disk vs this run: {why}")
     if kept:
         log(f"keeping {kept} finished cell(s) already in {out} (same configuration fingerprint: not recomputed)")
 
@@ -233,16 +231,8 @@ def _compared_with(cells_dir: Path, clean: str, grid_cells: set[str]) -> list[st
 
 
 def _reusable(cell_dir: Path, print_fn: Callable[[str], None], want: str, frame_ids: list[str]) -> dict | None:
-    path = cell_dir / CELL_FILE
-    if not path.is_file():
-        return None
-    try:
-        cell = read_json(path)
-        validate_summary(cell, path, cell_only=True)
-    except DataFormatError as exc:
-        print_fn(f"  recomputing: {exc}")
-        return None
-    if cell["provenance"]["fingerprint"] != want or cell["status"] == "error":
+    cell = _finished(cell_dir, print_fn)
+    if cell is None or cell["provenance"]["fingerprint"] != want or cell["status"] == "error":
         return None
     if cell["status"] == "ok" and not results_complete(cell_dir, frame_ids):
         print_fn(f"  recomputing: result files in {cell_dir / 'data'} are incomplete")

@@ -21,9 +21,8 @@ def threads_range() -> tuple[int, int]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from robustbench3d.ranges import BATCH_RANGE, FRAMES_RANGE, RESAMPLES_RANGE, SEED_RANGE
-    from robustbench3d.runner.config import describe_sources
     from robustbench3d.tradeoff.sweeps import SWEEP_NAMES
-    from robustbench3d.victims.spec import PROPOSAL_SOURCES
+    from robustbench3d.victims.spec import PROPOSAL_SOURCES, describe_sources
 
     parser.add_argument("--out", required=True, metavar="DIR",
                         help="output directory (tradeoff.json/.csv/.md/.png; cells/ for resuming): new, empty, or "

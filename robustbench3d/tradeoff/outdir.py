@@ -99,7 +99,7 @@ def check_cells(plans: Sequence[CellPlan], out: Path, force: bool, say: Callable
     """Before any cell is measured: refuse finished cells whose fingerprint differs (unless ``force``, then
     name each one replaced) and say how many finished cells of the same fingerprint are kept."""
     from robustbench3d.runner.cell import results_complete
-    from robustbench3d.runner.config import config_differences
+    from robustbench3d.runner.config import config_differences, refuse_changed_cells
 
     kept, changed = 0, []
     for plan in plans:
@@ -113,12 +113,8 @@ def check_cells(plans: Sequence[CellPlan], out: Path, force: bool, say: Callable
             why = (config_differences(old, plan.config, labels=CELL_LABELS) if isinstance(old, dict)
                    else "fingerprint differs (its cell.json records no configuration)")
             changed.append((plan.where.name, why))
-    if changed and not force:
-        name, why = changed[0]
-        more = f" (and {len(changed) - 1} more cell(s))" if len(changed) > 1 else ""
-        raise RobustBenchError(f"--out {out}: finished tradeoff cell {name}{more} was measured with another "
-                               f"configuration (on disk vs this run: {why}); pass --force to replace it, or choose "
-                               "another --out (nothing was changed)")
+    if not force:
+        refuse_changed_cells(out, changed, cell="tradeoff cell", done="measured")
     for name, why in changed:
         say(f"tradeoff: replacing finished cell {name} (--force): on disk vs this run: {why}")
     if kept:
