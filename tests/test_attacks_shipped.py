@@ -125,7 +125,8 @@ def test_package_manifest_entries_verify_and_are_registered():
         assert entry.path.parent == objects_dir()
         assert entry.path.stat().st_size == entry.size_bytes and _sha256(entry.path) == entry.sha256
         assert _sha256(entry.sidecar_path) == entry.sidecar_sha256
-        assert entry.name in MODES and entry.record["training"]["attack"] == entry.name
+        mode = entry.record["training"]["attack"]  # adv-shape-gt-object: an adv-shape trained for a protocol
+        assert mode in MODES and (entry.name == mode or entry.name.startswith(f"{mode}-"))
         assert _train_config(entry.record["training"]["command"]) == _without_checkpoint(
             entry.record["training"]["config"])
         spec = ATTACKS.get(entry.name)
@@ -142,10 +143,13 @@ def test_reproduce_script_trains_each_object_with_its_manifest_config():
     configs = {}
     for line in lines:
         words = shlex.split(line)
-        configs[words[3]] = _train_config(line)
-        assert words[words.index("--out") + 1] == f"$OUT/{words[3]}.ply"
+        out = words[words.index("--out") + 1]
+        name = out.removeprefix("$OUT/").removesuffix(".ply")
+        assert out == f"$OUT/{name}.ply" and (name == words[3] or name.startswith(f"{words[3]}-"))
+        configs[name] = _train_config(line)
         assert words[words.index("--victim") + 1] == "fpointnet-v1-lite"
-    assert sorted(configs) == sorted(MODES) and len(lines) == 3
+    assert sorted(configs) == sorted(e.name for e in shipped_objects()) and len(lines) == len(configs)
+    assert set(MODES) <= set(configs)
     for entry in shipped_objects():
         assert configs[entry.name] == _without_checkpoint(entry.record["training"]["config"]), entry.name
     weights_script = (REPO / "victims" / "weights" / "reproduce.sh").read_text(encoding="utf-8")
