@@ -43,10 +43,9 @@ def _default_name(victim: Any) -> str:
 def _one_thread() -> Iterator[None]:
     """One intra-op thread for the call, as ``run`` uses in every process (the same result files on any
     core count); the caller's thread settings are restored after."""
-    from robustbench3d.runner.shards import worker_setup
+    from robustbench3d.runner.shards import THREAD_VARS, worker_setup
 
-    names = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
-    saved_env = {k: os.environ.get(k) for k in names}
+    saved_env = {k: os.environ.get(k) for k in THREAD_VARS}
     torch = sys.modules.get("torch")
     saved_threads = torch.get_num_threads() if torch is not None else None
     worker_setup()

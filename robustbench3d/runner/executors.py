@@ -19,7 +19,6 @@ the runner keeps one result per shard.
 
 from __future__ import annotations
 
-import os
 import re
 import socket
 from collections.abc import Iterator, Sequence
@@ -241,9 +240,9 @@ def make_executor(kind: str, jobs: int | None = None, address: str | None = None
     (``local`` with one job). ``jobs`` defaults to the CPU count."""
     if kind not in EXECUTORS:
         raise RobustBenchError(f"--executor: unknown executor {kind!r}; choose from {', '.join(EXECUTORS)}")
-    from robustbench3d.ranges import PROCESSES_RANGE, check_range
+    from robustbench3d.ranges import PROCESSES_RANGE, check_range, default_processes
 
-    jobs = min(os.cpu_count() or 1, PROCESSES_RANGE[1]) if jobs is None else jobs
+    jobs = default_processes() if jobs is None else jobs
     check_range("--jobs", jobs, *PROCESSES_RANGE, "worker processes")
     if address is not None and kind != "ray":
         raise RobustBenchError("--address joins a Ray cluster: give it with --executor ray")

@@ -147,11 +147,15 @@ _ATTACKS: dict[tuple[str, str], Attack] = {}  # (attack key, victim key) -> an a
 _PROBES: dict[tuple[str, str], list[dict[str, str]]] = {}  # (victim key, proposals) -> determinism verdict
 
 
+#: The environment variables :func:`worker_setup` sets to one thread (for libraries not loaded yet).
+THREAD_VARS: tuple[str, ...] = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
 def worker_setup() -> None:
     """One intra-op thread in this process (the processes are the parallelism): float32 reductions
     then add up in one order, so a victim's result files do not depend on the machine's core count.
     Sets the thread variables for libraries not loaded yet and torch's count if it is; idempotent."""
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    for var in THREAD_VARS:
         os.environ[var] = "1"
     torch = sys.modules.get("torch")
     if torch is not None and torch.get_num_threads() != 1:
@@ -292,5 +296,5 @@ def settle_files(cell_dir: Path, frame_ids: Sequence[str], texts: Sequence[str])
             atomic_write_text(path, text)
 
 
-__all__ = ["SHARD_FRAMES", "CellJob", "Shard", "ShardResult", "finished_shard", "run_shard", "settle_files",
-           "shard_ranges", "worker_setup"]
+__all__ = ["SHARD_FRAMES", "THREAD_VARS", "CellJob", "Shard", "ShardResult", "finished_shard", "run_shard",
+           "settle_files", "shard_ranges", "worker_setup"]
