@@ -23,7 +23,6 @@ import numpy as np
 
 from robustbench3d.attacks import ATTACKS, register_attack
 from robustbench3d.attacks.base import Attack
-from robustbench3d.attacks.record import ObjectRecord, nominal_record
 from robustbench3d.attacks.roof import roof_settings, settings_parameters
 from robustbench3d.attacks.spec import MAX_SEED, AttackRequirements, AttackSpec, AttackSpecError
 from robustbench3d.errors import RobustBenchError
@@ -42,12 +41,6 @@ class NoAttack(Attack):
 
     def apply(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> Frame:
         return frame
-
-    def apply_recorded(self, frame: Frame, targets: Labels, rng: np.random.Generator) -> tuple[Frame, ObjectRecord]:
-        """The frame itself and the nominal record (:func:`~robustbench3d.attacks.record.nominal_record`: the
-        default object's bounds at the roof-centre placement, no returns), so the clean cell of a frustum protocol
-        gets the union boxes of an attacked default-bounds cell without EOT, and no added points."""
-        return frame, nominal_record(frame, targets)
 
     def describe(self) -> dict[str, Any]:
         return {"object": None}

@@ -124,7 +124,7 @@ def _proposal_index(boxes: np.ndarray, targets: Labels, target_boxes: np.ndarray
     return out
 
 
-def _object_proposals(attacked: Frame, labels: Labels, targets: Labels, poses: list[Any], res: Any,
+def _object_proposals(frame: Frame, attacked: Frame, targets: Labels, rows: np.ndarray, poses: list[Any], res: Any,
                       source: str) -> Any:
     """The ``gt-object`` / ``gt-append`` proposals of an attacked training frame, as the runner builds them for
     a cell: the :class:`~robustbench3d.attacks.record.ObjectRecord` of the placed bounds boxes (each car's union
@@ -134,10 +134,8 @@ def _object_proposals(attacked: Frame, labels: Labels, targets: Labels, poses: l
     from robustbench3d.victims.base import object_proposals
 
     record = ObjectRecord(placed_object_boxes(BOUNDS, poses, attacked.calib, attacked.image_size),
-                          added_rows(len(res.scan) + len(res.removed_index) - len(res.added), len(res.removed_index),
-                                     res.object_index, len(targets)),
-                          target_rows(labels, targets))
-    return object_proposals(attacked, labels, record, source)
+                          added_rows(len(frame.scan), len(res.removed_index), res.object_index, len(targets)), rows)
+    return object_proposals(attacked, frame.labels, record, source)
 
 
 def _matched_index(boxes: np.ndarray, targets: Labels, min_iou: float = 0.5) -> list[int | None]:
@@ -230,9 +228,13 @@ class UniversalTrainer:
         """(162, 3) float64 object-frame vertices: the template when the shape is fixed, else the tanh
         parametrisation (differentiable in ``delta``; at ``delta = 0`` the template scaled by 0.999, the
         parametrisation's eps, as template vertices lie on the box faces)."""
+        return self._vertices_at(self.delta)
+
+    def _vertices_at(self, delta: torch.Tensor) -> torch.Tensor:
+        """:meth:`vertices` at displacement parameters ``delta``."""
         if not self.config.kind.shape:
             return torch.from_numpy(template_vertices().copy())
-        return tanh_vertices(self.delta)
+        return tanh_vertices(delta)
 
     def colours(self) -> torch.Tensor:
         """(162, 3) float64 colours in (0, 1)."""
@@ -245,8 +247,7 @@ class UniversalTrainer:
     def object_at(self, delta: torch.Tensor, colour_logit: torch.Tensor) -> RoofObject:
         """The object at parameters ``delta`` and ``colour_logit`` (e.g. a kept best state), at file precision."""
         with torch.no_grad():
-            vertices = tanh_vertices(delta) if self.config.kind.shape else torch.from_numpy(template_vertices().copy())
-            return RoofObject.from_vertices(vertices.numpy(), torch.sigmoid(colour_logit).numpy())
+            return RoofObject.from_vertices(self._vertices_at(delta).numpy(), torch.sigmoid(colour_logit).numpy())
 
     # ---- randomness ---------------------------------------------------------------------------
     def batch(self, step: int) -> list[tuple[int, int]]:
@@ -423,10 +424,11 @@ class UniversalTrainer:
                 index = _matched_index(props.boxes, targets)
                 scored = props
             elif cfg.lidar_boxes in OBJECT_LIDAR_BOXES:
-                scored = _object_proposals(attacked, frame.labels, targets, poses, res, cfg.lidar_boxes)
+                rows = target_rows(frame.labels, targets)
+                scored = _object_proposals(frame, attacked, targets, rows, poses, res, cfg.lidar_boxes)
                 enumerate_ = getattr(self.victim, "proposals", None)
                 props = enumerate_([attacked], [scored])[0] if callable(enumerate_) else scored.of_types(("Car",))
-                index = _proposal_index(props.boxes, targets, scored.boxes[target_rows(frame.labels, targets)])
+                index = _proposal_index(props.boxes, targets, scored.boxes[rows])
             else:
                 props = self._proposals(frame)
                 index = _proposal_index(props.boxes, targets)

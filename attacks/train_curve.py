@@ -109,10 +109,8 @@ class HeldOut:
         from robustbench3d.kitti.labels import RESULT_PRECISION, parse_labels
         from robustbench3d.victims.base import victim_inputs
 
-        if record is None:
-            bare, given = victim_inputs([frame], [gt], self.source)
-        else:  # a frustum protocol built from the object's placement
-            bare, given = victim_inputs([frame], [gt], self.source, objects=[record])
+        # a frustum protocol gets the record of the object's placement
+        bare, given = victim_inputs([frame], [gt], self.source, objects=None if record is None else [record])
         det = self.victim.detect(bare, given)[0]
         return parse_labels(det.to_text(RESULT_PRECISION), f"{frame.frame_id}.txt", scored=True)
 

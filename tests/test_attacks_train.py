@@ -372,6 +372,7 @@ def test_training_under_a_frustum_protocol_builds_the_cells_proposals(victim, da
 
     from robustbench3d.attacks.base import attack_rng
     from robustbench3d.attacks.placement import rect_to_velo
+    from robustbench3d.attacks.record import target_rows
     from robustbench3d.attacks.roof import RoofObjectAttack
     from robustbench3d.attacks.train import _object_proposals
     from robustbench3d.sensors.lidar_render import render_lidar
@@ -387,7 +388,7 @@ def test_training_under_a_frustum_protocol_builds_the_cells_proposals(victim, da
     albedo = trainer.colours().detach().numpy()
     res = render_lidar(frame.scan, [(rect_to_velo(p, frame.calib), trainer._faces, albedo) for p in placed])
     attacked = replace(frame, scan=np.ascontiguousarray(res.scan, dtype=np.float32), labels=None)
-    mine = _object_proposals(attacked, frame.labels, targets, list(poses), res, source)
+    mine = _object_proposals(frame, attacked, targets, target_rows(frame.labels, targets), list(poses), res, source)
 
     cell_frame, record = RoofObjectAttack(trainer.current_object()).apply_recorded(
         frame, targets, attack_rng(0, frame.frame_id))
