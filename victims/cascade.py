@@ -50,6 +50,7 @@ from robustbench3d.victims.base import (
     ProposalsArg,
 )
 from robustbench3d.victims.fpointnet.box_coding import HEADING_BIN_WIDTH, MEAN_SIZES, ONE_HOT_CLASSES
+from robustbench3d.victims.fpointnet.distinct_stages import DistinctPointStages
 from robustbench3d.victims.fpointnet.frustum import extract_frustum, project_rect_points, resample_indices
 from robustbench3d.victims.fpointnet.model import (
     FPointNetConfig,
@@ -281,7 +282,7 @@ class FPointNetCascade:
             assert self._fpn64 is not None
             stages = Float64FrustumStages(self._fpn64)
         else:
-            stages = (BFloat16FrustumStages if self.precision == "bfloat16" else TorchFrustumStages)(self.fpn)
+            stages = (BFloat16FrustumStages if self.precision == "bfloat16" else DistinctPointStages)(self.fpn)
         return detect_frames(frames, proposals, detect_2d=self.yolo.detect, car_class=self.car_class,
                              stages=stages, settings=self.settings,
                              num_points=self.num_points, num_object_points=self.fpn.cfg.num_object_points)

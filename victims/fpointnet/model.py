@@ -288,10 +288,13 @@ class TorchFrustumStages:
     """:class:`~robustbench3d.victims.fpointnet.glue.FrustumStages` of an eval-mode network:
     numpy float32 in, numpy float32 out, no autograd.
 
-    The T-Net and the box net run one frustum per call: their fully connected layers give results
-    that depend (in the last bits) on a row's position in a batched matrix product, which would
-    make a frustum's box depend on the other frustums of its batch. The segmentation net (1x1
-    convolutions, per-frustum) is batch-invariant and runs batched.
+    The networks as defined, the reference of the faster
+    :class:`~robustbench3d.victims.fpointnet.distinct_stages.DistinctPointStages` (the victims' default,
+    equal bit for bit at one intra-op thread). The T-Net and the box net run one frustum per call: their
+    fully connected layers give results that depend (in the last bits) on a row's position in a batched
+    matrix product, which would make a frustum's box depend on the other frustums of its batch. The
+    segmentation net runs batched (at one intra-op thread its 1x1 convolutions give each frustum the bits
+    of a one-frustum batch for batches up to 8; not at two threads, nor at 40 frustums).
     """
 
     def __init__(self, model: FrustumPointNetV1):

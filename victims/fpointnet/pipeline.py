@@ -61,8 +61,10 @@ class CascadeSettings:
     min_points_detector / min_points_gt: minimum frustum points for detector / GT proposals.
     gt_types: label types used as GT proposals.
     batch_size: frustums per segmentation pass (4: larger batches of the full config run ~2x slower
-        per frustum on CPU, the 1091-channel per-point features no longer fit in cache); the T-Net
-        and the box net take one frustum at a time (see ``TorchFrustumStages``).
+        per frustum on CPU, the 1091-channel per-point features no longer fit in cache); the stages
+        decide how they run a batch (the torch victim over each frustum's distinct points, one call per
+        batch, see :mod:`~robustbench3d.victims.fpointnet.distinct_stages`; ONNX stages of fixed shapes
+        one T-Net and box call per frustum).
     """
 
     seed: int = 0

@@ -53,6 +53,20 @@ class _MaxPoolSame(nn.Module):
         return F.max_pool2d(F.pad(x, (0, p, 0, p), mode="replicate"), self.size, 1)
 
 
+class _MaxPoolStrided(nn.MaxPool2d):
+    """``nn.MaxPool2d``; under ``torch.inference_mode`` a 2x2, stride-2 pool runs as the elementwise maximum
+    of its four strided slices: the same maxima (3-6x faster on one core than the pooling kernel on the
+    B x C x H x W layout; tests/test_yolo_pool.py). With autograd, or when exported, it is the plain pooling
+    op, whose tie rule decides gradients."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not (torch.is_inference_mode_enabled() and self.kernel_size == 2 and self.stride == 2):
+            return super().forward(x)
+        h, w = x.shape[-2] // 2 * 2, x.shape[-1] // 2 * 2
+        rows = torch.maximum(x[..., 0:h:2, :w], x[..., 1:h:2, :w])
+        return torch.maximum(rows[..., 0::2], rows[..., 1::2])
+
+
 class Darknet(nn.Module):
     """The network of a :class:`YoloConfig`. ``forward(images (B, 3, H, W) in [0, 1])`` returns the
     raw head outputs; attributes ``head_strides`` and ``head_masks`` describe them."""
@@ -76,7 +90,7 @@ class Darknet(nn.Module):
                     nn.BatchNorm2d(spec.filters), nn.LeakyReLU(0.1))
                 in_ch, stride = spec.filters, stride * spec.stride
             elif isinstance(spec, MaxPool):
-                block = nn.MaxPool2d(spec.size, spec.stride) if spec.stride > 1 else _MaxPoolSame(spec.size)
+                block = _MaxPoolStrided(spec.size, spec.stride) if spec.stride > 1 else _MaxPoolSame(spec.size)
                 stride *= spec.stride
             elif isinstance(spec, Route):
                 idx = [self._absolute(i, j) for j in spec.layers]

@@ -1,0 +1,46 @@
+"""tools/same_results.py: two run directories are the same results when every file is byte-identical but
+for the runtime part of each JSON file's provenance."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+_spec = importlib.util.spec_from_file_location("same_results", REPO / "tools" / "same_results.py")
+assert _spec is not None and _spec.loader is not None
+same_results = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(same_results)
+
+
+def _run(root: Path, *, seconds: float, out: str, ap: float, dirty: bool) -> Path:
+    cell = {"result": {"ap": ap}, "provenance": {"seconds": seconds, "cpu_seconds": 2 * seconds, "peak_rss_mb": 3.0,
+                                                 "started": "a", "finished": "b", "git": {"dirty": dirty},
+                                                 "executor": {"name": "local", "workers": [out]},
+                                                 "run": {"out": out, "seed": 0}}}
+    (root / "cells" / "c").mkdir(parents=True)
+    (root / "cells" / "c" / "cell.json").write_text(json.dumps(cell))
+    (root / "results.csv").write_text(f"ap\n{ap}\n")
+    return root
+
+
+def test_runtime_provenance_is_set_aside(tmp_path: Path) -> None:
+    a = _run(tmp_path / "a", seconds=1.0, out="/x", ap=0.5, dirty=False)
+    b = _run(tmp_path / "b", seconds=9.0, out="/y", ap=0.5, dirty=True)
+    assert same_results.differences(a, b) == []
+    assert same_results.main([str(a), str(b)]) == 0
+
+
+def test_a_result_a_recorded_setting_or_a_file_that_differs_is_reported(tmp_path: Path) -> None:
+    a = _run(tmp_path / "a", seconds=1.0, out="/x", ap=0.5, dirty=False)
+    b = _run(tmp_path / "b", seconds=1.0, out="/x", ap=0.5000001, dirty=False)
+    found = same_results.differences(a, b)
+    assert "cells/c/cell.json/result/ap: 0.5 != 0.5000001" in found and "results.csv: bytes differ" in found
+    cell = json.loads((a / "cells/c/cell.json").read_text())
+    cell["provenance"]["run"]["seed"] = 1
+    (b / "cells/c/cell.json").write_text(json.dumps(cell))
+    (b / "results.csv").write_text((a / "results.csv").read_text())
+    assert same_results.differences(a, b) == ["cells/c/cell.json/provenance/run/seed: 0 != 1"]
+    (b / "extra.txt").write_text("")
+    assert same_results.main([str(a), str(b)]) == 1
