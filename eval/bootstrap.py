@@ -17,11 +17,19 @@ give the devkit's thresholds (:func:`threshold_positions`, the closed form of
 :func:`~robustbench3d.eval.precision.score_thresholds`), weighted event sums give TP, FP and
 similarity there. Metrics the evaluator skips on all frames (no usable box, AOS without
 orientation) carry no interval; a class without detections has AP 0 in every resample.
+
+Vectorised over resamples (:meth:`_Curve.sample_rows`, chunks of rows bounded in memory), with the
+float64 bits of the per-resample loop (:meth:`_Curve.samples`, kept as the reference of the tests and
+the benchmark): the picks come from whole numbers (frame counts, TP and GT totals; computed in int64,
+exactly), and the event sums (TP, FP and the fractional AOS similarity) with the loop's operations in
+its order: each segment of events between two picked thresholds is the same numpy ``matmul`` of the
+same event rows with the same weights (batched by segment length, which runs the same BLAS ``gemv``
+per segment), and the running sum over segments is a cumulative sum along the picks.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -58,6 +66,11 @@ LEVEL = 0.95
 BOOTSTRAP_STREAM = 0x424F4F54  # "BOOT"
 #: Configurations evaluated per assign_at_thresholds call while building the events (memory bound).
 _CONFIGS_PER_CALL = 256
+#: Memory bounds of the vectorised accumulation, in float64 / int64 values: of the (resamples, TP scores
+#: or frames) arrays of one chunk of resamples (2^21 values, 16 MiB: 1000 resamples in one chunk up to
+#: ~2000 TP scores), and of the event rows and weights copied for one batch of segments (16 MiB).
+_CHUNK_VALUES = 1 << 21
+_SEGMENT_VALUES = 1 << 21
 
 
 def _recall_steps() -> np.ndarray:
@@ -106,6 +119,42 @@ def threshold_positions(m: int, n_gt: float) -> np.ndarray:
     return walk[:end]
 
 
+def _positions_rows(m: np.ndarray, n_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`threshold_positions` of every row (``m[r]`` TP scores, ``n_gt[r]`` GT; same float operations).
+
+    Returns ``(pos, count)``: (R, 41) positions, of which the first ``count[r]`` are row r's picks.
+    """
+    live = (m > 0) & (n_gt > 0)
+    top = np.where(live, m, 1)[:, None] - 1  # (R, 1): the last position
+    n = np.where(live, n_gt, 1.0)[:, None].astype(np.float64)
+    est = np.ceil(n * _STEPS - 1.5).astype(np.int64)
+    cand = np.clip(est[:, :, None] + _WINDOW, 0, top[:, :, None])
+    ok = _takes(cand, _STEPS[:, None], n[:, :, None]) | (cand == top[:, :, None])
+    found = ok.any(axis=2)
+    first = np.where(found, np.take_along_axis(cand, ok.argmax(axis=2)[:, :, None], axis=2)[:, :, 0], top)
+    bad = (cand[:, :, 0] > 0) & _takes(cand[:, :, 0] - 1, _STEPS, n) | ~found & (cand[:, :, -1] < top)
+    for r, j in zip(*np.nonzero(bad & live[:, None]), strict=True):
+        t = _takes(np.arange(top[r, 0] + 1), _STEPS[j], n[r, 0])
+        t[-1] = True
+        first[r, j] = int(np.argmax(t))
+    steps = np.arange(N_SAMPLE_PTS)
+    walk = np.minimum(steps + np.maximum.accumulate(first - steps, axis=1), top)
+    last = walk == top
+    count = np.where(last.any(axis=1), last.argmax(axis=1) + 1, N_SAMPLE_PTS)
+    return walk, np.where(live, count, 0)
+
+
+def _search_rows(cw: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Per row r, ``np.searchsorted(cw[r], pos[r], side="right")`` (clipped to the last index) for
+    non-decreasing int64 rows ``cw`` >= 0 and positions ``0 <= pos``: one search over the rows laid
+    end to end, each shifted above the previous one."""
+    rows, width = cw.shape
+    span = int(cw[:, -1].max()) + int(pos.max()) + 1
+    shift = np.arange(rows, dtype=np.int64)[:, None] * span
+    at = np.searchsorted((cw + shift).ravel(), (pos + shift).ravel(), side="right").reshape(pos.shape)
+    return np.minimum(at - np.arange(rows)[:, None] * width, width - 1)
+
+
 @dataclass(frozen=True)
 class _Curve:
     """What one class x overlap kind x difficulty needs to re-accumulate under frame weights.
@@ -130,7 +179,8 @@ class _Curve:
     ev_values: np.ndarray
 
     def samples(self, w: np.ndarray, with_aos: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """Raw (not yet interpolated) precision and AOS at the thresholds picked under weights ``w``."""
+        """Raw (not yet interpolated) precision and AOS at the thresholds picked under weights ``w``
+        (one resample; the reference of :meth:`sample_rows`)."""
         prec = np.zeros(N_SAMPLE_PTS)
         aos = np.zeros(N_SAMPLE_PTS) if with_aos else None
         if not len(self.tp_score):
@@ -157,6 +207,63 @@ class _Curve:
         if aos is not None:
             aos[: len(k)] = ratio(vals[2], tp + fp)
         return prec, aos
+
+    def sample_rows(self, w: np.ndarray, with_aos: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`samples` of every row of ``w`` ((R, F) float64 frame counts) as (R, 41) arrays, bit for bit."""
+        prec = np.zeros((len(w), N_SAMPLE_PTS))
+        aos = np.zeros((len(w), N_SAMPLE_PTS)) if with_aos else None
+        if not len(self.tp_score):
+            return prec, aos
+        counts = w.astype(np.int64)
+        cw = np.cumsum(counts[:, self.tp_frame], axis=1)
+        # The picks depend on the TP count and the GT count only: once per distinct pair.
+        m, n_gt = cw[:, -1], counts @ self.n_gt
+        pairs, inverse = np.unique(m * (int(n_gt.max()) + 1) + n_gt, return_inverse=True)
+        first = np.zeros(len(pairs), dtype=np.int64)
+        first[inverse] = np.arange(len(m))
+        pos, count = (v[inverse] for v in _positions_rows(m[first], n_gt[first].astype(np.float64)))
+        picked = np.arange(N_SAMPLE_PTS) < count[:, None]
+        k = self.tp_config[_search_rows(cw, pos)]
+        # Events up to each picked threshold; after a row's last pick they stay put (no further segment).
+        ends = np.maximum.accumulate(np.where(picked, np.searchsorted(self.ev_config, k, side="right"), 0), axis=1)
+        sums = self._running_sums(w, ends, 3 if with_aos else 2)
+        tp, fp = sums[:, :, 0], sums[:, :, 1]
+        prec[:] = np.where(picked, ratio(tp, tp + fp), 0.0)
+        if aos is not None:
+            aos[:] = np.where(picked, ratio(sums[:, :, 2], tp + fp), 0.0)
+        return prec, aos
+
+    def _running_sums(self, w: np.ndarray, ends: np.ndarray, n_values: int) -> np.ndarray:
+        """(R, 41, n_values): the first ``n_values`` event rows weighted by ``w`` and summed up to ``ends[r, j]``
+        events, with the operations of :meth:`samples`.
+
+        :meth:`samples` adds, at each pick that takes new events, ``values[:, start:end] @ ew[start:end]``
+        to a running sum. Here every such segment of every row is the same ``matmul`` of the same
+        (n_values, length) event rows and weights, batched by segment length (the rows copied with a row
+        stride that, like the original's, equals the length only when there are that few events; a
+        batched ``matmul`` runs the same BLAS ``gemv``, or for one event the same loop, per segment), and
+        the running sums are cumulative sums along the picks, in the same order.
+        """
+        before = np.concatenate([np.zeros((len(ends), 1), dtype=np.int64), ends[:, :-1]], axis=1)
+        rows, cols = np.nonzero(ends > before)
+        starts, lengths = before[rows, cols], ends[rows, cols] - before[rows, cols]
+        values = self.ev_values[:n_values]
+        added = np.zeros((*ends.shape, n_values))
+        order = np.argsort(lengths, kind="stable")
+        uniq, first = np.unique(lengths[order], return_index=True)
+        bounds = np.r_[first, len(order)].tolist()
+        for length, lo, hi in zip(uniq.tolist(), bounds[:-1], bounds[1:], strict=True):
+            stride = max(length, min(values.shape[1], 4))
+            step = max(1, _SEGMENT_VALUES // ((n_values + 1) * stride))
+            for b in range(lo, hi, step):
+                at = order[b:min(b + step, hi)]
+                idx = starts[at, None] + np.arange(length)
+                a = np.empty((len(at), n_values, stride))
+                for i in range(n_values):
+                    a[:, i, :length] = values[i][idx]
+                x = w[rows[at, None], self.ev_frame[idx]]
+                added[rows[at], cols[at]] = np.matmul(a[:, :, :length], x[:, :, None])[:, :, 0]
+        return np.cumsum(np.concatenate([np.zeros((len(ends), 1, n_values)), added], axis=1), axis=1)[:, 1:]
 
 
 def _pairs_of_kind(ce: ClassEvaluation, pairs: PairOverlaps, kind: str) -> tuple[np.ndarray, ...]:
@@ -288,25 +395,61 @@ class FrameBootstrap:
         """(class, metric, recall sampling, difficulty) of every AP the evaluator reported."""
         return [(c, m, r, d) for c in self.classes for m, t in self.full[c].items() for r, v in t.items() for d in v]
 
-    def resampled(self, weights: np.ndarray) -> dict[APKey, np.ndarray]:
-        """AP (percent) per key (:meth:`keys`) for each row of ``weights`` ((R, F) frame counts)."""
+    def resampled(self, weights: np.ndarray, chunk: int | None = None) -> dict[APKey, np.ndarray]:
+        """AP (percent) per key (:meth:`keys`) for each row of ``weights`` ((R, F) frame counts).
+
+        ``chunk``: resamples per vectorised step (None: as many as :data:`_CHUNK_VALUES` allows); the
+        result does not depend on it.
+        """
+        if chunk is not None and (not isinstance(chunk, int | np.integer) or chunk < 1):
+            raise ValueError(f"chunk must be a positive number of resamples, got {chunk!r}")
+        w = self._weights(weights)
+
+        def rows(curve: _Curve, with_aos: bool) -> tuple[np.ndarray, np.ndarray]:
+            prec, aos = np.zeros((len(w), N_SAMPLE_PTS)), np.zeros((len(w), N_SAMPLE_PTS))
+            step = chunk or max(1, _CHUNK_VALUES // max(len(curve.tp_score), self.n_frames,
+                                                        len(_WINDOW) * N_SAMPLE_PTS))
+            for lo in range(0, len(w), step):
+                p, a = curve.sample_rows(w[lo:lo + step], with_aos)
+                prec[lo:lo + step] = p
+                if a is not None:
+                    aos[lo:lo + step] = a
+            return prec, aos
+
+        return self._aps(rows)
+
+    def _resampled_per_resample(self, weights: np.ndarray) -> dict[APKey, np.ndarray]:
+        """:meth:`resampled`, one resample at a time (:meth:`_Curve.samples`): the reference of the
+        vectorised path in the tests and the benchmark."""
+        w = self._weights(weights)
+
+        def rows(curve: _Curve, with_aos: bool) -> tuple[np.ndarray, np.ndarray]:
+            prec, aos = np.zeros((len(w), N_SAMPLE_PTS)), np.zeros((len(w), N_SAMPLE_PTS))
+            for r in range(len(w)):
+                p, a = curve.samples(w[r], with_aos)
+                prec[r] = p
+                if a is not None:
+                    aos[r] = a
+            return prec, aos
+
+        return self._aps(rows)
+
+    def _weights(self, weights: np.ndarray) -> np.ndarray:
         w = np.asarray(weights, dtype=np.float64)
         if w.ndim != 2 or w.shape[1] != self.n_frames:
             raise ValueError(f"weights must be (resamples, {self.n_frames}), got shape {w.shape}")
         if np.any(w < 0) or np.any(w != np.round(w)):
             raise ValueError("weights must be non-negative integer frame counts")
+        return w
+
+    def _aps(self, rows: Callable[[_Curve, bool], tuple[np.ndarray, np.ndarray]]) -> dict[APKey, np.ndarray]:
+        """APs from the (R, 41) raw precision and AOS samples ``rows(curve, with_aos)`` of every curve."""
         out: dict[APKey, np.ndarray] = {}
         for (cls, kind), curves in self._curves.items():
             metrics = [m for m in self.full[cls] if OVERLAP_OF_METRIC[m] == kind]
             with_aos = "aos" in metrics and self._aos
             for d, curve in enumerate(curves):
-                prec = np.zeros((len(w), N_SAMPLE_PTS))
-                aos = np.zeros((len(w), N_SAMPLE_PTS))
-                for r in range(len(w)):
-                    p, a = curve.samples(w[r], with_aos)
-                    prec[r] = p
-                    if a is not None:
-                        aos[r] = a
+                prec, aos = rows(curve, with_aos)
                 for m in metrics:
                     samples = np.maximum.accumulate((aos if m == "aos" else prec)[:, ::-1], axis=1)[:, ::-1]
                     for name, idx in RECALL_SAMPLES.items():
