@@ -5,6 +5,9 @@
   ``attacks/``), and the installed package resolves to those folders.
 * ``lint-imports`` keeps the ``[tool.importlinter]`` contracts (README "Architecture") on the
   installed layout, and reports an upward import when one is added.
+* The ``acyclic`` contract reports an import cycle when one is added: inside the runner (an import of
+  ``grid`` inside a function or under ``TYPE_CHECKING``, as ``parallel`` and ``flags`` had), inside another
+  package, or between two modules of one layer that the ``layers`` contract lets import each other.
 """
 
 from __future__ import annotations
@@ -72,20 +75,43 @@ def test_package_dir_mapping_is_what_is_installed():
         assert Path(spec.origin).resolve() == (folder / "__init__.py").resolve(), name
 
 
+def contract_ids() -> list[str]:
+    return [c["id"] for c in tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
+            ["tool"]["importlinter"]["contracts"]]
+
+
 def test_import_contracts_are_kept():
+    ids = contract_ids()
+    assert {"layers", "acyclic"} <= set(ids)
     proc = lint_imports.run()
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "0 broken" in proc.stdout
+    assert f"Contracts: {len(ids)} kept, 0 broken." in proc.stdout, proc.stdout
     analyzed = int(proc.stdout.split("Analyzed ")[1].split(" files")[0])
     assert analyzed > 100  # eval/, victims/ and attacks/ were seen in the installed layout
 
 
-def _append_import(root: Path, module: str, imported: str) -> None:
-    """Replace the staged link of ``module`` (dotted name) by a copy that also imports ``imported``."""
-    path = root.joinpath(*module.split(".")).with_suffix(".py")
+def _append_code(root: Path, module: str, code: str) -> None:
+    """Replace the staged link of ``module`` (dotted name) by a copy ending with ``code``. A linked folder on
+    the way (a subpackage such as ``runner/`` is staged as one link) first becomes a folder of links, so
+    the repository's file is never written."""
+    folder = root
+    for part in module.split(".")[:-1]:
+        folder = folder / part
+        if folder.is_symlink():
+            source = folder.resolve()
+            folder.unlink()
+            folder.mkdir()
+            for entry in sorted(source.iterdir()):
+                (folder / entry.name).symlink_to(entry, target_is_directory=entry.is_dir())
+    path = folder / f"{module.split('.')[-1]}.py"
     text = path.read_text(encoding="utf-8")
     path.unlink()
-    path.write_text(f"{text}\nimport {imported}  # noqa\n", encoding="utf-8")
+    path.write_text(f"{text}\n{code}", encoding="utf-8")
+
+
+def _append_import(root: Path, module: str, imported: str) -> None:
+    """Replace the staged link of ``module`` (dotted name) by a copy that also imports ``imported``."""
+    _append_code(root, module, f"import {imported}  # noqa\n")
 
 
 @pytest.mark.parametrize(("module", "imported"), [
@@ -96,6 +122,34 @@ def _append_import(root: Path, module: str, imported: str) -> None:
     ("robustbench3d.results", "robustbench3d.datasets"),  # datasets, results, testing are independent
 ])
 def test_an_import_against_the_direction_breaks_the_contract(module, imported):
-    proc = lint_imports.run(edit=lambda root: _append_import(root, module, imported))
+    # an upward import often closes a cycle too: the layers contract alone here
+    proc = lint_imports.run(["--contract", "layers"], edit=lambda root: _append_import(root, module, imported))
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "1 broken" in proc.stdout and f"{module} -> {imported}" in proc.stdout, proc.stdout
+
+
+LAZY_GRID = "def _lazy():\n    from robustbench3d.runner import grid  # noqa\n"
+TYPING_GRID = "import typing\nif typing.TYPE_CHECKING:\n    from robustbench3d.runner.grid import RunReport  # noqa\n"
+
+
+@pytest.mark.parametrize(("module", "code", "package", "pairs"), [
+    # grid imports parallel and flags at module level: a way back, however hidden, closes a cycle
+    ("robustbench3d.runner.parallel", LAZY_GRID, "robustbench3d.runner", {".parallel -> .grid", ".grid -> .parallel"}),
+    ("robustbench3d.runner.flags", TYPING_GRID, "robustbench3d.runner", {".flags -> .grid", ".grid -> .flags"}),
+    # kitti_eval imports rules
+    ("robustbench3d.eval.rules", "def _lazy():\n    from robustbench3d.eval import kitti_eval  # noqa\n",
+     "robustbench3d.eval", {".rules -> .kitti_eval", ".kitti_eval -> .rules"}),
+    # fileio imports errors; the layers contract lets the foundations import each other, this one not in a circle
+    ("robustbench3d.errors", "def _lazy():\n    import robustbench3d.fileio  # noqa\n",
+     "robustbench3d", {".errors -> .fileio", ".fileio -> .errors"}),
+])
+def test_an_import_cycle_breaks_the_acyclic_contract(module, code, package, pairs):
+    source = importlib.util.find_spec(module).origin
+    before = Path(source).read_bytes()
+    proc = lint_imports.run(["--contract", "acyclic"], edit=lambda root: _append_code(root, module, code))
+    assert Path(source).read_bytes() == before, f"{source} was written"  # only the staged copy changed
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "Contracts: 0 kept, 1 broken." in proc.stdout, proc.stdout
+    cycles = [line for line in proc.stdout.splitlines() if line.startswith("No cycles are allowed in ")]
+    assert cycles == [f"No cycles are allowed in {package}."], proc.stdout
+    assert any(f"- {pair} (1 import)" in proc.stdout for pair in pairs), proc.stdout

@@ -35,13 +35,14 @@ from typing import TYPE_CHECKING, Any
 
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.results import APResult, write_validated
+from robustbench3d.runner.cell import RECORDED_SOURCES
 from robustbench3d.runner.config import CellKey
+from robustbench3d.runner.outcome import RunReport
 
 if TYPE_CHECKING:
     from robustbench3d.attacks.base import Attack
     from robustbench3d.kitti.dataset import KittiDataset
     from robustbench3d.kitti.labels import Labels
-    from robustbench3d.runner.grid import RunReport
 
 ATTACK_RAISES_AP = "attack-raises-ap"
 TRAINING_GRADIENTS = "training-gradients"
@@ -178,7 +179,6 @@ def determinism(victim: Any, proposals: str, kitti: KittiDataset, frame_id: str,
     from robustbench3d.attacks.base import target_cars
     from robustbench3d.attacks.record import nominal_record
     from robustbench3d.kitti.labels import RESULT_PRECISION
-    from robustbench3d.runner.cell import RECORDED_SOURCES
     from robustbench3d.victims.base import victim_inputs
 
     texts = []
@@ -265,7 +265,7 @@ def record_flags(report: RunReport, cells_dir: Path, attacks: Mapping[str, Attac
                  cell_file: str = "cell.json") -> None:
     """Set ``flags`` on every cell of ``report.summary`` (in place), rewrite the ``cell.json`` of each cell whose
     flags changed (atomically) and log every flag. The determinism verdict of a victim x proposal source is the
-    one its computed cells brought back (:attr:`~robustbench3d.runner.grid.CellOutcome.probe`; flagged if any
+    one its computed cells brought back (:attr:`~robustbench3d.runner.outcome.CellOutcome.probe`; flagged if any
     check found a difference, the first such message in grid order); cells the run did not compute keep the
     flags that need what it lacks."""
     checked: dict[tuple[str, str], list[Flag]] = {}

@@ -27,15 +27,16 @@ directory add up; finished cells that are not comparable are left out and listed
 is compared only with a clean cell of the same configuration but for the attack (victim and its
 arguments, proposals, dataset and frames, seed, batch size, evaluation, versions); else its
 ``attack_effect`` is null and the run says why.
+
+The cell's outcome, the run's report and the cell records this loop shares with the executor path
+(:mod:`robustbench3d.runner.parallel`) are in :mod:`robustbench3d.runner.outcome`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import time
-import traceback
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -43,18 +44,10 @@ from robustbench3d.attacks import ATTACKS, create_attack
 from robustbench3d.attacks.base import Attack
 from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
 from robustbench3d.errors import DataFormatError, RobustBenchError
-from robustbench3d.logs import LineLog, line_log, warn
-from robustbench3d.provenance import (
-    determinism_flags,
-    host_provenance,
-    library_versions,
-    peak_rss_mb,
-    reset_peak_rss,
-    utc_now,
-)
-from robustbench3d.results import SCHEMA_VERSION, read_json, validate_summary, write_long_csv, write_validated
+from robustbench3d.logs import line_log, warn
+from robustbench3d.provenance import host_provenance, reset_peak_rss, utc_now
+from robustbench3d.results import SCHEMA_VERSION, write_long_csv, write_validated
 from robustbench3d.runner.cell import (
-    ATTACK_STREAM,
     CellFailure,
     CellInputs,
     remove_results,
@@ -67,6 +60,19 @@ from robustbench3d.runner.config import CellKey, RunConfig, config_differences, 
 from robustbench3d.runner.effect import CLEAN_ATTACK, attach_effects, with_clean_cells
 from robustbench3d.runner.executors import Executor
 from robustbench3d.runner.flags import determinism, record_flags
+from robustbench3d.runner.outcome import (
+    CELL_FILE,
+    CellOutcome,
+    RunContext,
+    RunReport,
+    Verdict,
+    cell_provenance,
+    describe_outcome,
+    failure_verdict,
+    finished_cell,
+    reusable_cell,
+)
+from robustbench3d.runner.parallel import run_cells
 from robustbench3d.runner.records import (
     attack_record,
     cell_config,
@@ -78,49 +84,8 @@ from robustbench3d.seed_table import SEED_TABLE_FILE, write_seed_table
 from robustbench3d.victims import VICTIMS, create_victim
 from robustbench3d.victims.spec import Capabilities
 
-CELL_FILE = "cell.json"
 SUMMARY_FILE = "summary.json"
 CSV_FILE = "results.csv"
-
-
-@dataclass
-class CellOutcome:
-    """A cell of the finished run: its summary record and whether it was reused from disk."""
-
-    key: CellKey
-    cell: dict[str, Any]
-    reused: bool
-    #: The victim's determinism verdict (:func:`robustbench3d.runner.flags.determinism`) from the process
-    #: that computed the cell with that victim (a shard worker; this one, after the cells, with no executor);
-    #: None: not checked (reused, not ok).
-    probe: list[dict[str, str]] | None = None
-
-
-@dataclass
-class RunReport:
-    """What :func:`run_benchmark` did."""
-
-    out: Path
-    dataset: dict[str, Any]
-    outcomes: list[CellOutcome] = field(default_factory=list)
-    #: Finished, comparable cells of earlier runs in ``out`` (in the summary after this run's).
-    earlier: list[dict[str, Any]] = field(default_factory=list)
-    #: ``"<cell dir>: <reason>"`` for each cell directory of ``out`` the summary leaves out.
-    left_out: list[str] = field(default_factory=list)
-
-    @property
-    def cells(self) -> list[dict[str, Any]]:
-        """This run's cells, grid order."""
-        return [o.cell for o in self.outcomes]
-
-    @property
-    def summary(self) -> list[dict[str, Any]]:
-        """The cells of ``summary.json``: this run's, then :attr:`earlier`."""
-        return self.cells + self.earlier
-
-    @property
-    def failed(self) -> list[CellOutcome]:
-        return [o for o in self.outcomes if o.cell["status"] == "error"]
 
 
 @contextlib.contextmanager
@@ -176,22 +141,6 @@ def _check_names(config: RunConfig) -> None:
         ATTACKS.entry(name)
 
 
-def _finished(cell_dir: Path, print_fn: Callable[[str], None] | None = None) -> dict | None:
-    """The cell's ``cell.json`` if it is there and schema-valid, else None: the cell is recomputed (an invalid
-    one is said through ``print_fn`` if given, as :func:`_reusable` does)."""
-    path = cell_dir / CELL_FILE
-    if not path.is_file():
-        return None
-    try:
-        cell = read_json(path)
-        validate_summary(cell, path, cell_only=True)
-    except DataFormatError as exc:
-        if print_fn is not None:
-            print_fn(f"  recomputing: {exc}")
-        return None
-    return cell
-
-
 def _check_finished(out: Path, cells: list[CellKey], cfgs: list[dict[str, Any]], force: bool,
                     frame_ids: list[str], log: Callable[[str], None]) -> None:
     """The written-once rule for the grid's cells, before any is computed (module doc): refuse a finished
@@ -200,7 +149,7 @@ def _check_finished(out: Path, cells: list[CellKey], cfgs: list[dict[str, Any]],
     kept, changed = 0, []
     for key, cfg in zip(cells, cfgs, strict=True):
         cell_dir = out / "cells" / key.dirname
-        old = _finished(cell_dir)
+        old = finished_cell(cell_dir)
         if old is None or old["status"] == "error":  # nothing finished there, or an error cell: always retried
             continue
         if old["provenance"]["fingerprint"] != fingerprint(cfg):
@@ -224,20 +173,10 @@ def _compared_with(cells_dir: Path, clean: str, grid_cells: set[str]) -> list[st
     """Cells of ``cells_dir`` outside the grid whose recorded ``attack_effect`` is against cell ``clean``."""
     out = []
     for cell_dir in sorted(p for p in cells_dir.iterdir() if p.is_dir() and p.name not in grid_cells):
-        cell = _finished(cell_dir)
+        cell = finished_cell(cell_dir)
         if cell is not None and (cell.get("attack_effect") or {}).get("clean_cell") == clean:
             out.append(cell_dir.name)
     return out
-
-
-def _reusable(cell_dir: Path, print_fn: Callable[[str], None], want: str, frame_ids: list[str]) -> dict | None:
-    cell = _finished(cell_dir, print_fn)
-    if cell is None or cell["provenance"]["fingerprint"] != want or cell["status"] == "error":
-        return None
-    if cell["status"] == "ok" and not results_complete(cell_dir, frame_ids):
-        print_fn(f"  recomputing: result files in {cell_dir / 'data'} are incomplete")
-        return None
-    return cell
 
 
 def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = None,
@@ -276,7 +215,7 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
         for attack in attacks.values():  # e.g. exact occlusion on a generated dataset
             attack.bind_dataset(inputs.kitti)
         evaluation = evaluation_record(config.classes)
-        run = _RunContext(config, inputs, identity, host_provenance(), log)
+        run = RunContext(config, inputs, identity, host_provenance(), log)
         report = RunReport(out=out, dataset=identity)
         slots: dict[str, _VictimSlot] = {}
         records: dict[str, dict[str, Any]] = {}
@@ -290,14 +229,12 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
         for stale in (SUMMARY_FILE, CSV_FILE, SEED_TABLE_FILE):  # derived files: rewritten at the end, never stale
             (out / stale).unlink(missing_ok=True)
         if executor is not None:  # frame shards of every cell on the executor's workers
-            from robustbench3d.runner.parallel import run_cells
-
             report.outcomes.extend(run_cells(run, cells, cfgs, attacks, out / "cells", executor))
         else:
             for i, (key, cfg) in enumerate(zip(cells, cfgs, strict=True), start=1):
                 outcome = _run_one(run, key, cfg, slots[key.victim], attacks[key.attack],
                                    out / "cells" / key.dirname)
-                log(f"[{i}/{len(cells)}] {key}: {_describe(outcome)}")
+                log(f"[{i}/{len(cells)}] {key}: {describe_outcome(outcome)}")
                 report.outcomes.append(outcome)
             for outcome in report.outcomes:  # determinism checks, on the victims the computed cells used
                 if not outcome.reused and outcome.cell["status"] == "ok":
@@ -329,34 +266,6 @@ def _record_effects(report: RunReport, cells_dir: Path, inputs: CellInputs,
         write_validated(cells_dir / key.dirname / CELL_FILE, cell, cell_only=True)
 
 
-def _describe(outcome: CellOutcome) -> str:
-    cell = outcome.cell
-    if cell["status"] == "ok":
-        return "reused" if outcome.reused else f"ok ({cell['provenance']['seconds']:.1f} s)"
-    return f"{cell['status']}{' (reused)' if outcome.reused else ''}: {cell['reason']}"
-
-
-@dataclass(frozen=True)
-class _RunContext:
-    """What every cell of a run shares."""
-
-    config: RunConfig
-    inputs: CellInputs
-    identity: dict[str, Any]
-    host: dict[str, Any]
-    log: LineLog
-
-
-@dataclass(frozen=True)
-class _Verdict:
-    """How a cell ended: status, reason (skipped, error), metrics (ok) and traceback (error)."""
-
-    status: str
-    reason: str | None = None
-    metrics: dict[str, Any] | None = None
-    traceback: str | None = None
-
-
 def _create_attack(name: str, config: RunConfig) -> Attack:
     """The run's one instance of attack ``name``: described in every cell's fingerprint and applied."""
     return create_attack(name, **dict(config.attack_args.get(name, {})))
@@ -377,53 +286,27 @@ def _skip_reason(key: CellKey, capabilities: dict[str, Any] | None, slot: _Victi
     return None
 
 
-def _failure(exc: CellFailure, log: Callable[[str], None]) -> _Verdict:
-    """The error verdict of a failed cell, with the traceback of its cause (logged if unexpected)."""
-    cause = exc.__cause__ or exc
-    tb = "".join(traceback.format_exception(type(cause), cause, cause.__traceback__))
-    if not isinstance(cause, RobustBenchError):  # an unexpected exception: show where it came from
-        warn(log, tb.rstrip())
-    return _Verdict("error", str(exc), traceback=tb)
-
-
-def _execute(run: _RunContext, key: CellKey, capabilities: dict[str, Any] | None, slot: _VictimSlot,
-             attack: Attack, cell_dir: Path) -> _Verdict:
+def _execute(run: RunContext, key: CellKey, capabilities: dict[str, Any] | None, slot: _VictimSlot,
+             attack: Attack, cell_dir: Path) -> Verdict:
     """Skip, run or fail the cell; a cell that is not ``ok`` keeps no result files."""
     try:
         skip = _skip_reason(key, capabilities, slot)
-        verdict = (_Verdict("skipped", skip) if skip is not None else
-                   _Verdict("ok", metrics=run_cell(slot.get(), key.victim, attack, key.attack, key.proposals,
+        verdict = (Verdict("skipped", skip) if skip is not None else
+                   Verdict("ok", metrics=run_cell(slot.get(), key.victim, attack, key.attack, key.proposals,
                                                    run.inputs, cell_dir)))
     except CellFailure as exc:
-        verdict = _failure(exc, run.log)
+        verdict = failure_verdict(exc, run.log)
     if verdict.status != "ok":
         remove_results(cell_dir)
     return verdict
 
 
-def _provenance(run: _RunContext, want: str, cfg: dict[str, Any], verdict: _Verdict, started: str,
-                t0: float, cpu0: float, rss_reset: bool) -> dict[str, Any]:
-    caps = cfg["victim"]["capabilities"]
-    provenance = {
-        "fingerprint": want, "config": cfg, "run": run.config.as_dict(), **run.host, "versions": library_versions(),
-        "seed": run.config.seed,
-        "determinism": {**determinism_flags(), "victim_deterministic": None if caps is None else caps["deterministic"],
-                        "attack_rng": f"numpy.random.default_rng([seed, int(frame_id), {ATTACK_STREAM:#x}])"},
-        "started": started, "finished": utc_now(), "seconds": round(time.perf_counter() - t0, 3),
-        "cpu_seconds": round(time.process_time() - cpu0, 3),
-        "peak_rss_mb": round(peak, 1) if rss_reset and (peak := peak_rss_mb()) is not None else None,
-    }
-    if verdict.traceback is not None:
-        provenance["traceback"] = verdict.traceback
-    return provenance
-
-
-def _run_one(run: _RunContext, key: CellKey, cfg: dict[str, Any], slot: _VictimSlot, attack: Attack,
+def _run_one(run: RunContext, key: CellKey, cfg: dict[str, Any], slot: _VictimSlot, attack: Attack,
              cell_dir: Path) -> CellOutcome:
     """Reuse the finished cell if its fingerprint is unchanged, else compute and record it."""
     want = fingerprint(cfg)
     run.log.debug(f"{key}: fingerprint {want[:12]}, directory {cell_dir}")
-    old = _reusable(cell_dir, run.log, want, run.inputs.gt.frame_ids)
+    old = reusable_cell(cell_dir, run.log, want, run.inputs.gt.frame_ids)
     if old is not None:
         return CellOutcome(key, old, reused=True)
     (cell_dir / CELL_FILE).unlink(missing_ok=True)  # from here on, no stale "finished" marker
@@ -431,7 +314,7 @@ def _run_one(run: _RunContext, key: CellKey, cfg: dict[str, Any], slot: _VictimS
     verdict = _execute(run, key, cfg["victim"]["capabilities"], slot, attack, cell_dir)
     cell = {"schema_version": SCHEMA_VERSION, "victim": key.victim, "attack": key.attack, "proposals": key.proposals,
             "status": verdict.status, "reason": verdict.reason, "dataset": run.identity, "metrics": verdict.metrics,
-            "provenance": _provenance(run, want, cfg, verdict, started, t0, cpu0, rss_reset)}
+            "provenance": cell_provenance(run, want, cfg, verdict, started, t0, cpu0, rss_reset)}
     cell_dir.mkdir(parents=True, exist_ok=True)
     return CellOutcome(key, write_validated(cell_dir / CELL_FILE, cell, cell_only=True), reused=False)
 

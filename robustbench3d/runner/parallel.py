@@ -25,7 +25,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from robustbench3d.attacks import ATTACKS
 from robustbench3d.attacks.base import Attack
@@ -44,12 +44,19 @@ from robustbench3d.runner.cell import (
 )
 from robustbench3d.runner.config import CellKey, fingerprint
 from robustbench3d.runner.executors import Executor
+from robustbench3d.runner.outcome import (
+    CELL_FILE,
+    CellOutcome,
+    RunContext,
+    Verdict,
+    cell_provenance,
+    describe_outcome,
+    failure_verdict,
+    reusable_cell,
+)
 from robustbench3d.runner.shards import CellJob, Shard, ShardResult, finished_shard, settle_files, shard_ranges
 from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.spec import Capabilities
-
-if TYPE_CHECKING:
-    from robustbench3d.runner.grid import CellOutcome, _RunContext, _Verdict
 
 
 @dataclass
@@ -65,13 +72,11 @@ class _Cell:
     results: dict[int, ShardResult] = field(default_factory=dict)
 
 
-def run_cells(run: _RunContext, cells: Sequence[CellKey], cfgs: Sequence[dict[str, Any]],
+def run_cells(run: RunContext, cells: Sequence[CellKey], cfgs: Sequence[dict[str, Any]],
               attacks: dict[str, Attack], cells_dir: Path, executor: Executor) -> list[CellOutcome]:
     """Reuse, skip or compute every cell of ``cells`` (grid order, ``cfgs`` their configurations) on
     ``executor``; returns the outcomes in grid order. Raises :class:`DataFormatError` on bad input."""
     from tqdm import tqdm
-
-    from robustbench3d.runner import grid
 
     outcomes: dict[int, CellOutcome] = {}
     waiting: dict[str, _Cell] = {}
@@ -82,22 +87,22 @@ def run_cells(run: _RunContext, cells: Sequence[CellKey], cfgs: Sequence[dict[st
 
     def done(position: int, outcome: CellOutcome) -> None:
         outcomes[position] = outcome
-        run.log(f"[{position + 1}/{len(cells)}] {outcome.key}: {grid._describe(outcome)}")
+        run.log(f"[{position + 1}/{len(cells)}] {outcome.key}: {describe_outcome(outcome)}")
 
     for position, (key, cfg) in enumerate(zip(cells, cfgs, strict=True)):
         cell_dir = cells_dir / key.dirname
         want = fingerprint(cfg)
-        old = grid._reusable(cell_dir, run.log, want, frame_ids)
+        old = reusable_cell(cell_dir, run.log, want, frame_ids)
         if old is not None:
-            done(position, grid.CellOutcome(key, old, reused=True))
+            done(position, CellOutcome(key, old, reused=True))
             continue
-        (cell_dir / grid.CELL_FILE).unlink(missing_ok=True)  # from here on, no stale "finished" marker
+        (cell_dir / CELL_FILE).unlink(missing_ok=True)  # from here on, no stale "finished" marker
         started, t0, cpu0 = utc_now(), time.perf_counter(), time.process_time()
         verdict, spec = _before_shards(run, key, cfg)
         if verdict is not None:
             remove_results(cell_dir)
             cell = _record(run, key, want, cfg, verdict, started, t0, cpu0, cell_dir, {})
-            done(position, grid.CellOutcome(key, cell, reused=False))
+            done(position, CellOutcome(key, cell, reused=False))
             continue
         if key.attack not in attack_bytes:
             attack_bytes[key.attack] = pickle.dumps(attacks[key.attack])
@@ -144,26 +149,22 @@ def run_cells(run: _RunContext, cells: Sequence[CellKey], cfgs: Sequence[dict[st
     return [outcomes[i] for i in range(len(cells))]
 
 
-def _before_shards(run: _RunContext, key: CellKey, cfg: dict[str, Any]) -> tuple[_Verdict | None, Any]:
+def _before_shards(run: RunContext, key: CellKey, cfg: dict[str, Any]) -> tuple[Verdict | None, Any]:
     """A verdict known before any shard runs (the attack needs what the victim lacks; the victim's
     registry entry cannot be loaded), else (None, the victim's registry entry)."""
-    from robustbench3d.runner import grid
-
     caps = cfg["victim"]["capabilities"]
     if caps is not None:
         unmet = ATTACKS.get(key.attack).requirements.unmet(Capabilities(**caps))
         if unmet is not None:
-            return grid._Verdict("skipped", f"attack {key.attack!r} {unmet}"), None
+            return Verdict("skipped", f"attack {key.attack!r} {unmet}"), None
     try:
         return None, VICTIMS.get(key.victim)
     except Exception as exc:
-        return grid._failure(victim_failure(key.victim, exc), run.log), None
+        return failure_verdict(victim_failure(key.victim, exc), run.log), None
 
 
-def _assemble(run: _RunContext, cell: _Cell, executor: Executor) -> CellOutcome:
+def _assemble(run: RunContext, cell: _Cell, executor: Executor) -> CellOutcome:
     """The cell from its shards' results: settle, parse and evaluate the result files, record it."""
-    from robustbench3d.runner import grid
-
     cell_dir = Path(cell.shards[0].job.cell_dir)
     results = [cell.results[i] for i in range(len(cell.shards))]
     computed = [r for r in results if not r.reused]
@@ -175,9 +176,9 @@ def _assemble(run: _RunContext, cell: _Cell, executor: Executor) -> CellOutcome:
     if errors:
         if errors[0].unexpected and errors[0].traceback is not None:
             run.log.warning(errors[0].traceback.rstrip())
-        verdict = grid._Verdict("error", errors[0].reason, traceback=errors[0].traceback)
+        verdict = Verdict("error", errors[0].reason, traceback=errors[0].traceback)
     elif skips:
-        verdict = grid._Verdict("skipped", skips[0].reason)
+        verdict = Verdict("skipped", skips[0].reason)
     else:
         ids = [fid for r in results for fid in r.frame_ids]
         texts = [text for r in results for text in r.texts]
@@ -189,11 +190,11 @@ def _assemble(run: _RunContext, cell: _Cell, executor: Executor) -> CellOutcome:
             partial = cell_dir / PARTIAL
             detections = [parse_labels(text, partial / f"{fid}.txt", scored=True) for fid, text in zip(ids, texts,
                                                                                                       strict=True)]
-            verdict = grid._Verdict("ok", metrics=evaluate_cell(run.inputs, detections))
+            verdict = Verdict("ok", metrics=evaluate_cell(run.inputs, detections))
             promote(cell_dir)
             shutil.rmtree(cell_dir / SHARD_MARKS, ignore_errors=True)
         except (CellFailure, DataFormatError) as exc:
-            verdict = grid._failure(CellFailure(f"{cell.key}: {exc}"), run.log)
+            verdict = failure_verdict(CellFailure(f"{cell.key}: {exc}"), run.log)
     if verdict.status != "ok":
         remove_results(cell_dir)
     peaks = [r.peak_rss_mb for r in computed if r.peak_rss_mb is not None]
@@ -206,17 +207,15 @@ def _assemble(run: _RunContext, cell: _Cell, executor: Executor) -> CellOutcome:
     record = _record(run, cell.key, cell.want, cell.cfg, verdict, cell.started, t0, cpu0, cell_dir, extra,
                      determinism)
     probe = results[0].victim_probe if verdict.status == "ok" else None  # the first shard's check
-    return grid.CellOutcome(cell.key, record, reused=False, probe=probe)
+    return CellOutcome(cell.key, record, reused=False, probe=probe)
 
 
-def _record(run: _RunContext, key: CellKey, want: str, cfg: dict[str, Any], verdict: _Verdict, started: str,
+def _record(run: RunContext, key: CellKey, want: str, cfg: dict[str, Any], verdict: Verdict, started: str,
             t0: float, cpu0: float, cell_dir: Path, extra: dict[str, Any],
             determinism: dict[str, Any] | None = None) -> dict[str, Any]:
     """Write and return the cell's ``cell.json`` (the grid's record; ``extra`` added to its provenance,
     the workers' ``determinism`` flags over the parent's)."""
-    from robustbench3d.runner import grid
-
-    provenance = grid._provenance(run, want, cfg, verdict, started, t0, cpu0, rss_reset=False)
+    provenance = cell_provenance(run, want, cfg, verdict, started, t0, cpu0, rss_reset=False)
     provenance.update(extra)
     if determinism:
         provenance["determinism"] = {**provenance["determinism"], **determinism}
@@ -224,7 +223,7 @@ def _record(run: _RunContext, key: CellKey, want: str, cfg: dict[str, Any], verd
             "status": verdict.status, "reason": verdict.reason, "dataset": run.identity, "metrics": verdict.metrics,
             "provenance": provenance}
     cell_dir.mkdir(parents=True, exist_ok=True)
-    return write_validated(cell_dir / grid.CELL_FILE, cell, cell_only=True)
+    return write_validated(cell_dir / CELL_FILE, cell, cell_only=True)
 
 
 __all__ = ["run_cells"]
