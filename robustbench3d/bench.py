@@ -26,6 +26,7 @@ BENCHMARKS: dict[str, str] = {
     "victim": "robustbench3d.victims.bench:run",
     "fpn-train": "robustbench3d.victims.fpointnet.bench_train:run",
     "attack": "robustbench3d.attacks.bench:run",
+    "lidar": "robustbench3d.sensors.bench:run",
     "bootstrap": "robustbench3d.eval.bench_bootstrap:run",
 }
 

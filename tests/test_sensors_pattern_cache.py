@@ -8,7 +8,7 @@ import torch
 from robustbench3d.sensors.lidar_beams import BeamPattern, estimate_pattern, scan_ring_ids
 from robustbench3d.sensors.lidar_render import render_lidar
 from robustbench3d.sensors.mesh import icosphere
-from robustbench3d.sensors.pattern_cache import PatternCache, scan_key
+from robustbench3d.sensors.pattern_cache import FILE_MAGIC, PatternCache, scan_key
 
 torch.set_num_threads(1)
 
@@ -47,7 +47,7 @@ def test_cached_render_is_bit_identical_cold_and_warm_and_from_disk(tmp_path):
     plain = render_lidar(scan, _meshes())
     cache = PatternCache(tmp_path)
     cold = render_lidar(scan, _meshes(), patterns=cache)
-    files = list(tmp_path.glob("*.npz"))
+    files = list(tmp_path.glob("*.pattern"))
     assert len(files) == 1 and files[0].stem == scan_key(scan, None)
     warm = render_lidar(scan, _meshes(), patterns=cache)  # from memory, azimuths of the culled lasers only
     warm_disk = render_lidar(scan, _meshes(), patterns=PatternCache(tmp_path))  # a new process: read from disk
@@ -67,7 +67,7 @@ def test_estimate_is_kept_bit_for_bit_and_different_scans_get_their_own(tmp_path
         assert _same(_kept(cache, scan), truth)
         assert _same(PatternCache(tmp_path).lookup(scan)[1], truth)  # from its file
         assert truth.shift_deg == np.float64(truth.shift_deg)  # a float64 survives the file
-    assert len(list(tmp_path.glob("*.npz"))) == 3
+    assert len(list(tmp_path.glob("*.pattern"))) == 3
 
 
 def test_key_covers_the_bytes_and_the_given_laser_ids():
@@ -79,16 +79,34 @@ def test_key_covers_the_bytes_and_the_given_laser_ids():
     assert len(keys) == 4
 
 
+def _file_values(path) -> tuple[bytes, np.ndarray]:
+    """(the magic, the float64 values) of a pattern file, read independently of the cache."""
+    data = path.read_bytes()
+    return data[:len(FILE_MAGIC)], np.frombuffer(data[len(FILE_MAGIC):], "<f8")
+
+
+def test_pattern_file_is_the_magic_then_the_phases_and_turn_as_little_endian_float64(tmp_path):
+    scan = _scan(0.029, 7)
+    truth = estimate_pattern(scan, scan_ring_ids(scan))
+    _kept(PatternCache(tmp_path), scan)
+    magic, values = _file_values(tmp_path / f"{scan_key(scan, None)}.pattern")
+    assert magic == FILE_MAGIC and values.shape == (65,)
+    assert values[:64].tobytes() == truth.phases_deg.astype("<f8").tobytes() and values[64] == truth.shift_deg
+
+
 def test_unreadable_or_foreign_files_are_recomputed_and_rewritten(tmp_path):
     scan = _scan(0.012, 5)
     truth = estimate_pattern(scan, scan_ring_ids(scan))
-    path = tmp_path / f"{scan_key(scan, None)}.npz"
-    for bad in (b"", b"not a zip", np.zeros(3).tobytes()):
+    path = tmp_path / f"{scan_key(scan, None)}.pattern"
+    good = FILE_MAGIC + np.zeros(65, "<f8").tobytes()
+    # empty, foreign, one byte short or long, the right length under another magic
+    for bad in (b"", b"not a pattern", good[:-1], good + b"\0", b"X" + good[1:]):
         path.write_bytes(bad)
         assert _same(_kept(PatternCache(tmp_path), scan), truth)
-        with np.load(path) as z:  # rewritten whole
-            assert z["phases_deg"].tobytes() == truth.phases_deg.tobytes()
-    np.savez(path, version=np.int64(999), phases_deg=np.zeros(64), shift_deg=np.float64(0.0))  # another version
+        magic, values = _file_values(path)  # rewritten whole
+        assert magic == FILE_MAGIC and values[:64].tobytes() == truth.phases_deg.tobytes()
+    path.unlink()
+    path.mkdir()  # a directory where the file should be: unreadable, recomputed (the write fails, rendering goes on)
     assert _same(_kept(PatternCache(tmp_path), scan), truth)
 
 

@@ -15,13 +15,29 @@ exact generator pattern is returned; on real KITTI scans each laser keeps its me
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 
-from robustbench3d.sensors.hdl64e import AZIMUTH_QUANTUM_DEG, HDL64E, BeamRays, ring_ids_from_azimuth_wrap
-from robustbench3d.sensors.kernels import cone_cull, sphere_ray_ranges
+from robustbench3d.sensors.hdl64e import (
+    AZIMUTH_QUANTUM_DEG,
+    EGO_OCCLUSION_SECTORS,
+    HDL64E,
+    BeamRays,
+    _firing_steps,
+    ring_ids_from_azimuth_wrap,
+)
+from robustbench3d.sensors.kernels import (
+    beam_table,
+    cone_cull,
+    cull_runs,
+    near_bins,
+    nearest_rays,
+    sphere_pairs_nearest,
+    sphere_ray_ranges,
+)
 
 #: Per-laser firing offsets of the generator's sensor (used by ``synth.lidar``), degrees in [0, 0.045).
 GENERATOR_FIRING_OFFSETS_DEG = np.random.default_rng(64).uniform(0.0, AZIMUTH_QUANTUM_DEG / 2, 64)
@@ -60,10 +76,29 @@ class BeamPattern:
         return BeamRays(self.sensor.origins(ring), self.sensor.directions(ring, az), ring, az)
 
     @cached_property
+    def _table(self) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """(azimuth_deg (R,) of :attr:`rays`, :attr:`ring_start`, lowest and highest azimuth (+-inf without rays)),
+        without the rays' geometry or lasers: the firings of ``sensor.ray_azimuths(phases_deg - shift_deg)``
+        turned by ``shift_deg``, in one compiled pass (:func:`robustbench3d.sensors.kernels.beam_table`, the same
+        values)."""
+        s = self.sensor
+        phases = (np.asarray(self.phases_deg, dtype=np.float64) - self.shift_deg)[:s.num_lasers]
+        return beam_table(phases, self.shift_deg, _firing_steps(s.firings_per_revolution, s.azimuth_quantum_deg),
+                          EGO_OCCLUSION_SECTORS)
+
+    @cached_property
     def _ring_azimuth(self) -> tuple[np.ndarray, np.ndarray]:
         """(ring (R,) int64, azimuth_deg (R,)) of :attr:`rays`, without their geometry."""
-        ring, az = self.sensor.ray_azimuths(np.asarray(self.phases_deg, dtype=np.float64) - self.shift_deg)
-        return ring.astype(np.int64), az + self.shift_deg
+        start = self.ring_start
+        return np.repeat(np.arange(len(start) - 1, dtype=np.int64), np.diff(start)), self._table[0]
+
+    @property
+    def _banded(self) -> bool:
+        """Whether the rays' azimuths lie in [-1, 361) degrees, so that a key ring x _BAND + azimuth of laser k in
+        k x _BAND + [-360, 720) sorts between the lower and the higher lasers' rays: the compiled searches then
+        look for keys laser by laser (see :func:`robustbench3d.sensors.kernels.cone_cull`)."""
+        lowest, highest = self._azimuth_range
+        return bool(lowest >= -1.0 and highest < 361.0)
 
     def ray_geometry(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(origins (K, 3), unit directions (K, 3)) of the rays ``index`` (K,): ``rays.origins[index]`` and
@@ -71,22 +106,23 @@ class BeamPattern:
         index = np.asarray(index, dtype=np.int64)
         if "rays" in self.__dict__:
             return self.rays.origins[index], self.rays.directions[index]
-        ring, az = self._ring_azimuth
-        return self.sensor.origins(ring[index]), self.sensor.directions(ring[index], az[index])
+        ring = self.ray_rings(index)
+        return self.sensor.origins(ring), self.sensor.directions(ring, self._table[0][index])
 
-    @cached_property
+    @property
     def ring_start(self) -> np.ndarray:
         """(65,) index of each laser's first ray in :attr:`rays` (and the total at the end)."""
-        return np.searchsorted(self._ring_azimuth[0], np.arange(self.sensor.num_lasers + 1))
+        return self._table[1]
 
-    @cached_property
+    @property
     def _azimuth_range(self) -> tuple[float, float]:
         """(lowest, highest) azimuth of the rays, degrees (+-inf without rays)."""
-        az = self._ring_azimuth[1]
-        return (float(az.min()), float(az.max())) if len(az) else (np.inf, -np.inf)
+        return self._table[2], self._table[3]
 
     @cached_property
     def _keys(self) -> np.ndarray:
+        """(R,) ring x _BAND + azimuth of the rays, sorted (the numpy code's search keys; the compiled searches
+        form them as they go)."""
         ring, az = self._ring_azimuth
         return ring * _BAND + az
 
@@ -107,9 +143,9 @@ class BeamPattern:
         :func:`robustbench3d.sensors.kernels.cone_cull`, which gives the same rays)."""
         s = self.sensor
         c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
-        if compiled:  # the same arithmetic, sphere by sphere and laser by laser (the numpy code below)
+        if compiled and self._banded:  # the same arithmetic, sphere by sphere and laser by laser (the numpy code)
             return cone_cull(c, np.asarray(radii, dtype=np.float64).reshape(-1), np.radians(s.elevation_deg),
-                             s.origin_z, margin_deg, self._keys, _BAND)
+                             s.origin_z, margin_deg, self._table[0], self.ring_start, _BAND)
         r = np.asarray(radii, dtype=np.float64).reshape(-1) * (1 + 1e-9) + 1e-9
         cz = c[:, 2:3] - s.origin_z[None, :]
         rho = np.hypot(c[:, 0], c[:, 1])[:, None]
@@ -199,19 +235,48 @@ class BeamPattern:
         stop = np.searchsorted(self._keys, laser * _BAND + hi, "right")
         return np.repeat(sphere, np.maximum(stop - start, 0)), _expand_ranges(start, stop)
 
+    def cull_runs(self, culls: Sequence[np.ndarray], idx: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The rays of M culls (each increasing, e.g. :meth:`cull_many`'s) as runs of consecutive rays of one laser,
+        for :meth:`sphere_nearest` (:func:`robustbench3d.sensors.kernels.cull_runs`); ``idx``: the sorted union of
+        the culls, which numbers the rays of the search."""
+        rays = np.concatenate(culls) if len(culls) else np.zeros(0, np.int64)
+        return cull_runs(rays, np.array([len(c) for c in culls], np.int64), self.ring_start, idx)
+
+    def sphere_nearest(self, centers: np.ndarray, radii: np.ndarray, mesh: np.ndarray,
+                       runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], table: np.ndarray,
+                       d_cols: np.ndarray, h: np.ndarray, t_min: float, tol: float
+                       ) -> tuple[np.ndarray, np.ndarray, int]:
+        """The nearest of the faces (bounding spheres ``centers`` (F, 3), ``radii`` (F,), their culls ``mesh``
+        (F,) among those of ``runs``, :meth:`cull_runs`) hit by each culled ray: (face (R,) or -1, t (R,) or +inf,
+        pairs tested) of the Möller–Trumbore test (per-face ``table`` (18, F) with offsets, directions ``d_cols``
+        (3, R) and apex heights ``h`` (R,) of the R rays of ``idx``) on the pairs of :meth:`sphere_rays` (lasers of
+        each face's cull) whose ray is in the face's cull, tested as they are found
+        (:func:`robustbench3d.sensors.kernels.sphere_pairs_nearest`)."""
+        s = self.sensor
+        return sphere_pairs_nearest(centers, radii, mesh, runs, np.radians(s.elevation_deg), s.origin_z,
+                                    self._table[0], _BAND, table, d_cols, h, t_min, tol)
+
     def ray_rings(self, index: np.ndarray) -> np.ndarray:
-        """(K,) int64 laser of the rays ``index`` (K,), without building the rays."""
-        return self._ring_azimuth[0][np.asarray(index, dtype=np.int64)]
+        """(K,) int64 laser of the rays ``index`` (K,), without building the rays (from :attr:`ring_start`; an
+        index outside [0, R) is read as numpy reads the lasers of all rays at it)."""
+        index = np.asarray(index, dtype=np.int64)
+        start = self.ring_start
+        if index.size and not (index.min() >= 0 and index.max() < start[-1]):
+            return self._ring_azimuth[0][index]
+        return np.searchsorted(start, index, "right") - 1
 
     def near_rays(self, index: np.ndarray, ring: np.ndarray, azimuth_deg: np.ndarray,
-                  max_deg: float = AZIMUTH_QUANTUM_DEG) -> np.ndarray:
+                  max_deg: float = AZIMUTH_QUANTUM_DEG, compiled: bool = True) -> np.ndarray:
         """(N,) bool, a superset of the points (laser ``ring``, ``azimuth_deg``) whose :meth:`nearest_ray` within
         ``max_deg`` can be one of the rays ``index``: those within about ``max_deg`` of such a ray's azimuth on
-        the same laser (bins of ``max_deg`` per laser: the ray's bin and two on either side)."""
+        the same laser (bins of ``max_deg`` per laser: the ray's bin and two on either side). The points' bins are
+        looked up by :func:`robustbench3d.sensors.kernels.near_bins` (``compiled=False``: the numpy code, which it
+        follows point by point)."""
         nl = self.sensor.num_lasers
         ring = np.asarray(ring, dtype=np.int64)
         bins = int(np.ceil(360.0 / max_deg))
-        rr, raz = self._ring_azimuth[0][index], self._ring_azimuth[1][index]
+        rr, raz = self.ray_rings(index), self._table[0][np.asarray(index, dtype=np.int64)]
         # One extra column repeats column 0: a point's bin floor(az / max_deg), az in [0, 360], is at most bins,
         # where bin % bins = 0.
         grid = np.zeros((nl, bins + 1), dtype=bool)
@@ -224,32 +289,38 @@ class BeamPattern:
             return out
         # Only the points of the rays' lasers can be near: when the points are laser-ordered, those from the first
         # to the last of these lasers (a slice; the other lasers in between have no near bin).
-        lasers = np.unique(rr)
         if len(ring) and np.all(ring[1:] >= ring[:-1]):
-            pick: slice | np.ndarray = slice(int(np.searchsorted(ring, lasers[0], "left")),
-                                             int(np.searchsorted(ring, lasers[-1], "right")))
+            pick: slice | np.ndarray = slice(int(np.searchsorted(ring, rr.min(), "left")),
+                                             int(np.searchsorted(ring, rr.max(), "right")))
         else:
-            pick = np.flatnonzero(np.isin(ring, lasers))
+            pick = np.flatnonzero(np.isin(ring, np.unique(rr)))
         az = np.asarray(azimuth_deg, dtype=np.float64)[pick]
+        found = near_bins(ring[pick], az, grid, bins, max_deg) if compiled else None
+        if found is not None:
+            out[pick] = found
+            return out
         b = np.floor(_mod360(az) / max_deg).astype(np.int64)
         if len(b) and b.min() < 0:  # NaN azimuths (their int64 is negative): wrap as bin % bins does
             b %= bins
         out[pick] = grid.reshape(-1)[ring[pick] * (bins + 1) + b]
         return out
 
-    def nearest_ray(self, ring: np.ndarray, azimuth_deg: np.ndarray, max_deg: float = AZIMUTH_QUANTUM_DEG
-                    ) -> np.ndarray:
+    def nearest_ray(self, ring: np.ndarray, azimuth_deg: np.ndarray, max_deg: float = AZIMUTH_QUANTUM_DEG,
+                    compiled: bool = True) -> np.ndarray:
         """(N,) index of the ray of laser ``ring`` nearest in azimuth to ``azimuth_deg`` (circularly), or -1
-        when none lies within ``max_deg`` or the ring is unknown (< 0 or >= 64)."""
+        when none lies within ``max_deg`` or the ring is unknown (< 0 or >= 64). ``compiled=False``: the numpy
+        code (the reference of :func:`robustbench3d.sensors.kernels.nearest_rays`, which gives the same rays)."""
         ring = np.asarray(ring, dtype=np.int64)
         az = _mod360(azimuth_deg)
+        if compiled and self._banded and len(ring) == len(az):
+            return nearest_rays(ring, az, self.ring_start, self._table[0], self._azimuth_range, max_deg, _BAND)
         out = np.full(len(ring), -1, dtype=np.int64)
         known = (ring >= 0) & (ring < self.sensor.num_lasers)
         if not known.any():
             return out
         rk, ak = ring[known], az[known]
         first, last = self.ring_start[rk], self.ring_start[rk + 1] - 1
-        raz = self._ring_azimuth[1]
+        raz = self._table[0]
         best = np.full(len(rk), -1, dtype=np.int64)
         gap = np.full(len(rk), np.inf)
         # A turn of -360 (+360) can only bring a ray within max_deg of the points within max_deg of the lowest

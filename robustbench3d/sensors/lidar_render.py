@@ -3,8 +3,9 @@
 Frame: velodyne (x forward, y left, z up; m). Rays: the scan's own beam pattern
 (:mod:`robustbench3d.sensors.lidar_beams`: the generator's rays on generated scans, per-laser measured phases
 on real KITTI scans); of each laser only the rays passing within the mesh's bounding sphere (plus one azimuth
-step) are cast, each at the faces whose bounding spheres it can pass through
-(:func:`~robustbench3d.sensors.raycast.cast_ray_pairs`). Per ray the nearest surface over all meshes
+step) are cast, each at the faces whose bounding spheres it can pass through (one compiled pass that finds and
+tests these pairs, :meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.sphere_nearest`, inside
+:func:`~robustbench3d.sensors.raycast.cast_ray_search`). Per ray the nearest surface over all meshes
 wins. A scan point is on a ray when it belongs to the same laser and lies within half a firing step
 (0.09 deg) of its azimuth; its range is measured from that laser's origin. On a ray hitting a mesh at t:
 
@@ -32,11 +33,12 @@ import numpy as np
 import torch
 
 from robustbench3d.sensors import lidar_model as lm
+from robustbench3d.sensors.kernels import rows_but
 from robustbench3d.sensors.lidar_beams import BeamPattern, estimate_pattern, ring_ids_of
 from robustbench3d.sensors.materials import Mat
 from robustbench3d.sensors.mesh import face_normals
 from robustbench3d.sensors.pattern_cache import PatternCache
-from robustbench3d.sensors.raycast import cast_ray_pair_chunks, cast_ray_pairs
+from robustbench3d.sensors.raycast import PairSearch, cast_ray_pair_chunks, cast_ray_search, dot3
 
 #: Albedo of meshes given without colours (linear RGB).
 DEFAULT_ALBEDO = 0.5
@@ -86,6 +88,39 @@ class PreparedScan:
         pos = np.repeat(lo - np.concatenate([[0], np.cumsum(n)[:-1]]), n) + np.arange(n.sum())
         return owner, self.by_ray[pos]
 
+    def ranges_on(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`points_on` and each point's ``range_m`` (m)."""
+        owner, point = self.points_on(rays)
+        return owner, point, self.range_m[point]
+
+
+@dataclass(frozen=True)
+class _RayPoints:
+    """The points of a scan on some of its rays, all a render reads of the scan besides its rows: what
+    :func:`_prepare_rays` finds for the culled rays, without its (N,) arrays.
+
+    Attributes:
+        scan, pattern: as :class:`PreparedScan`'s.
+        index: (K,) int64 the points with a ray, stably sorted by ray (each ray's points in scan order).
+        ray: (K,) int64 their rays (non-decreasing).
+        range_m: (K,) float64 their distances from their lasers' origins, m.
+    """
+
+    scan: np.ndarray
+    pattern: BeamPattern
+    index: np.ndarray
+    ray: np.ndarray
+    range_m: np.ndarray
+
+    def ranges_on(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`PreparedScan.ranges_on`: for ray indices (K,) the (which of the K, point index, range) of the
+        points lying on them, each ray's points in scan order."""
+        lo = np.searchsorted(self.ray, rays, "left")
+        n = np.searchsorted(self.ray, rays, "right") - lo
+        owner = np.repeat(np.arange(len(rays)), n)
+        pos = np.repeat(lo - np.concatenate([[0], np.cumsum(n)[:-1]]), n) + np.arange(n.sum())
+        return owner, self.index[pos], self.range_m[pos]
+
 
 def prepare_scan(scan: np.ndarray, ring_ids: np.ndarray | None = None,
                  pattern: BeamPattern | None = None, rays: np.ndarray | None = None) -> PreparedScan:
@@ -131,6 +166,43 @@ def _prepare_rays(pts: np.ndarray, ring: np.ndarray, pattern: BeamPattern, az: n
     sorted_ray = np.full(len(pts), -1, dtype=np.int64)
     sorted_ray[n_off:] = point_ray[on]
     return PreparedScan(pts, pattern, ring, point_ray, rng_m, by_ray, sorted_ray)
+
+
+def _ray_points(pts: np.ndarray, ring: np.ndarray, pattern: BeamPattern, az: np.ndarray | None, rays: np.ndarray
+                ) -> _RayPoints:
+    """The points of ``rays`` (:func:`_prepare_rays` of the same arguments restricted to them: the same points,
+    rays and ranges, bit for bit) without (N,) arrays: the azimuths (``az`` (N,) if given) of the rays' lasers'
+    points only (on a laser-ordered scan their one span, else every point), the near points among them
+    (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.near_rays`), their nearest rays and ranges."""
+    lasers = pattern.ray_rings(rays)
+    lo, hi = _laser_span(ring, lasers)
+    part = np.zeros(0) if hi <= lo else _span_azimuths(pts, lo, hi) if az is None else az[lo:hi]
+    sub = lo + np.flatnonzero(pattern.near_rays(rays, ring[lo:hi], part)) if hi > lo else np.zeros(0, np.int64)
+    xyz, az_sub, rk = pts[sub, :3].astype(np.float64), part[sub - lo], ring[sub]
+    h0 = np.where((rk >= 0) & (rk < pattern.sensor.num_lasers),
+                  pattern.sensor.origin_z[np.clip(rk, 0, pattern.sensor.num_lasers - 1)], 0.0)
+    ray_sub = pattern.nearest_ray(rk, az_sub)
+    rng_m = np.sqrt(xyz[:, 0] ** 2 + xyz[:, 1] ** 2 + (xyz[:, 2] - h0) ** 2)
+    has = np.flatnonzero(ray_sub >= 0)
+    order = has[np.argsort(ray_sub[has], kind="stable")]
+    return _RayPoints(pts, pattern, sub[order], ray_sub[order], rng_m[order])
+
+
+def _laser_span(ring: np.ndarray, lasers: np.ndarray) -> tuple[int, int]:
+    """(lo, hi): on a laser-ordered scan the rows of the lasers from the lowest to the highest of ``lasers``
+    ((0, 0) for none), else every row (the span :func:`_azimuths` computes)."""
+    if len(ring) and np.all(ring[1:] >= ring[:-1]):
+        if len(lasers) == 0:
+            return 0, 0
+        return int(np.searchsorted(ring, lasers.min(), "left")), int(np.searchsorted(ring, lasers.max(), "right"))
+    return 0, len(ring)
+
+
+def _span_azimuths(pts: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """degrees(atan2(y, x)) (hi - lo,) float64 of the float32 points ``pts[lo:hi]`` (as :func:`_azimuths`)."""
+    part = np.arctan2(pts[lo:hi, 1].astype(np.float64), pts[lo:hi, 0].astype(np.float64))
+    np.degrees(part, out=part)
+    return part
 
 
 def _azimuths(pts: np.ndarray, ring: np.ndarray, lasers: np.ndarray | None) -> np.ndarray:
@@ -197,7 +269,11 @@ class TracedHits:
 
 
 def _mesh_tensors(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.ndarray]]:
+    """Per mesh (vertices (V, 3) float64 tensor, faces (F, 3) int64 copy), each checked (shapes, face indices in
+    range, finite vertices, albedo shape; ValueError naming the mesh). A faces object given for several meshes (the
+    attack's one object placed on each car) is copied and its index range found once."""
     out = []
+    seen: dict[int, tuple[object, np.ndarray, int, int]] = {}  # id(faces) -> (faces, copy, min, max)
     for i, m in enumerate(meshes):
         if len(m) != 3:
             raise ValueError(f"render_lidar: field 'meshes[{i}]': expected (vertices, faces, albedo_rgb or None)")
@@ -206,10 +282,15 @@ def _mesh_tensors(meshes: Sequence[MeshInput]) -> list[tuple[torch.Tensor, np.nd
         vt = v if vn is None else torch.as_tensor(vn)
         if vt.dtype != torch.float64:
             vt = vt.to(torch.float64)
-        fa = np.array(f, dtype=np.int64)  # a copy: read-only inputs are fine for torch.from_numpy
+        known = seen.get(id(f))
+        if known is None or known[0] is not f:
+            fa = np.array(f, dtype=np.int64)  # a copy: read-only inputs are fine for torch.from_numpy
+            known = (f, fa, int(fa.min()) if fa.size else 0, int(fa.max()) if fa.size else -1)
+            seen[id(f)] = known
+        fa, f_min, f_max = known[1:]
         if vt.dim() != 2 or vt.shape[1] != 3 or fa.ndim != 2 or fa.shape[1] != 3:
             raise ValueError(f"render_lidar: field 'meshes[{i}]': vertices must be (V, 3) and faces (F, 3)")
-        if len(fa) and (fa.min() < 0 or fa.max() >= len(vt)):
+        if len(fa) and (f_min < 0 or f_max >= len(vt)):
             raise ValueError(f"render_lidar: field 'meshes[{i}]': face indices outside [0, {len(vt)})")
         if not (bool(torch.isfinite(vt.detach()).all()) if vn is None else np.isfinite(vn).all()):  # vt shares vn
             raise ValueError(f"render_lidar: field 'meshes[{i}]': vertices contain NaN or inf")
@@ -242,9 +323,10 @@ def _culled_rays(pattern: BeamPattern, meshes: list[tuple[torch.Tensor, np.ndarr
 
 def _prepared(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], ring_ids: np.ndarray | None,
               patterns: PatternCache | None = None, cull: bool = True
-              ) -> tuple[PreparedScan, list[tuple[torch.Tensor, np.ndarray]], list[np.ndarray]]:
-    """(prepared scan, checked meshes, culled rays per mesh); a raw scan is prepared only on the culled rays.
-    ``cull=False``: every ray for every mesh, and every point of the scan matched to its ray."""
+              ) -> tuple[PreparedScan | _RayPoints, list[tuple[torch.Tensor, np.ndarray]], list[np.ndarray]]:
+    """(prepared scan, checked meshes, culled rays per mesh); a raw scan's points are matched only to the culled
+    rays (:func:`_ray_points`). ``cull=False``: every ray for every mesh, and every point of the scan matched to
+    its ray."""
     mts = _mesh_tensors(meshes)
     if isinstance(scan, PreparedScan):
         if cull:
@@ -265,8 +347,18 @@ def _prepared(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], ring
     if not cull:
         return _prepare_rays(pts, ring, pattern, az, None), mts, _every_ray(pattern, mts)
     culls = _culled_rays(pattern, mts)
-    rays = np.unique(np.concatenate(culls)) if culls else np.zeros(0, dtype=np.int64)
-    return _prepare_rays(pts, ring, pattern, az, rays), mts, culls
+    return _ray_points(pts, ring, pattern, az, _union(pattern, culls)), mts, culls
+
+
+def _union(pattern: BeamPattern, culls: list[np.ndarray]) -> np.ndarray:
+    """The rays of any of ``culls`` (indices into ``pattern``'s rays), increasing: ``np.unique`` of their
+    concatenation, from a mask over the revolution's rays."""
+    if not culls:
+        return np.zeros(0, dtype=np.int64)
+    mask = np.zeros(int(pattern.ring_start[-1]), dtype=bool)
+    for cull in culls:
+        mask[cull] = True
+    return np.flatnonzero(mask)
 
 
 def _every_ray(pattern: BeamPattern, meshes: list[tuple[torch.Tensor, np.ndarray]]) -> list[np.ndarray]:
@@ -292,20 +384,29 @@ def trace_meshes(prep: PreparedScan, meshes: Sequence[MeshInput]) -> TracedHits:
     return _trace(prep, mts, _culled_rays(prep.pattern, mts))
 
 
+def _face_spheres(stacked: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (F, 3), radii (F,)) of the faces' bounding spheres (centre of the corners' box), inflated by 1e-3
+    of the radius (+1e-9 m), far more than the ray test's barycentric tolerance (1e-6 of an edge); ``stacked``:
+    vertices (V, 3) float64 and faces (F, 3) indexing them."""
+    a, b, c = (stacked[0][stacked[1][:, j]] for j in range(3))
+    centre = 0.5 * (np.minimum(np.minimum(a, b), c) + np.maximum(np.maximum(a, b), c))
+    # |x - centre|^2 as ((x - centre) ** 2).sum(1) adds it, without a reduction along a short axis (dot3)
+    da, db, dc = a - centre, b - centre, c - centre
+    radius = np.sqrt(np.maximum(np.maximum(dot3(da, da), dot3(db, db)), dot3(dc, dc))) * (1 + 1e-3) + 1e-9
+    return centre, radius
+
+
 def _face_pairs(pattern: BeamPattern, mts: list[tuple[torch.Tensor, np.ndarray]], culls: list[np.ndarray],
                 idx: np.ndarray, stacked: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Candidate (ray, face) pairs of :func:`_trace`'s cast: (positions in ``idx``, faces of the concatenated
-    meshes ``mts``): each face with the rays of its mesh's cull (``culls``) that can pass through the face's
-    bounding sphere (:meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.sphere_rays`), inflated by 1e-3 of
-    its radius (+1e-9 m), far more than the ray test's barycentric tolerance (1e-6 of an edge): every pair
-    that can pass the test is among them, so the cast finds the same hits as testing each ray of a mesh's
-    cull against all of its faces. ``stacked``: the meshes' vertices (V, 3) float64 and faces (F, 3) indexing
+    """Candidate (ray, face) pairs of :func:`_trace`'s cast, formed in numpy (the reference of
+    :func:`_sphere_search`, which tests the same pairs as it finds them): (positions in ``idx``, faces of the
+    concatenated meshes ``mts``): each face with the rays of its mesh's cull (``culls``) that can pass through the
+    face's bounding sphere (:func:`_face_spheres`, :meth:`~robustbench3d.sensors.lidar_beams.BeamPattern.sphere_rays`):
+    every pair that can pass the test is among them, so the cast finds the same hits as testing each ray of a
+    mesh's cull against all of its faces. ``stacked``: the meshes' vertices (V, 3) float64 and faces (F, 3) indexing
     them, concatenated in order (as :func:`_trace` builds them for the cast)."""
-    a, b, c = (stacked[0][stacked[1][:, j]] for j in range(3))
+    centre, radius = _face_spheres(stacked)
     mesh = np.repeat(np.arange(len(mts)), [len(fa) for _, fa in mts])
-    centre = 0.5 * (np.minimum(np.minimum(a, b), c) + np.maximum(np.maximum(a, b), c))
-    radius = np.sqrt(np.maximum(np.maximum(((a - centre) ** 2).sum(1), ((b - centre) ** 2).sum(1)),
-                                ((c - centre) ** 2).sum(1))) * (1 + 1e-3) + 1e-9
     rings = [pattern.ray_rings(cull) for cull in culls]  # only the lasers of the mesh's cull can be kept
     face, ray = pattern.sphere_rays(centre, radius, np.array([r.min() for r in rings])[mesh],
                                     np.array([r.max() for r in rings])[mesh])
@@ -319,15 +420,36 @@ def _face_pairs(pattern: BeamPattern, mts: list[tuple[torch.Tensor, np.ndarray]]
     return at[keep], face[keep]
 
 
-def _trace(prep: PreparedScan, mts: list[tuple[torch.Tensor, np.ndarray]], culls: list[np.ndarray],
+def _sphere_search(pattern: BeamPattern, mts: list[tuple[torch.Tensor, np.ndarray]], culls: list[np.ndarray],
+                   idx: np.ndarray, stacked: tuple[np.ndarray, np.ndarray]) -> PairSearch:
+    """The no-grad search of :func:`_trace`'s cast (:data:`~robustbench3d.sensors.raycast.PairSearch`): the pairs of
+    :func:`_face_pairs` tested as the compiled kernel finds them
+    (:func:`~robustbench3d.sensors.kernels.sphere_pairs_nearest`: each face's sphere against its mesh's culled rays,
+    laser by laser, as runs of consecutive rays): the same nearest faces, t and pair count as
+    :func:`~robustbench3d.sensors.raycast.search_pairs` of those pairs, without forming them. Arguments as
+    :func:`_face_pairs`."""
+    centre, radius = _face_spheres(stacked)
+    mesh = np.repeat(np.arange(len(mts)), [len(fa) for _, fa in mts])
+    runs = pattern.cull_runs(culls, idx)
+
+    def search(table: np.ndarray | None, d_cols: np.ndarray, h: np.ndarray | None, t_min: float, tol: float
+               ) -> tuple[np.ndarray, np.ndarray, int]:
+        if table is None or h is None:
+            raise ValueError("render_lidar: the cast needs faces and per-ray laser heights")
+        return pattern.sphere_nearest(centre, radius, mesh, runs, table, d_cols, h, t_min, tol)
+
+    return search
+
+
+def _trace(prep: PreparedScan | _RayPoints, mts: list[tuple[torch.Tensor, np.ndarray]], culls: list[np.ndarray],
            cull: bool = True) -> TracedHits:
     """:func:`trace_meshes` with the meshes checked and culled: all meshes in one cast (faces concatenated, so
     the nearest face over them is the nearest hit over the meshes; equal t: the lower mesh) of the union of
     their culled rays, each face tested only with the rays of its mesh's cull that can reach it
-    (:func:`_face_pairs`, ``cast_ray_pairs``): the hits of casting each mesh's culled rays at its faces.
+    (:func:`_sphere_search`, ``cast_ray_search``): the hits of casting each mesh's culled rays at its faces.
     ``cull=False``: every ray of ``idx`` (the union of ``culls``) with every face (:func:`_all_pairs`)."""
     with_faces = [i for i, (_, fa) in enumerate(mts) if len(fa) and len(culls[i])]
-    idx = np.unique(np.concatenate([culls[i] for i in with_faces])) if with_faces else np.zeros(0, dtype=np.int64)
+    idx = _union(prep.pattern, [culls[i] for i in with_faces])
     if len(idx) == 0:
         z = torch.zeros(0, dtype=torch.float64)
         e = np.zeros(0, dtype=np.int64)
@@ -338,10 +460,10 @@ def _trace(prep: PreparedScan, mts: list[tuple[torch.Tensor, np.ndarray]], culls
     fa = np.concatenate([mts[i][1] + v_off[k] for k, i in enumerate(with_faces)])
     origins, dirs = prep.pattern.ray_geometry(idx)
     if cull:
-        ray_pos, face_pos = _face_pairs(prep.pattern, [mts[i] for i in with_faces], [culls[i] for i in with_faces],
-                                        idx, (vt.detach().numpy(), fa))
-        rh = cast_ray_pairs(vt, torch.from_numpy(fa), torch.from_numpy(dirs), torch.zeros(3, dtype=torch.float64),
-                            torch.from_numpy(ray_pos), torch.from_numpy(face_pos), torch.from_numpy(origins[:, 2]))
+        search = _sphere_search(prep.pattern, [mts[i] for i in with_faces], [culls[i] for i in with_faces], idx,
+                                (vt.detach().numpy(), fa))
+        rh = cast_ray_search(vt, torch.from_numpy(fa), torch.from_numpy(dirs), torch.zeros(3, dtype=torch.float64),
+                             search, torch.from_numpy(origins[:, 2]), name="render_lidar", checked=True)
     else:
         rh = cast_ray_pair_chunks(vt, torch.from_numpy(fa), torch.from_numpy(dirs),
                                   torch.zeros(3, dtype=torch.float64),
@@ -352,9 +474,8 @@ def _trace(prep: PreparedScan, mts: list[tuple[torch.Tensor, np.ndarray]], culls
     part = np.searchsorted(f_off, gface, "right") - 1
     ray, mesh, face = idx[sel.numpy()], np.asarray(with_faces, dtype=np.int64)[part], gface - f_off[part]
     t, u, v = rh.t[sel], rh.u[sel], rh.v[sel]
-    owner, pidx = prep.points_on(ray)
+    owner, pidx, rp = prep.ranges_on(ray)
     tn = t.detach().numpy()
-    rp = prep.range_m[pidx]
     hidden = np.zeros(len(ray), dtype=bool)
     hidden[owner[rp < tn[owner]]] = True
     removed = np.unique(pidx[(rp > tn[owner]) & ~hidden[owner]])
@@ -466,15 +587,14 @@ def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *
 
 
 def _without_rows(scan: np.ndarray, removed: np.ndarray, added: np.ndarray) -> np.ndarray:
-    """(M, 4): the rows of ``scan`` (N, 4) but ``removed``, in order, then ``added``: ``np.concatenate([scan[kept],
-    added])``, bit for bit, with float32 rows copied as single 16-byte items (a 1-D mask, several times faster)."""
-    kept = np.ones(len(scan), dtype=bool)
-    kept[removed] = False
+    """(M, 4): the rows of ``scan`` (N, 4) but ``removed`` (increasing, distinct), in order, then ``added``:
+    ``np.concatenate([scan[kept], added])``, bit for bit, float32 rows copied as their bytes, run by run between
+    the removed rows (:func:`~robustbench3d.sensors.kernels.rows_but`)."""
     if scan.dtype != np.float32:
+        kept = np.ones(len(scan), dtype=bool)
+        kept[removed] = False
         return np.concatenate([scan[kept], added])
-    row = np.dtype((np.void, scan.itemsize * 4))
-    out = np.empty((int(kept.sum()) + len(added), 4), dtype=np.float32)
-    out[:len(out) - len(added)].view(row).reshape(-1)[:] = np.ascontiguousarray(scan).view(row).reshape(-1)[kept]
+    out = rows_but(scan, removed, len(added))
     out[len(out) - len(added):] = added
     return out
 

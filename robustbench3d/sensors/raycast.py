@@ -29,7 +29,9 @@ bounding spheres, the camera's per-face screen boxes) and tests them with a comp
 per-op overhead; the same element-wise IEEE operations in the same order and dtype, so the same verdicts and t
 bit for bit). Both test
 a pair element-wise, so its verdict and t do not depend on the other pairs, and keep the nearest hit per ray
-(equal t: the smallest face index).
+(equal t: the smallest face index). :func:`cast_ray_search` lets a caller whose cull finds the candidate pairs in
+a compiled loop test them there with the same arithmetic (the LiDAR render's
+:func:`robustbench3d.sensors.kernels.sphere_pairs_nearest`) and recomputes the winners as the others do.
 
 Rejected: faces of (near) zero area, rays within ``arccos(cos_min)`` of grazing (relative cut
 |cos(incidence)| > cos_min, which also bounds the gradients at about 1/cos_min), hits at t <= t_min.
@@ -38,7 +40,7 @@ Barycentric tolerance 1e-6 (float64) / 1e-5 (float32) so rays through edges and 
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from functools import lru_cache
 
@@ -66,9 +68,10 @@ _SLIVER = {torch.float64: 1e-10, torch.float32: 1e-5}
 #: Barycentric tolerance: rays tangent to an edge or through a vertex still hit one of its faces.
 _BARY_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 
-__all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "FaceRows", "PairCaster", "PairTUV", "PairTable", "RayHits",
-           "back_faces", "cast_ray_pair_chunks", "cast_ray_pairs", "cast_rays", "face_slots", "face_test_geometry",
-           "hit_pairs_np", "nearest_np", "scatter_rows", "search_pairs", "search_pairs_np"]
+__all__ = ["CLUSTER_SIZE", "SEARCH_CHUNK_PAIRS", "FaceRows", "PairCaster", "PairSearch", "PairTUV", "PairTable",
+           "RayHits", "back_faces", "cast_ray_pair_chunks", "cast_ray_pairs", "cast_ray_search", "cast_rays",
+           "face_slots", "face_test_geometry", "hit_pairs_np", "nearest_np", "scatter_rows", "search_pairs",
+           "search_pairs_np"]
 
 
 @dataclass(frozen=True)
@@ -512,7 +515,10 @@ class _Prepared:
 
 
 def _prepare(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Tensor, origin: torch.Tensor,
-             origin_offset: torch.Tensor | None, offset_axis: Sequence[float], name: str) -> _Prepared:
+             origin_offset: torch.Tensor | None, offset_axis: Sequence[float], name: str, check: bool = True
+             ) -> _Prepared:
+    """The cast's inputs as tensors of the vertices' dtype, checked (ValueError naming the field); ``check=False``
+    skips the finiteness of the vertices and the range of the face indices (the caller checked them)."""
     if not isinstance(vertices, torch.Tensor):
         vertices = torch.tensor(np.asarray(vertices, dtype=np.float64))
     dtype, dev = vertices.dtype, vertices.device
@@ -523,26 +529,28 @@ def _prepare(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Tens
     h = None if origin_offset is None else _as_tensor(origin_offset, dtype, dev).reshape(-1)
     if vertices.dim() != 2 or vertices.shape[1] != 3:
         raise ValueError(f"{name}: field 'vertices': expected shape (V, 3), got {tuple(vertices.shape)}")
-    if not bool(torch.isfinite(vertices.detach()).all()):
+    if check and not bool(torch.isfinite(vertices.detach()).all()):
         raise ValueError(f"{name}: field 'vertices': contains NaN or inf")
     if h is not None and len(h) != len(d):
         raise ValueError(f"{name}: field 'origin_offset': {len(h)} offsets for {len(d)} rays")
-    if len(faces_t) and (int(faces_t.min()) < 0 or int(faces_t.max()) >= len(vertices)):
+    if check and len(faces_t) and (int(faces_t.min()) < 0 or int(faces_t.max()) >= len(vertices)):
         raise ValueError(f"{name}: field 'faces': indices must lie in [0, {len(vertices)})")
     return _Prepared(vertices, faces_t, d, _as_tensor(origin, dtype, dev).reshape(3),
                      h, _as_tensor(offset_axis, dtype, dev).reshape(3), _BARY_TOL[dtype])
 
 
-def _face_geometry(p: _Prepared, cos_min: float, skip: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+def _face_geometry(p: _Prepared, cos_min: float, skip: torch.Tensor | None = None, checked: bool = False
+                   ) -> tuple[torch.Tensor, ...]:
     """No grad: v0, e1, e2 (F, 3) and the test's per-face table (:func:`_face_tables`) as tensors; faces of the
-    mask ``skip`` (F,) never hit. Formed in numpy in the vertices' dtype (:func:`face_test_geometry`)."""
+    mask ``skip`` (F,) never hit. Formed in numpy in the vertices' dtype (:func:`face_test_geometry`; ``checked``:
+    the faces are known to index the vertices)."""
     return tuple(torch.from_numpy(x) for x in face_test_geometry(
         p.vertices.detach().numpy(), p.faces.numpy(), p.origin.numpy(), cos_min,
-        None if p.h is None else p.axis.numpy(), None if skip is None else skip.numpy()))
+        None if p.h is None else p.axis.numpy(), None if skip is None else skip.numpy(), checked=checked))
 
 
 def face_test_geometry(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, cos_min: float = 1e-3,
-                       axis: np.ndarray | None = None, skip: np.ndarray | None = None
+                       axis: np.ndarray | None = None, skip: np.ndarray | None = None, *, checked: bool = False
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """v0, e1, e2 (F, 3) and the per-face table of the no-grad test (:func:`_face_tables`; offsets along ``axis``
     if given, else shared origin) of faces (F, 3) int64 into float32 or float64 ``vertices`` (V, 3) (validated
@@ -551,7 +559,7 @@ def face_test_geometry(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarr
     vd = vertices
     if _one_float_dtype(vd, origin, axis):  # compiled, the same arithmetic (the numpy code below)
         return face_test_table(vd, faces, origin, cos_min, axis, skip,
-                               _SLIVER[torch.float32 if vd.dtype == np.float32 else torch.float64])
+                               _SLIVER[torch.float32 if vd.dtype == np.float32 else torch.float64], checked=checked)
     v0, v1, v2 = vd[faces[:, 0]], vd[faces[:, 1]], vd[faces[:, 2]]
     e1, e2 = v1 - v0, v2 - v0
     c = cross_rows(e1, e2)
@@ -661,6 +669,32 @@ def cast_ray_pair_chunks(vertices: torch.Tensor, faces: torch.Tensor, directions
         table = _face_geometry(p, cos_min)[3] if len(p.faces) else None
     face, _, tests = _pair_search(p, table, chunks, t_min, name)
     return _hits(p, face, tests)
+
+
+#: A caller's no-grad search of :func:`cast_ray_search`: (per-face ``table`` of :func:`_face_tables` or None
+#: without faces, directions by component ``d_cols`` (3, R), offsets ``h`` (R,) or None, ``t_min``, ``tol``) ->
+#: (nearest face per ray (R,) int64 or -1, its t (R,) or +inf, pairs tested).
+PairSearch = Callable[[np.ndarray | None, np.ndarray, np.ndarray | None, float, float],
+                      tuple[np.ndarray, np.ndarray, int]]
+
+
+def cast_ray_search(vertices: torch.Tensor, faces: torch.Tensor, directions: torch.Tensor, origin: torch.Tensor,
+                    search: PairSearch, origin_offset: torch.Tensor | None = None,
+                    offset_axis: Sequence[float] = (0.0, 0.0, 1.0), *, t_min: float = 1e-6, cos_min: float = 1e-3,
+                    name: str = "cast_ray_search", checked: bool = False) -> RayHits:
+    """:func:`cast_ray_pairs` whose no-grad search is the caller's ``search`` (:data:`PairSearch`), run on the
+    validated cast's per-face table and rays: for a cull that tests its candidate pairs as it finds them (e.g.
+    :func:`robustbench3d.sensors.kernels.sphere_pairs_nearest`) with :func:`search_pairs`' arithmetic and choice
+    (the nearest t, equal t the smallest face index). t, u, v are recomputed with gradients on the winners.
+    ``checked=True``: the caller has checked that the vertices are finite and the faces index them (e.g. a
+    renderer that checked its meshes on entry): those checks are not made again."""
+    p = _prepare(vertices, faces, directions, origin, origin_offset, offset_axis, name, check=not checked)
+    with torch.no_grad():
+        table = _face_geometry(p, cos_min, checked=checked)[3].numpy() if len(p.faces) else None
+    face, _, tests = search(table, p.d.numpy().T.copy(), None if p.h is None else p.h.numpy(), t_min, p.tol)
+    if face.shape != (len(p.d),):
+        raise ValueError(f"{name}: field 'search': {face.shape} faces for {len(p.d)} rays")
+    return _hits(p, torch.from_numpy(face), int(tests))
 
 
 @dataclass(frozen=True, eq=False)
