@@ -22,6 +22,11 @@ atomically and read when present. A query outside every cached box (a car stradd
 camera plane, an object larger than its bounds) is answered by the exact provider, built on demand:
 the cache changes speed, never values.
 
+:func:`warm_scene_depths` computes the files a run will read before it needs them, in worker processes
+(``attack train`` does so before its first step, :func:`robustbench3d.attacks.train_run.warm_depths`): the same
+files :func:`cached_scene_depth` writes on first use (it computes them), readable ones kept, so it can be
+interrupted and rerun.
+
 An attacked frame does not keep such a source as it is (through the exact provider it reaches the dataset's
 path and the whole scene: a victim given the frame must find neither): :func:`depth_for_render` keeps its
 crops and, for the positions the camera render of the placed objects can query outside them
@@ -34,6 +39,9 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import zipfile
+import zlib
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -51,10 +59,16 @@ if TYPE_CHECKING:
     from robustbench3d.synth.scene import Lighting
 
 CACHE_VERSION = 1
+#: What reading a missing, truncated or foreign cache file raises (numpy, zipfile, zlib).
+_UNREADABLE = (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
 #: Depths farther than the farthest point an object can reach plus this are stored as +inf.
 FAR_MARGIN_M = 0.01
 #: Crops larger than this many pixels (e.g. a car straddling the camera plane) are not cached.
 MAX_CROP_PIXELS = 200_000
+#: :func:`warm_scene_depths` gives each worker process at least this many frames: a worker starts in about 1.5 s
+#: of CPU (Python, torch, which the crop geometry imports, the compiled kernels' cache), the time of 5 to 20
+#: scene rebuilds (0.07-0.45 s each), so fewer frames per worker would cost more than they save.
+FRAMES_PER_WORKER = 8
 _LIGHT_ARRAYS = ("sun_direction", "sun_color", "sky_zenith", "sky_horizon")
 _LIGHT_FLOATS = ("ambient", "haze_distance", "exposure")
 
@@ -170,8 +184,20 @@ def _decode(path: Path) -> tuple[int, np.ndarray, list[np.ndarray], Lighting] | 
             light = Lighting(**{k: z[f"light_{k}"] for k in _LIGHT_ARRAYS},
                              **{k: float(z[f"light_{k}"]) for k in _LIGHT_FLOATS})
             return int(z["supersample"]), boxes, depths, light
-    except (OSError, KeyError, ValueError):
+    except _UNREADABLE:
         return None
+
+
+def _readable(path: Path, supersample: int) -> bool:
+    """Whether cache file ``path`` exists and its header holds this cache version, ``supersample`` and a depth
+    array per box (a quick check: the arrays themselves are read when used; files are written atomically)."""
+    try:
+        with np.load(path) as z:
+            boxes = len(z["boxes"])
+            return (int(z["version"]) == CACHE_VERSION and int(z["supersample"]) == supersample
+                    and all(f"depth_{i}" in z.files for i in range(boxes)))
+    except _UNREADABLE:
+        return False
 
 
 def crop_key(bounds: np.ndarray, margin_m: float) -> str:
@@ -180,18 +206,31 @@ def crop_key(bounds: np.ndarray, margin_m: float) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:8]
 
 
+def depth_path(dataset_key: str, frame_id: str, supersample: int, bounds: np.ndarray, margin_m: float,
+               cache_root: Path | None = None) -> Path:
+    """The cache file of one frame's roof crops (module doc); ``cache_root`` defaults to the cache directory."""
+    from robustbench3d.paths import cache_dir
+
+    base = (cache_root or cache_dir()) / "scene_depth" / dataset_key
+    return base / f"{frame_id}_s{supersample}_{crop_key(bounds, margin_m)}.npz"
+
+
+def _cached(path: Path, supersample: int) -> tuple[int, np.ndarray, list[np.ndarray], Lighting] | None:
+    """The crops of cache file ``path`` if it exists, reads and holds ``supersample``; else None."""
+    found = _decode(path) if path.is_file() else None
+    return found if found is not None and found[0] == supersample else None
+
+
 def cached_scene_depth(root: Path, dataset_key: str, frame_id: str, calib: Calibration, targets: Labels,
                        image_size: tuple[int, int], supersample: int, bounds: np.ndarray, margin_m: float,
                        cache_root: Path | None = None) -> CroppedDepth:
     """The exact scene depth of frame ``frame_id`` around its target cars' roofs, from the cache or
     computed (one scene rebuild) and cached (module doc)."""
-    from robustbench3d.paths import cache_dir
-
-    base = (cache_root or cache_dir()) / "scene_depth" / dataset_key
-    path = base / f"{frame_id}_s{supersample}_{crop_key(bounds, margin_m)}.npz"
+    path = depth_path(dataset_key, frame_id, supersample, bounds, margin_m, cache_root)
+    base = path.parent
     exact = _ExactFactory(root, frame_id)
-    found = _decode(path) if path.is_file() else None
-    if found is not None and found[0] == supersample:
+    found = _cached(path, supersample)
+    if found is not None:
         return CroppedDepth(supersample, found[1], found[2], found[3], exact)
     source = exact()
     off = sample_offsets(supersample)
@@ -218,6 +257,141 @@ def cached_scene_depth(root: Path, dataset_key: str, frame_id: str, calib: Calib
     base.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, _encode(box_arr, depths, source.lighting, supersample))
     return CroppedDepth(supersample, box_arr, depths, source.lighting, exact, source)
+
+
+@dataclass(frozen=True)
+class DepthJob:
+    """One cache file to warm (:func:`warm_scene_depths`): what :func:`cached_scene_depth` takes for a frame
+    of the bound dataset (picklable, for the worker processes).
+
+    Attributes:
+        frame_id: the frame ('000123'); calib: its calibration; targets: the target cars whose roofs are
+        cropped, as the consumer passes them; image_size: (width, height) px; supersample, bounds, margin_m:
+        the attack's camera samples per pixel side, object half extents (m) and EOT position jitter (m).
+    """
+
+    frame_id: str
+    calib: Calibration
+    targets: Labels
+    image_size: tuple[int, int]
+    supersample: int
+    bounds: tuple[float, float, float]
+    margin_m: float
+
+    def path(self, dataset_key: str, cache_root: Path | None = None) -> Path:
+        return depth_path(dataset_key, self.frame_id, self.supersample, np.asarray(self.bounds, np.float64),
+                          self.margin_m, cache_root)
+
+
+@dataclass(frozen=True)
+class WarmReport:
+    """Outcome of :func:`warm_scene_depths`: cache files asked for, kept (already readable), computed (of
+    which ``replaced`` replaced an unreadable or other-version file), worker processes used, wall seconds."""
+
+    files: int
+    kept: int
+    computed: int
+    replaced: int
+    workers: int
+    seconds: float
+
+
+def warm_scene_depths(root: Path, dataset_key: str, jobs: Sequence[DepthJob], *, workers: int = 1,
+                      cache_root: Path | None = None, progress: bool = False,
+                      log: Callable[[str], None] | None = None) -> WarmReport:
+    """Compute, before they are needed, the cache files of ``jobs`` (frames of the generated dataset in ``root``
+    with key ``dataset_key``) that are missing or unreadable, in up to ``workers`` processes
+    (:data:`robustbench3d.ranges.PROCESSES_RANGE`; at least :data:`FRAMES_PER_WORKER` frames each, one: in this
+    process): each is what :func:`cached_scene_depth` would write on first
+    use (the same function computes it), so a consumer then reads it and rebuilds no scene. Readable files are
+    kept; each file is written atomically as soon as its frame is done, so an interrupted warm-up resumes where
+    it stopped. ``log`` receives one line on what is kept, computed and replaced, and one when done; a tqdm bar
+    on stderr with ``progress``. A worker's :class:`~robustbench3d.errors.RobustBenchError` (e.g. a frame
+    that does not match the scene its seed rebuilds) is raised here, the other workers stopped."""
+    import multiprocessing
+    import sys
+    import time
+
+    from tqdm import tqdm
+
+    from robustbench3d.errors import RobustBenchError
+    from robustbench3d.paths import cache_dir
+    from robustbench3d.ranges import PROCESSES_RANGE, check_range
+
+    check_range("--workers", workers, *PROCESSES_RANGE, "worker processes")
+    t0 = time.perf_counter()
+    cache_root = Path(cache_root or cache_dir())
+    unique = list({job.path(dataset_key, cache_root): job for job in jobs}.items())
+    pending = [(p, job) for p, job in unique if not _readable(p, job.supersample)]
+    replaced = sum(p.exists() for p, _ in pending)
+    used = max(1, min(workers, len(pending) // FRAMES_PER_WORKER))
+    say = log if log is not None else (lambda line: None)
+    where = cache_root / "scene_depth" / dataset_key
+    if pending:
+        note = f"; replacing {replaced} unreadable or other-version file(s)" if replaced else ""
+        how = "in this process" if used == 1 else f"with {used} worker processes"
+        say(f"exact occlusion: the scene depths of {len(unique)} frame(s) are needed, {len(unique) - len(pending)} "
+            f"cached (kept); computing {len(pending)} {how} into {where}{note}")
+    tasks = [(str(root), dataset_key, job, str(cache_root)) for _, job in pending]
+    bar = tqdm(total=len(tasks), unit="frame", file=sys.stderr, disable=not progress or not tasks,
+               desc="scene depth", dynamic_ncols=True)
+    try:
+        if used == 1:
+            results = map(_warm_one, tasks)
+            for problem in results:
+                _raise_problem(problem, RobustBenchError)
+                bar.update(1)
+        else:
+            with multiprocessing.get_context("spawn").Pool(used) as pool:
+                for problem in pool.imap_unordered(_warm_one, tasks, chunksize=1):
+                    _raise_problem(problem, RobustBenchError)
+                    bar.update(1)
+    finally:
+        bar.close()
+    report = WarmReport(len(unique), len(unique) - len(pending), len(pending), replaced, used,
+                        time.perf_counter() - t0)
+    if pending:
+        say(f"exact occlusion: computed the scene depths of {report.computed} frame(s) in {report.seconds:.1f} s")
+    return report
+
+
+def attack_depth_jobs(attack: Any, kitti: Any, frame_ids: Sequence[str],
+                      labels: Sequence[Labels] | None = None) -> list[DepthJob]:
+    """The cache files roof-object ``attack`` (a :class:`~robustbench3d.attacks.roof.RoofObjectAttack` bound
+    to ``kitti``) reads for those of ``frame_ids`` that have target cars (its ``scene_depth`` key: its supersample,
+    object bounds and position jitter); ``labels`` per frame as the consumer passes them (default: the frames'
+    label files); none unless the attack uses exact occlusion."""
+    from robustbench3d.attacks.base import target_cars
+
+    if not attack.exact_occlusion:
+        return []
+    bounds = tuple(float(b) for b in attack.obj.bounds)
+    jobs = []
+    for i, fid in enumerate(frame_ids):
+        targets = target_cars(kitti.labels(fid) if labels is None else labels[i])
+        if len(targets):
+            jobs.append(DepthJob(fid, kitti.calib(fid), targets, kitti.image_size(fid), attack.supersample, bounds,
+                                 attack.position_jitter_m))
+    return jobs
+
+
+def _raise_problem(problem: str | None, error: type[Exception]) -> None:
+    if problem is not None:
+        raise error(problem)
+
+
+def _warm_one(task: tuple[str, str, DepthJob, str]) -> str | None:
+    """Worker: write one job's cache file (:func:`cached_scene_depth`); the message of a RobustBenchError
+    (exceptions with their own constructors do not cross processes), else None."""
+    from robustbench3d.errors import RobustBenchError
+
+    root, key, job, cache_root = task
+    try:
+        cached_scene_depth(Path(root), key, job.frame_id, job.calib, job.targets, job.image_size, job.supersample,
+                           np.asarray(job.bounds, np.float64), job.margin_m, Path(cache_root))
+    except RobustBenchError as exc:
+        return str(exc)
+    return None
 
 
 def _box_pixels(calib: Calibration, vertices: list[np.ndarray],
@@ -352,5 +526,6 @@ class _ExactFactory:
         return dataset_scene_depth(self.root, self.frame_id)
 
 
-__all__ = ["CACHE_VERSION", "CroppedDepth", "TabulatedDepth", "cached_scene_depth", "crop_key",
-           "depth_for_render", "render_positions", "roof_crop", "sample_offsets", "synth_key"]
+__all__ = ["CACHE_VERSION", "CroppedDepth", "DepthJob", "TabulatedDepth", "WarmReport", "attack_depth_jobs",
+           "cached_scene_depth", "crop_key", "depth_for_render", "depth_path", "render_positions", "roof_crop",
+           "sample_offsets", "synth_key", "warm_scene_depths"]

@@ -26,13 +26,18 @@ the target, the predictions that can still detect it (measured stronger, ``docs/
     -log(1 - o c) = softplus(a) + softplus(b) - logsumexp(0, a, b),
 
 finite with a finite gradient at any finite logits; without the class term it is ``softplus(a)``.
-A target without candidates contributes 0.
+A target without candidates contributes 0. The image losses are a table, :data:`IMAGE_LOSSES` (name ->
+:class:`ImageLoss`: the per-target function and the candidate set it reads), which the trainer looks the
+configured name up in; an experiment adds a loss with :func:`register_image_loss` (``research/``).
 
 Smoothness: ``lambda_lap`` times :func:`~robustbench3d.attacks.object.laplacian_smoothness_torch`.
 """
 
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -89,31 +94,103 @@ def neg_log_one_minus_product(a: torch.Tensor, b: torch.Tensor | None = None) ->
     return F.softplus(a) + F.softplus(b.to(a.dtype)) - torch.logsumexp(stacked, dim=0)
 
 
-#: How :func:`image_target_losses` combines a target's candidates: the mean over all of them, or the sum over
-#: those of IoU >= :data:`SUM_MIN_IOU` with the target.
-IMAGE_LOSSES = ("mean", "sum")
+#: Candidates of IoU >= this with their target are those the ``sum`` loss reads.
 SUM_MIN_IOU = 0.5
+#: The 2D oracle's default candidate threshold (``objectness(iou_threshold=0.3)``): the ``mean`` loss's set.
+MEAN_CANDIDATE_IOU = 0.3
+
+
+@dataclass(frozen=True)
+class ImageLoss:
+    """One image loss of :data:`IMAGE_LOSSES`.
+
+    ``terms(candidates, n_targets, image_index, use_class)`` is the (n_targets,) loss of each target box of
+    image ``image_index`` (0 for a target without candidates), differentiable in the candidates' logits;
+    ``use_class=False``: the objectness alone. ``candidate_iou``: the IoU threshold of the 2D oracle's
+    candidate set the loss is defined on (``objectness(iou_threshold=...)``: IoU >= it with the target, or
+    the prior's centre inside the target); the trainer asks for that set (never above its own score
+    threshold, :data:`~robustbench3d.attacks.train_config.CANDIDATE_IOU`)."""
+
+    terms: Callable[[ObjectnessCandidates, int, int, bool], torch.Tensor]
+    candidate_iou: float
+
+    def __call__(self, candidates: ObjectnessCandidates, n_targets: int, image_index: int = 0,
+                 use_class: bool = True) -> torch.Tensor:
+        return self.terms(candidates, n_targets, image_index, use_class)
+
+
+def _candidate_terms(candidates: ObjectnessCandidates, image_index: int, use_class: bool,
+                     min_iou: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Target index and ``-log(1 - o c)`` (``-log(1 - o)`` if not ``use_class``) of each candidate of image
+    ``image_index`` (only those of IoU >= ``min_iou`` with their target, if given)."""
+    on_image = candidates.image_index == image_index
+    if min_iou is not None:
+        on_image = on_image & (candidates.iou >= min_iou)
+    a = candidates.objectness_logit[on_image]
+    per = neg_log_one_minus_product(a, candidates.class_logit[on_image] if use_class else None)
+    return candidates.target_index[on_image], per
+
+
+def mean_candidate_losses(candidates: ObjectnessCandidates, n_targets: int, image_index: int = 0,
+                          use_class: bool = True) -> torch.Tensor:
+    """(n_targets,) mean over each target's candidates of ``-log(1 - o c)`` (the ``mean`` image loss)."""
+    target, per = _candidate_terms(candidates, image_index, use_class)
+    sums = torch.zeros(n_targets, dtype=per.dtype).index_add(0, target, per)
+    counts = torch.zeros(n_targets, dtype=per.dtype).index_add(0, target, torch.ones_like(per))
+    return sums / counts.clamp(min=1.0)
+
+
+def sum_candidate_losses(candidates: ObjectnessCandidates, n_targets: int, image_index: int = 0,
+                         use_class: bool = True) -> torch.Tensor:
+    """(n_targets,) sum over each target's candidates of IoU >= :data:`SUM_MIN_IOU` of ``-log(1 - o c)``
+    (the ``sum`` image loss: the predictions that can still detect the target)."""
+    target, per = _candidate_terms(candidates, image_index, use_class, SUM_MIN_IOU)
+    return torch.zeros(n_targets, dtype=per.dtype).index_add(0, target, per)
+
+
+#: The image losses by name (``TrainConfig.image_loss``, ``--image-loss``): how a target's candidates
+#: combine. ``mean`` and ``sum`` are the shipped objects' (never replaced); an experiment adds its own with
+#: :func:`register_image_loss` and trains with it by name.
+IMAGE_LOSSES: dict[str, ImageLoss] = {
+    "mean": ImageLoss(mean_candidate_losses, MEAN_CANDIDATE_IOU),
+    "sum": ImageLoss(sum_candidate_losses, SUM_MIN_IOU),
+}
+_LOSS_NAME = re.compile(r"^[a-z0-9][a-z0-9_.+-]*$")
+
+
+def register_image_loss(name: str, terms: Callable[[ObjectnessCandidates, int, int, bool], torch.Tensor],
+                        candidate_iou: float = MEAN_CANDIDATE_IOU) -> ImageLoss:
+    """Add the image loss ``name`` (:class:`ImageLoss`) to :data:`IMAGE_LOSSES` for this process and return
+    it; refuses a name already there (``mean`` and ``sum`` stay what the shipped objects were trained with).
+    ``candidate_iou`` in [0, 1]: an IoU threshold (0: every prior of the image is a candidate)."""
+    if not isinstance(name, str) or not _LOSS_NAME.match(name):
+        raise ValueError(f"register_image_loss: field 'name': expected lowercase letters, digits and . _ + - "
+                         f"(it is recorded in the object file), got {name!r}")
+    if name in IMAGE_LOSSES:
+        raise ValueError(f"register_image_loss: field 'name': {name!r} is already an image loss "
+                         f"({', '.join(IMAGE_LOSSES)}); choose another name")
+    if not callable(terms):
+        raise ValueError(f"register_image_loss: field 'terms': expected a function, got {type(terms).__name__}")
+    if not isinstance(candidate_iou, (int, float)) or not 0.0 <= candidate_iou <= 1.0:  # an IoU; 0: every prior
+        raise ValueError(f"register_image_loss: field 'candidate_iou': expected 0 to 1, got {candidate_iou!r}")
+    IMAGE_LOSSES[name] = ImageLoss(terms, float(candidate_iou))
+    return IMAGE_LOSSES[name]
 
 
 def image_target_losses(candidates: ObjectnessCandidates, n_targets: int, image_index: int = 0,
                         use_class: bool = True, reduce: str = "mean") -> torch.Tensor:
-    """(n_targets,) image loss of each target box of image ``image_index``: the mean over its candidates
-    of ``-log(1 - o * c)`` (``-log(1 - o)`` if not ``use_class``), or with ``reduce="sum"`` the sum over its
-    candidates of IoU >= :data:`SUM_MIN_IOU`; 0 for a target without (such) candidates."""
+    """(n_targets,) image loss ``reduce`` (a name of :data:`IMAGE_LOSSES`) of each target box of image
+    ``image_index``: by default the mean over its candidates of ``-log(1 - o * c)`` (``-log(1 - o)`` if not
+    ``use_class``), with ``reduce="sum"`` the sum over its candidates of IoU >= :data:`SUM_MIN_IOU`; 0 for a
+    target without (such) candidates."""
     if reduce not in IMAGE_LOSSES:
         raise ValueError(f"image_target_losses: field 'reduce': expected one of {', '.join(IMAGE_LOSSES)}, "
                          f"got {reduce!r}")
-    on_image = candidates.image_index == image_index
-    if reduce == "sum":
-        on_image = on_image & (candidates.iou >= SUM_MIN_IOU)
-    target = candidates.target_index[on_image]
-    a = candidates.objectness_logit[on_image]
-    per = neg_log_one_minus_product(a, candidates.class_logit[on_image] if use_class else None)
-    sums = torch.zeros(n_targets, dtype=per.dtype).index_add(0, target, per)
-    if reduce == "sum":
-        return sums
-    counts = torch.zeros(n_targets, dtype=per.dtype).index_add(0, target, torch.ones_like(per))
-    return sums / counts.clamp(min=1.0)
+    out = IMAGE_LOSSES[reduce](candidates, n_targets, image_index, use_class)
+    if tuple(out.shape) != (n_targets,):
+        raise ValueError(f"image_target_losses: image loss {reduce!r} returned shape {tuple(out.shape)}, "
+                         f"expected ({n_targets},)")
+    return out
 
 
 def best_candidate_scores(candidates: ObjectnessCandidates, n_targets: int, image_index: int = 0,

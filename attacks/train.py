@@ -2,7 +2,8 @@
 
 One object for every target car of a training split: vertex displacements through the tanh box
 parametrisation (:func:`~robustbench3d.attacks.object.tanh_vertices`) and per-vertex colours as
-``sigmoid(logits)``, both float64, optimised with Adam (one parameter group each). Settings and modes:
+``sigmoid(logits)``, both float64, optimised with Adam (one parameter group each; :class:`Adam`, torch.optim.Adam
+written out, the same bits without importing ``torch._dynamo``). Settings and modes:
 :mod:`~robustbench3d.attacks.train_config`; the loop, checkpoints and output:
 :mod:`~robustbench3d.attacks.train_run`; the held-out curve (frames cut off before the trainer is built,
 evaluated with :meth:`UniversalTrainer.heldout_losses` and the victim's ``detect``):
@@ -163,6 +164,100 @@ def _bev_iou_per_target(det: Labels, targets: Labels) -> np.ndarray:
     return bev_iou(boxes(targets), boxes(det)).max(axis=1)
 
 
+#: torch.optim.Adam's defaults, in the order its param groups hold them (after ``params`` and ``lr``).
+_ADAM_DEFAULTS: dict[str, Any] = {"betas": (0.9, 0.999), "eps": 1e-8, "weight_decay": 0, "amsgrad": False,
+                                  "maximize": False, "foreach": None, "capturable": False, "differentiable": False,
+                                  "fused": None, "decoupled_weight_decay": False}
+
+
+def _adam_step_count(value: float) -> torch.Tensor:
+    """Adam's step counter as torch keeps it: a CPU scalar tensor, float64 only under a float64 default dtype
+    (torch.optim.optimizer._get_scalar_dtype)."""
+    return torch.tensor(value, dtype=torch.float64 if torch.get_default_dtype() == torch.float64 else torch.float32)
+
+
+class Adam:
+    """``torch.optim.Adam(groups)`` with its defaults, written out: the same update bits, state and
+    ``state_dict()`` (so checkpoints of either load into the other).
+
+    torch's optimisers import ``torch._dynamo`` on their first call (``torch._disable_dynamo``), about a
+    second of CPU at start-up (several on a loaded machine); this class does not. It performs, per parameter
+    of each group in order, the operations of torch's single-tensor CPU path (``torch.optim.adam.
+    _single_tensor_adam`` without weight decay, amsgrad, maximize): ``step += 1`` (a float32 tensor),
+    ``m.lerp_(g, 1 - b1)``, ``v.mul_(b2).addcmul_(g, g, value=1 - b2)``, then ``p.addcdiv_(m, (v.sqrt() /
+    sqrt(1 - b2**t)).add_(eps), value=-lr / (1 - b1**t))`` with the scalars in Python floats.
+    tests/test_attack_train_warm.py compares it with torch.optim.Adam bit for bit over several steps.
+    """
+
+    def __init__(self, groups: list[dict[str, Any]]) -> None:
+        self.param_groups = [{"params": list(g["params"]), "lr": g["lr"], **_ADAM_DEFAULTS} for g in groups]
+        self.state: dict[int, dict[str, torch.Tensor]] = {}  # by parameter index, in order of first update
+
+    def _params(self) -> list[torch.Tensor]:
+        return [p for g in self.param_groups for p in g["params"]]
+
+    @torch.no_grad()
+    def step(self, grads: list[torch.Tensor]) -> None:
+        """One update with gradient ``grads[i]`` for the i-th parameter (groups in order)."""
+        i = 0
+        for group in self.param_groups:
+            beta1, beta2 = group["betas"]
+            lr, eps = group["lr"], group["eps"]
+            for param in group["params"]:
+                grad = grads[i]
+                if i not in self.state:
+                    self.state[i] = {"step": _adam_step_count(0.0),
+                                     "exp_avg": torch.zeros_like(param, memory_format=torch.preserve_format),
+                                     "exp_avg_sq": torch.zeros_like(param, memory_format=torch.preserve_format)}
+                state = self.state[i]
+                exp_avg, exp_avg_sq = state["exp_avg"], state["exp_avg_sq"]
+                state["step"] += 1
+                exp_avg.lerp_(grad, 1 - beta1)
+                exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+                step = state["step"].item()
+                bias_correction1 = 1 - beta1**step
+                bias_correction2_sqrt = (1 - beta2**step) ** 0.5
+                denom = (exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(eps)
+                param.addcdiv_(exp_avg, denom, value=-(lr / bias_correction1))
+                i += 1
+
+    def state_dict(self) -> dict[str, Any]:
+        """torch.optim.Adam's ``state_dict()`` layout: ``state`` by parameter index, ``param_groups`` with
+        their hyperparameters and parameter indices."""
+        groups, start = [], 0
+        for g in self.param_groups:
+            n = len(g["params"])
+            groups.append({**{k: v for k, v in g.items() if k != "params"}, "params": list(range(start, start + n))})
+            start += n
+        return {"state": dict(self.state), "param_groups": groups}
+
+    def load_state_dict(self, saved: dict[str, Any]) -> None:
+        """Take the state and hyperparameters of a :meth:`state_dict` (this class's or torch.optim.Adam's);
+        ValueError if its groups do not match or it uses a setting this class does not implement."""
+        groups = saved["param_groups"]
+        if len(groups) != len(self.param_groups) or any(
+                len(a["params"]) != len(b["params"]) for a, b in zip(groups, self.param_groups, strict=True)):
+            raise ValueError("the optimiser state has other parameter groups")
+        for g in groups:
+            other = {k: g.get(k, v) for k, v in _ADAM_DEFAULTS.items() if k not in ("betas", "eps")}
+            if other != {k: v for k, v in _ADAM_DEFAULTS.items() if k not in ("betas", "eps")}:
+                raise ValueError(f"the optimiser state uses Adam settings this trainer does not implement: {other}")
+        params = self._params()
+        index = {k: i for i, k in enumerate(k for g in groups for k in g["params"])}
+        state: dict[int, dict[str, torch.Tensor]] = {}
+        for key, value in saved["state"].items():
+            p = params[index[key]]
+            step = value["step"]  # torch before 1.12 saved a number
+            if not torch.is_tensor(step):
+                step = _adam_step_count(float(step))
+            state[index[key]] = {"step": step,
+                                 "exp_avg": value["exp_avg"].to(dtype=p.dtype, device=p.device),
+                                 "exp_avg_sq": value["exp_avg_sq"].to(dtype=p.dtype, device=p.device)}
+        self.param_groups = [{**{k: v for k, v in g.items() if k != "params"}, "params": mine["params"]}
+                             for g, mine in zip(groups, self.param_groups, strict=True)]
+        self.state = state
+
+
 @dataclass
 class _FrameTerms:
     """One frame's part of a step: its weighted loss (a tensor, differentiable in the parameters), the
@@ -207,7 +302,7 @@ class UniversalTrainer:
         groups = ([{"params": [self.delta], "lr": config.lr_shape}] if m.shape else []) + \
                  ([{"params": [self.colour_logit], "lr": config.lr_color}] if m.colour else [])
         self.params = [g["params"][0] for g in groups]
-        self.optimizer = torch.optim.Adam(groups)
+        self.optimizer = Adam(groups)
         self.step = 0
         self.history: list[dict[str, float]] = []
         self.zero_run = 0
@@ -260,6 +355,31 @@ class UniversalTrainer:
                 perms[epoch] = np.random.default_rng([self.config.seed, epoch, BATCH_STREAM]).permutation(n)
             out.append(self.cars[int(perms[epoch][q % n])])
         return out
+
+    def step_frames(self, start: int, stop: int) -> list[str]:
+        """The frames whose cars steps ``start`` .. ``stop - 1`` draw (:meth:`batch`), in order of first use."""
+        n, b = len(self.cars), self.config.batch_cars
+        frame_of = np.array([fi for fi, _ in self.cars])
+        wanted = len(set(frame_of.tolist()))
+        seen: dict[int, None] = {}
+        q = start * b
+        while q < stop * b and len(seen) < wanted:  # every frame is drawn once an epoch
+            epoch, at = divmod(q, n)
+            upto = min(n, at + stop * b - q)
+            perm = np.random.default_rng([self.config.seed, epoch, BATCH_STREAM]).permutation(n)
+            seen.update(dict.fromkeys(frame_of[perm[at:upto]].tolist()))
+            q += upto - at
+        return [self.frame_ids[fi] for fi in seen]
+
+    def depth_jobs(self, frame_ids: list[str]) -> list[Any]:
+        """The exact-occlusion cache files (:class:`~robustbench3d.attacks.depth_cache.DepthJob`) the steps
+        and the held-out losses read for ``frame_ids``: none unless the mode renders the camera image
+        (an image term, or the LiDAR term on the detector's boxes) under exact occlusion."""
+        from robustbench3d.attacks.depth_cache import attack_depth_jobs
+
+        if not (self.config.kind.image or self.config.lidar_boxes == "detector"):
+            return []
+        return attack_depth_jobs(self._depth, self.kitti, frame_ids)
 
     def eot_rng(self, step: int) -> np.random.Generator:
         return np.random.default_rng([self.config.seed, step, EOT_STREAM])
@@ -316,7 +436,7 @@ class UniversalTrainer:
         ``when`` names the step in error messages."""
         cfg, m = self.config, self.config.kind
         weights = cfg.weights()
-        frame = self._frame(frame_id, with_image=m.image or cfg.lidar_boxes == "detector")
+        frame = self._frame(frame_id, with_image=m.image or cfg.lidar_boxes == "detector", with_scan=m.lidar)
         targets = target_cars(frame.labels)
         verts, colours = self.vertices(), self.colours()  # a fresh graph per frame
         placed, poses = [], []
@@ -331,7 +451,7 @@ class UniversalTrainer:
         frame_loss = torch.zeros((), dtype=torch.float64)
         attacked_image: np.ndarray | None = None
         if m.image:
-            terms_t, score, attacked_image = self._image(frame, targets, chosen, placed, colours)
+            terms_t, score, attacked_image = self._image(frame, targets, chosen, placed, colours, as_uint8=m.lidar)
             image = terms_t.sum()
             sums["image"] = image.item()
             frame_loss = frame_loss + weights["image"] / n * image
@@ -385,9 +505,13 @@ class UniversalTrainer:
         losses["total"] = total
         return losses
 
-    def _frame(self, frame_id: str, with_image: bool) -> Frame:
+    def _frame(self, frame_id: str, with_image: bool, with_scan: bool = True) -> Frame:
         """The frame; without ``with_image`` its image is a black placeholder of the right size (the LiDAR
-        branch uses only its size), which saves decoding the PNG."""
+        branch uses only its size), which saves decoding the PNG; without ``with_scan`` (no LiDAR term) its
+        scan is empty, which saves reading it."""
+        if with_image and not with_scan:
+            return Frame(frame_id, self.kitti.image(frame_id), np.zeros((0, 4), np.float32),
+                         self.kitti.calib(frame_id), self.kitti.labels(frame_id))
         if with_image:
             return self.kitti.frame(frame_id)
         from PIL import Image
@@ -463,10 +587,11 @@ class UniversalTrainer:
         return terms, iou
 
     def _image(self, frame: Frame, targets: Labels, chosen: list[int], placed: list[torch.Tensor],
-               colours: torch.Tensor) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
-        """(len(chosen),) image loss terms of the chosen targets, their best candidate scores and the
-        attacked image as uint8 (rounded as :func:`~robustbench3d.sensors.camera_render.render_camera` does)."""
-        from robustbench3d.attacks.losses import SUM_MIN_IOU
+               colours: torch.Tensor, as_uint8: bool = True) -> tuple[torch.Tensor, np.ndarray, np.ndarray | None]:
+        """(len(chosen),) image loss terms of the chosen targets, their best candidate scores and (``as_uint8``:
+        the LiDAR term's victim is given the attacked frame; else None) the attacked image as uint8 (rounded as
+        :func:`~robustbench3d.sensors.camera_render.render_camera` does)."""
+        from robustbench3d.attacks.losses import IMAGE_LOSSES
         from robustbench3d.sensors.camera_render import render_camera_torch
 
         image = torch.from_numpy(frame.image.astype(np.float64) / 255.0)
@@ -474,14 +599,14 @@ class UniversalTrainer:
                                        scene_depth=self._depth.scene_depth(frame, targets),
                                        supersample=self.config.supersample)
         boxes = targets.bbox[chosen]
-        # "sum" and the scores read only candidates of IoU >= 0.5, all of which a threshold of 0.5 returns (the same
-        # terms, bit for bit) while a cropping victim then reads less of the image; "mean" averages the 0.3 set
-        threshold = min(SUM_MIN_IOU, CANDIDATE_IOU) if self.config.image_loss == "sum" else 0.3
+        # the loss's candidate set (IMAGE_LOSSES: "mean" averages the 0.3 set; "sum", like the scores, reads only IoU
+        # >= 0.5, all of which 0.5 returns: the same terms, bit for bit, while a cropping victim reads less image)
+        threshold = min(IMAGE_LOSSES[self.config.image_loss].candidate_iou, CANDIDATE_IOU)
         cands = self.victim.objectness(rendered.permute(2, 0, 1)[None].float(), [boxes], iou_threshold=threshold)
         terms = image_target_losses(cands, len(chosen), 0, self.config.use_class,
                                     self.config.image_loss).to(torch.float64)
-        as_uint8 = np.clip(np.round(rendered.detach().numpy() * 255.0), 0, 255).astype(np.uint8)
-        return terms, best_candidate_scores(cands, len(chosen), 0, CANDIDATE_IOU), as_uint8
+        attacked = np.clip(np.round(rendered.detach().numpy() * 255.0), 0, 255).astype(np.uint8) if as_uint8 else None
+        return terms, best_candidate_scores(cands, len(chosen), 0, CANDIDATE_IOU), attacked
 
     def _render_image(self, frame: Frame, targets: Labels, placed: list[torch.Tensor],
                       colours: torch.Tensor) -> np.ndarray:
@@ -531,10 +656,7 @@ class UniversalTrainer:
 
     def apply_step(self, result: StepResult) -> None:
         """Adam update with ``result``'s gradients; records the step."""
-        for p, g in zip(self.params, result.grads, strict=True):
-            p.grad = g
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
+        self.optimizer.step(result.grads)
         self.zero_run = self.zero_run + 1 if result.attack_grad_zero else 0
         self.history.append({**result.losses, "cars": result.cars, "detected": result.detected,
                              "clean_cars": result.clean_cars, "detected_clean": result.detected_clean})
@@ -596,7 +718,11 @@ class UniversalTrainer:
         with torch.no_grad():
             self.delta.copy_(state["delta"])
             self.colour_logit.copy_(state["colour_logit"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        try:
+            self.optimizer.load_state_dict(state["optimizer"])
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+            raise DataFormatError(path, f"not this training's optimiser state ({type(exc).__name__}: {exc})",
+                                  field="optimizer") from None
         self.step, self.history = int(state["step"]), list(state["history"])
         self.zero_run, self.elapsed_s = int(state["zero_run"]), float(state["elapsed_s"])
         self.run_state = dict(state.get("run") or {})

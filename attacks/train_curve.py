@@ -135,13 +135,27 @@ class HeldOut:
             self._clean = dets, evaluate(self.labels, dets, classes=(AP_OF[0],), metrics=(AP_OF[1],))
         return self._clean
 
-    def attacked(self, obj: Any) -> list[Labels]:
-        """Detections of every held-out frame attacked with ``obj`` as a benchmark cell attacks it."""
-        from robustbench3d.attacks.base import attack_rng, target_cars
+    def attack(self, obj: Any) -> Any:
+        """The roof-object attack of ``obj`` as a benchmark cell builds it (its default settings), bound to the
+        dataset."""
         from robustbench3d.attacks.roof import RoofObjectAttack
 
         attack = RoofObjectAttack(obj)
         attack.bind_dataset(self.kitti)
+        return attack
+
+    def depth_jobs(self, obj: Any) -> list[Any]:
+        """The exact-occlusion cache files (:class:`~robustbench3d.attacks.depth_cache.DepthJob`) that
+        attacking the held-out frames with ``obj`` (or an object of the same bounds) reads."""
+        from robustbench3d.attacks.depth_cache import attack_depth_jobs
+
+        return attack_depth_jobs(self.attack(obj), self.kitti, self.frame_ids, self.labels)
+
+    def attacked(self, obj: Any) -> list[Labels]:
+        """Detections of every held-out frame attacked with ``obj`` as a benchmark cell attacks it."""
+        from robustbench3d.attacks.base import attack_rng, target_cars
+
+        attack = self.attack(obj)
         dets = []
         for fid, gt in zip(self.frame_ids, self.labels, strict=True):
             clean = self.kitti.lazy_frame(fid, gt)

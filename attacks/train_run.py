@@ -3,6 +3,11 @@ budget with a progress bar and checkpoints (``--resume``), evaluate the object o
 ``eval_every`` steps and stop on a plateau (:mod:`~robustbench3d.attacks.train_curve`), then write the object
 file (the best held-out state) and its sidecar.
 
+Before the first step, :func:`warm_depths` computes the exact-occlusion scene depths (on a generated dataset,
+:mod:`~robustbench3d.attacks.depth_cache`) of every frame the remaining steps draw and of the held-out frames
+that are not cached yet, in worker processes (``attack train --workers``): a step then reads them (a few ms per
+frame) where it would otherwise rebuild the frame's scene (0.1-0.65 s). The values are the same either way.
+
 Written once: the object file ``OBJ.ply``, its sidecar ``OBJ.json``, the checkpoint ``OBJ.train.pt`` and the
 curve files ``OBJ.curve.csv`` and ``OBJ.curve.png`` (with evaluation) are never replaced unless ``force``
 (``--force``), with one exception, the resume rule: ``resume`` continues the checkpoint, and replaces
@@ -173,7 +178,7 @@ def train_universal(victim: Any, victim_info: dict[str, Any], kitti: KittiDatase
                     labels: list[Labels], config: TrainConfig, out: str | Path, *,
                     data_identity: dict[str, Any] | None = None, resume: bool = False, force: bool = False,
                     progress: bool = True, on_step: Callable[[UniversalTrainer], None] | None = None,
-                    log: Callable[[str], None] | None = None) -> dict[str, Any]:
+                    log: Callable[[str], None] | None = None, workers: int = 1) -> dict[str, Any]:
     """Optimise the object (module doc) on ``frame_ids`` but the held-out ones, write it to ``out`` (an object
     file; its checkpoint and curve files beside it, :func:`checkpoint_path`,
     :func:`~robustbench3d.attacks.train_curve.curve_paths`) and return its sidecar's ``made_by``.
@@ -181,7 +186,9 @@ def train_universal(victim: Any, victim_info: dict[str, Any], kitti: KittiDatase
     ``victim_info``: at least ``name``; ``data_identity``: the training data's record; ``resume``, ``force``:
     the module doc's written-once rule (refusals raise :class:`TrainingError` before training); ``log``
     receives the lines saying what is replaced, which frames are held out, each evaluation and why training
-    stopped; ``on_step`` is called after every step (tests use it to interrupt a run).
+    stopped; ``on_step`` is called after every step (tests use it to interrupt a run). Before the first step the
+    exact-occlusion scene depths the run will read are computed by ``workers`` processes where not cached
+    (:func:`warm_depths`), so no step rebuilds a scene.
     """
     from robustbench3d.attacks.objectfile import save_object
 
@@ -208,12 +215,32 @@ def train_universal(victim: Any, victim_info: dict[str, Any], kitti: KittiDatase
     for line in notes:
         say(line)
     say(held_line)
+    warm_depths(trainer, heldout, workers=workers, progress=progress, log=say)
     run = _Run(trainer, heldout, config, out, identity, say)
     run.train(progress, on_step)
     obj, object_step, rows = run.finish()
     made_by = _made_by(out, trainer, config, victim_info, data_identity or {}, heldout, rows, object_step, run)
     save_object(out, obj, made_by)
     return made_by
+
+
+def warm_depths(trainer: UniversalTrainer, heldout: HeldOut | None, *, workers: int = 1, progress: bool = False,
+                log: Callable[[str], None] | None = None) -> Any:
+    """Compute the exact-occlusion cache files (:func:`~robustbench3d.attacks.depth_cache.warm_scene_depths`)
+    that the remaining steps (``trainer.step`` to the step budget) and the held-out evaluations (the trainer's
+    held-out losses and the benchmark-cell attack of the object) will read, with ``workers`` processes; the
+    :class:`~robustbench3d.attacks.depth_cache.WarmReport`, None when the run reads none (no exact occlusion)."""
+    from robustbench3d.attacks.depth_cache import synth_key, warm_scene_depths
+
+    held = heldout.frame_ids if heldout is not None else []
+    jobs = trainer.depth_jobs(trainer.step_frames(trainer.step, trainer.config.steps) + held)
+    if heldout is not None:
+        jobs += heldout.depth_jobs(trainer.current_object())
+    key = synth_key(trainer.kitti.root)
+    if not jobs or key is None:
+        return None
+    return warm_scene_depths(Path(trainer.kitti.root).resolve(), key, jobs, workers=workers, progress=progress,
+                             log=log)
 
 
 def _held_out_line(config: TrainConfig, heldout: HeldOut | None, frames: int) -> str:

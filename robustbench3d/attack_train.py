@@ -3,6 +3,7 @@
     robustbench3d attack train adv-shape|adv-texture|adv-object --victim V --out OBJ.ply
         [--data DIR] [--split train] [--steps N] [--batch-cars B] [--seed S] [--eot jitter,range-noise,dropout]
         [--eval-every K] [--eval-frames N] [--plateau-window W] [--plateau-tol T] [--resume] [--force]
+        [--workers W]
 
 Writes the object file ``OBJ.ply`` and its sidecar (losses and weights, victim, training data, config,
 seed, steps, wall time, the held-out curve's summary and why training stopped); ``OBJ.train.pt`` beside it is
@@ -12,7 +13,9 @@ held-out losses, the held-out relative drop and ASR; ``OBJ.ply`` is the state of
 training stops once that loss improved by less than ``T`` (relative) over ``W`` steps
 (:mod:`robustbench3d.attacks.train_curve`). See :mod:`robustbench3d.attacks.train` for the optimisation.
 None of the files is replaced without ``--force``, except by ``--resume`` continuing the training that wrote
-them (:mod:`robustbench3d.attacks.train_run`). Numeric options have ranges
+them (:mod:`robustbench3d.attacks.train_run`). Before the first step, ``--workers`` processes compute the
+exact-occlusion scene depths the run will read that are not cached yet (:func:`robustbench3d.attacks.train_run.
+warm_depths`). Numeric options have ranges
 (:data:`robustbench3d.attacks.train_config.INT_RANGES`, ``FLOAT_RANGES``), checked before any work.
 
 Standard library only at module level.
@@ -88,6 +91,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true",
                         help="replace an existing OBJ.ply, its sidecar and (without --resume) its checkpoint; "
                              "without it they are refused")
+    parser.add_argument("--workers", type=int, default=None, metavar="W",
+                        help="worker processes computing, before the first step, the exact-occlusion scene depths "
+                             "the run will read that are not cached yet (1 to 1024; default: the CPUs)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
@@ -128,10 +134,13 @@ def run(args: argparse.Namespace) -> int:
     from robustbench3d.attacks.train_run import check_outputs, data_identity, train_universal
     from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
     from robustbench3d.errors import RobustBenchError
+    from robustbench3d.ranges import PROCESSES_RANGE, check_range, default_processes
     from robustbench3d.victims import VICTIMS, create_victim
 
     config = config_from_args(args)
     check_max_frames(args.max_frames)
+    workers = default_processes() if args.workers is None else args.workers
+    check_range("--workers", workers, *PROCESSES_RANGE, "worker processes")
     # again, with its notes, in train_universal
     check_outputs(args.out, force=args.force, resume=args.resume, curve=config.eval_every > 0)
     out = Path(args.out)
@@ -147,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
     gt = load_ground_truth(dataset, args.max_frames)
     made_by = train_universal(victim, info, dataset.kitti(), gt.frame_ids, gt.labels, config, out,
                               data_identity=data_identity(dataset_identity(dataset, gt), dataset.root),
-                              resume=args.resume, force=args.force, progress=not args.no_progress, log=print)
+                              resume=args.resume, force=args.force, progress=not args.no_progress, log=print,
+                              workers=workers)
     last = made_by["losses"]["last_step"] or {}
     drop = made_by["drop_estimate"]
     print(f"{out}: {args.mode} after {made_by['steps']} steps on {made_by['cars']} cars "

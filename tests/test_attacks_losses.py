@@ -9,12 +9,15 @@ import pytest
 import torch
 
 from robustbench3d.attacks.losses import (
+    IMAGE_LOSSES,
+    ImageLoss,
     best_candidate_scores,
     image_target_losses,
     laplacian_loss,
     lidar_car_loss,
     max_object_margin,
     neg_log_one_minus_product,
+    register_image_loss,
 )
 from robustbench3d.attacks.object import laplacian_smoothness, template_vertices
 from robustbench3d.victims.base import ObjectnessCandidates
@@ -142,3 +145,93 @@ def test_losses_edge_cases_from_mutation_testing():
     np.testing.assert_allclose(got.numpy(), expect, rtol=2e-5)
     c = candidates([0.0, 1.0], [0.0, 0.0], [0.5, 0.4999], [0, 0])
     np.testing.assert_allclose(best_candidate_scores(c, 2, min_iou=0.5), [0.25, 0.0])
+
+
+# ---- the image losses as a table (name -> function and candidate set) -------------------------------------
+
+
+def nl(a: float, b: float | None = None) -> float:
+    """-log(1 - o c) (-log(1 - o) without ``b``) in plain float64 arithmetic."""
+    return -math.log(1.0 - sigmoid(a) * (1.0 if b is None else sigmoid(b)))
+
+
+@pytest.fixture
+def table():
+    """IMAGE_LOSSES, restored to its entries after the test."""
+    saved = dict(IMAGE_LOSSES)
+    yield IMAGE_LOSSES
+    IMAGE_LOSSES.clear()
+    IMAGE_LOSSES.update(saved)
+
+
+def tiny() -> ObjectnessCandidates:
+    """Five candidates: image 0 holds rows 0-2 and 4 (targets 0, 0, 1, 0), image 1 row 3."""
+    return ObjectnessCandidates(
+        objectness_logit=torch.tensor([0.0, 2.0, -1.0, 5.0, 1.5], dtype=torch.float64),
+        class_logit=torch.tensor([1.0, 0.0, 3.0, 5.0, -2.0], dtype=torch.float64),
+        boxes=torch.zeros(5, 4), iou=torch.tensor([0.6, 0.2, 0.9, 0.9, 0.5], dtype=torch.float32),
+        image_index=torch.tensor([0, 0, 0, 1, 0]), target_index=torch.tensor([0, 0, 1, 0, 0]))
+
+
+def test_mean_and_sum_are_table_entries_with_their_hand_values():
+    """``mean``: per target the mean over its candidates of -log(1 - o c); ``sum``: the sum over those of IoU >=
+    0.5; as table entries, called directly and through ``image_target_losses`` by name; ``mean`` reads the
+    oracle's 0.3 candidate set, ``sum`` the 0.5 one."""
+    c = tiny()
+    assert set(IMAGE_LOSSES) == {"mean", "sum"}
+    assert all(isinstance(e, ImageLoss) for e in IMAGE_LOSSES.values())
+    assert IMAGE_LOSSES["mean"].candidate_iou == 0.3 and IMAGE_LOSSES["sum"].candidate_iou == 0.5
+    mean = [(nl(0, 1) + nl(2, 0) + nl(1.5, -2)) / 3, nl(-1, 3), 0.0]
+    total = [nl(0, 1) + nl(1.5, -2), nl(-1, 3), 0.0]  # row 1 (IoU 0.2) out; row 4 (IoU exactly 0.5) in
+    mean_obj = [(nl(0) + nl(2) + nl(1.5)) / 3, nl(-1), 0.0]
+    total_obj = [nl(0) + nl(1.5), nl(-1), 0.0]
+    for name, with_class, without in (("mean", mean, mean_obj), ("sum", total, total_obj)):
+        np.testing.assert_allclose(IMAGE_LOSSES[name](c, 3).numpy(), with_class, rtol=1e-12)
+        np.testing.assert_allclose(IMAGE_LOSSES[name](c, 3, 0, False).numpy(), without, rtol=1e-12)
+        assert torch.equal(image_target_losses(c, 3, 0, True, name), IMAGE_LOSSES[name](c, 3, 0, True))
+    # image 1: its one candidate (target 0)
+    np.testing.assert_allclose(IMAGE_LOSSES["mean"](c, 3, 1).numpy(), [nl(5, 5), 0.0, 0.0], rtol=1e-12)
+    np.testing.assert_allclose(IMAGE_LOSSES["sum"](c, 3, 1).numpy(), [nl(5, 5), 0.0, 0.0], rtol=1e-12)
+
+
+def test_a_registered_loss_is_used_by_name(table):
+    """``register_image_loss`` adds a name; ``image_target_losses`` then computes that function's terms by name,
+    with the arguments it was given."""
+    calls = []
+
+    def max_objectness(c: ObjectnessCandidates, n: int, image_index: int, use_class: bool) -> torch.Tensor:
+        calls.append((n, image_index, use_class))
+        per = [c.objectness_logit[(c.image_index == image_index) & (c.target_index == k)] for k in range(n)]
+        return torch.stack([v.max() if len(v) else v.new_zeros(()) for v in per])
+
+    entry = register_image_loss("max-obj", max_objectness, candidate_iou=0.1)
+    assert table["max-obj"] is entry and entry.candidate_iou == 0.1
+    got = image_target_losses(tiny(), 3, 0, False, "max-obj")
+    np.testing.assert_array_equal(got.numpy(), [2.0, -1.0, 0.0])  # rows 0, 1, 4 -> max(0, 2, 1.5); row 2
+    assert calls == [(3, 0, False)]
+    assert list(table) == ["mean", "sum", "max-obj"]
+
+
+def test_register_refuses_bad_entries(table):
+    def f(c, n, i, u):
+        return torch.zeros(n)
+
+    for name in ("mean", "sum"):  # the shipped objects' losses are never replaced
+        with pytest.raises(ValueError, match=f"field 'name': '{name}' is already an image loss"):
+            register_image_loss(name, f)
+    for bad in ("", "Mean", "a b", "x,y", 3):
+        with pytest.raises(ValueError, match="field 'name'"):
+            register_image_loss(bad, f)
+    with pytest.raises(ValueError, match="field 'terms': expected a function"):
+        register_image_loss("fine", "not a function")
+    for iou in (-0.01, 1.01, float("nan"), "0.5"):
+        with pytest.raises(ValueError, match="field 'candidate_iou': expected 0 to 1"):
+            register_image_loss("fine", f, candidate_iou=iou)
+    assert set(table) == {"mean", "sum"}  # nothing half-registered
+    register_image_loss("edge0", f, candidate_iou=0)
+    register_image_loss("edge1", f, candidate_iou=1)
+    register_image_loss("wrong-shape", lambda c, n, i, u: torch.zeros(n + 1))
+    with pytest.raises(ValueError, match=r"image loss 'wrong-shape' returned shape \(4,\), expected \(3,\)"):
+        image_target_losses(tiny(), 3, reduce="wrong-shape")
+    with pytest.raises(ValueError, match="field 'reduce': expected one of mean, sum, edge0, edge1, wrong-shape"):
+        image_target_losses(tiny(), 3, reduce="max")

@@ -32,7 +32,7 @@ down.
 Each attacked image (rounded to 8 bits, the clean scan) goes through the whole victim with its own 2D
 detections, and Car BEV AP @0.7 (R40, easy / moderate / hard) is computed over the N frames.
 
-Usage: python docs/scripts/texture_bound.py [N] [STEPS] [MASKS] [LOSS] [START]
+Usage: python research/texture_bound.py [N] [STEPS] [MASKS] [LOSS] [START]
        (default 20 50 object,bounds,box sum grey)
 """
 
@@ -41,20 +41,20 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from train_iou_loss import candidates_with_box_gradients, iou_weighted_losses
+from train_iou_loss import box_gradients, iou_weighted_losses
 
-import robustbench3d.victims.cascade as cascade
 from robustbench3d.attacks.base import target_cars
 from robustbench3d.attacks.losses import neg_log_one_minus_product
 from robustbench3d.attacks.object import BOUNDS, benign_sphere, tanh_vertices, template_faces
 from robustbench3d.attacks.objectfile import load_object
 from robustbench3d.attacks.placement import cars_of, place_on_roof
+from robustbench3d.attacks.shipped import shipped_object
 from robustbench3d.datasets import load_ground_truth, resolve_dataset
 from robustbench3d.eval.kitti_eval import evaluate
 from robustbench3d.sensors.camera_render import render_camera, render_camera_torch
@@ -117,7 +117,10 @@ def start_logits(start: str) -> np.ndarray:
     if start == "grey":
         return np.zeros((162, 3))
     if start == "adv-texture":
-        c = np.clip(load_object(Path(__file__).parents[2] / "attacks/objects/adv-texture.ply").colors, 1e-3, 1 - 1e-3)
+        shipped = shipped_object("adv-texture")
+        if shipped is None:
+            raise SystemExit("start adv-texture: no shipped object of that name (attacks/objects/manifest.json)")
+        c = np.clip(load_object(shipped.path).colors, 1e-3, 1 - 1e-3)
         return np.log(c / (1 - c))
     if start.startswith("rand:"):
         return np.random.default_rng(int(start[5:])).normal(0.0, 2.0, (162, 3))
@@ -188,8 +191,12 @@ def optimise(victim, cars, groups: list[dict], steps: int, image_of: Callable[[]
 def main(n: int, steps: int, kinds: list[str], loss: str = "sum", start: str = "grey") -> None:
     if loss not in LOSSES:
         raise SystemExit(f"unknown loss {loss!r}: expected one of {', '.join(LOSSES)}")
-    if loss == "iou":  # the candidates' boxes and IoUs keep their gradients (train_iou_loss.py)
-        cascade.candidates_for_targets = candidates_with_box_gradients
+    with box_gradients() if loss == "iou" else nullcontext():  # iou: the candidates' IoUs keep their gradients
+        measure(n, steps, kinds, loss, start)
+
+
+def measure(n: int, steps: int, kinds: list[str], loss: str, start: str) -> None:
+    """The table of the module doc (``main`` without its checks)."""
     torch.manual_seed(0)
     victim = create_victim("fpointnet-v1-lite")
     dataset = resolve_dataset(None, "val", progress=False)

@@ -1,6 +1,6 @@
 """Compare two ``robustbench3d run`` output directories (docs/executors.md).
 
-    python docs/scripts/compare_runs.py RUN_A RUN_B
+    python research/compare_runs.py RUN_A RUN_B
 
 Prints whether the result files (``cells/*/data/*``) are identical byte for byte, whether the
 ``summary.json`` cells are equal except the timing and host fields of their provenance, and whether

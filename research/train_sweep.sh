@@ -6,7 +6,7 @@
 # checkpointed object without another step; one that reached no checkpoint trains one step), then scored with the victim's own 2D boxes on the first EVAL
 # val frames. Prints one line per variant: steps reached, Car BEV AP @0.7 R40 E/M/H, moderate relative drop,
 # attack success rate.
-# Usage: [ONLY=REGEX] bash docs/scripts/train_sweep.sh FRAMES TRAIN_S EVAL OUT_DIR   (docs/attacks.md: 600 290 80)
+# Usage: [ONLY=REGEX] bash research/train_sweep.sh FRAMES TRAIN_S EVAL OUT_DIR   (docs/attacks.md: 600 290 80)
 set -u
 FRAMES=$1; TRAIN_S=$2; EVAL=$3; OUT=$4
 NP=$(nproc)  # before OMP_NUM_THREADS=1, which nproc obeys

@@ -1,6 +1,6 @@
 """The paired 95 % bootstrap interval of AP(control cell) - AP(attacked cell) over the same frames of one run.
 
-    python docs/scripts/paired_vs_control.py RUN_DIR CONTROL_CELL ATTACKED_CELL
+    python research/paired_vs_control.py RUN_DIR CONTROL_CELL ATTACKED_CELL
 
 (cell directory names, e.g. ``fpointnet-v1-lite+benign-sphere+gt-object``). Prints Car BEV R40 easy / moderate /
 hard of both cells and the interval of their paired difference (percentage points; 1000 resamples, seed 0): an

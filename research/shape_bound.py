@@ -13,7 +13,7 @@ A shape refitted to every frame is stronger than any universal shape (one shape 
 so its drop bounds from above what universal training can reach with this parametrisation, protocol and loss
 (within the optimiser's reach at STEPS steps).
 
-Usage: python docs/scripts/shape_bound.py [N] [STEPS] [PROTOCOL] [OBJECTS...]
+Usage: python research/shape_bound.py [N] [STEPS] [PROTOCOL] [OBJECTS...]
        (default 10 40 gt-object)
 """
 

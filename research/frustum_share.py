@@ -2,7 +2,7 @@
 share of the frustum's original points the object removes, over the first N val frames of the embedded
 dataset, the undeformed sphere on every target car (docs/attacks.md).
 
-Usage: python docs/scripts/frustum_share.py [N]   (default 100)
+Usage: python research/frustum_share.py [N]   (default 100)
 """
 
 from __future__ import annotations
