@@ -1,11 +1,15 @@
 """Attack objects placed on the roofs of target cars.
 
 ``ATTACKS`` is the registry (:class:`robustbench3d.registry.Registry` of
-:class:`~robustbench3d.attacks.spec.AttackSpec`). In-tree attacks are declared with
-:func:`register_attack` (the controls in :mod:`robustbench3d.attacks.controls`); the universal objects
-that ship with the package register from their manifest (:mod:`robustbench3d.attacks.shipped`); installed
-packages add theirs through the entry-point group ``robustbench3d.attacks`` (an entry point names
-an ``AttackSpec``). The contract an attack implements is :class:`robustbench3d.attacks.base.Attack`.
+:class:`~robustbench3d.attacks.spec.AttackSpec`). In-tree attacks are declared in
+:mod:`robustbench3d.attacks.zoo` with :func:`register_attack`; the universal objects that ship with the
+package register from their manifest (:mod:`robustbench3d.attacks.shipped`); installed packages add theirs
+through the entry-point group ``robustbench3d.attacks`` (an entry point names an ``AttackSpec``); an object
+file given as a reference (``run --attacks F.ply``: ``ATTACKS.resolve("F.ply")``,
+:meth:`~robustbench3d.registry.Registry.resolve`) is registered under its file stem by
+:func:`robustbench3d.attacks.zoo.object_file_reference`. The contract an attack implements is
+:class:`robustbench3d.attacks.base.Attack`; attacks know the victim contract
+(:mod:`robustbench3d.victims.base`, :mod:`robustbench3d.victims.spec`), never a victim backend.
 
     >>> from robustbench3d.attacks import ATTACKS, create_attack
     >>> ATTACKS.names()                                   # doctest: +SKIP
@@ -30,8 +34,9 @@ ENTRY_POINT_GROUP = "robustbench3d.attacks"
 
 ATTACKS: Registry[AttackSpec] = Registry(
     "attack", group=ENTRY_POINT_GROUP, base=AttackSpec, key=lambda spec: spec.key,
-    modules=("robustbench3d.attacks.controls",),
+    modules=("robustbench3d.attacks.zoo",),
     loaders=("robustbench3d.attacks.shipped:register_shipped_objects",),
+    path_resolvers=("robustbench3d.attacks.zoo:object_file_reference",),
 )
 
 #: A factory ``(**params) -> Attack``: an Attack subclass or a function.

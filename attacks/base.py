@@ -17,6 +17,9 @@ frame and an :class:`~robustbench3d.attacks.record.ObjectRecord` of where the ob
 ``numpy.random.Generator`` seeded from (run seed, frame id) only, so every attack and every victim
 sees the same placement randomness for a frame (common random numbers across cells). Attacks must
 draw all randomness from ``rng`` and must not modify the input frame's arrays.
+
+:data:`TARGET_TYPES` and :func:`target_cars` are defined in :mod:`robustbench3d.attacks.targets` (below
+:mod:`robustbench3d.attacks.record`, which uses them too) and re-exported here.
 """
 
 from __future__ import annotations
@@ -27,20 +30,9 @@ from typing import Any
 import numpy as np
 
 from robustbench3d.attacks.record import ObjectRecord, nominal_record
+from robustbench3d.attacks.targets import TARGET_TYPES, target_cars
 from robustbench3d.kitti.dataset import Frame, KittiDataset
 from robustbench3d.kitti.labels import Labels
-
-#: Object types whose instances carry an attack object.
-TARGET_TYPES: tuple[str, ...] = ("Car",)
-
-
-def target_cars(labels: Labels | None) -> Labels:
-    """The frame's attack targets: every ground-truth object of a :data:`TARGET_TYPES` type
-    (rect frame; bottom-centre location in m, rotation_y in rad). Empty without labels."""
-    if labels is None:
-        return Labels.empty()
-    return labels.of_types(TARGET_TYPES)
-
 
 #: Third entropy word of the attack generators (separates them from other uses of the seed).
 ATTACK_STREAM = 0x41545443  # "ATTC"
@@ -87,3 +79,6 @@ class Attack(ABC):
     def describe(self) -> dict[str, Any]:
         """JSON-serialisable parameters identifying the object (e.g. a mesh file's sha256, its
         placement offsets in m). Part of each cell's configuration fingerprint and provenance."""
+
+
+__all__ = ["ATTACK_STREAM", "TARGET_TYPES", "Attack", "attack_rng", "target_cars"]

@@ -149,7 +149,7 @@ def added_rows(n_scan: int, n_removed: int, object_index: np.ndarray, n_targets:
 def target_rows(labels: Labels | None, targets: Labels) -> np.ndarray:
     """(T,) int64: the row of ``labels`` each target car is (the first unused row of a target type with the
     same type, 2D box, dimensions, location and yaw), -1 where none is (``labels`` None, or another car)."""
-    from robustbench3d.attacks.base import TARGET_TYPES
+    from robustbench3d.attacks.targets import TARGET_TYPES
     from robustbench3d.kitti.labels import type_mask
 
     out = np.full(len(targets), -1, dtype=np.int64)

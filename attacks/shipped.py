@@ -228,9 +228,9 @@ class ShippedObjectFactory:
 
     def __call__(self, **settings: Any) -> RoofObjectAttack:
         """Verify the files against the manifest, then load the PLY as the ``object-file`` attack does
-        (:func:`~robustbench3d.attacks.controls.object_file_attack`, with the attack's ``settings``:
+        (:func:`~robustbench3d.attacks.zoo.object_file_attack`, with the attack's ``settings``:
         :data:`~robustbench3d.attacks.roof.SETTINGS`)."""
-        from robustbench3d.attacks.controls import object_file_attack
+        from robustbench3d.attacks.zoo import object_file_attack
 
         self.entry.verify()
         attack = object_file_attack(str(self.entry.path), **settings)

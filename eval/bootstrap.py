@@ -52,6 +52,7 @@ from robustbench3d.eval.rules import (
     N_SAMPLE_PTS,
     OVERLAP_OF_METRIC,
     RECALL_SAMPLES,
+    TARGET_CLASS,
     normalise_names,
 )
 from robustbench3d.eval.table import ObjectTable
@@ -373,7 +374,7 @@ class FrameBootstrap:
     """
 
     def __init__(self, gt: Sequence[Labels] | ObjectTable, dt: Sequence[Labels] | ObjectTable,
-                 classes: Sequence[str] | None = ("Car",), metrics: Sequence[str] = METRICS):
+                 classes: Sequence[str] | None = (TARGET_CLASS,), metrics: Sequence[str] = METRICS):
         gt_t, dt_t = _tables(gt, dt)
         self.n_frames = gt_t.n_frames
         #: The evaluator's result on all frames (the point estimates; decides which metrics exist).

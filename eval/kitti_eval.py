@@ -51,6 +51,7 @@ from robustbench3d.eval.rules import (
     NEIGHBOURS,
     OVERLAP_OF_METRIC,
     RECALL_SAMPLES,
+    TARGET_CLASS,
     normalise_names,
 )
 from robustbench3d.eval.table import TYPE_CODE, ObjectTable
@@ -163,7 +164,7 @@ def class_overlaps(gt: ObjectTable, dt: ObjectTable, classes: Sequence[str], kin
     return pairs, dontcare
 
 
-def evaluate_tables(gt: ObjectTable, dt: ObjectTable, classes: Sequence[str] | None = ("Car",),
+def evaluate_tables(gt: ObjectTable, dt: ObjectTable, classes: Sequence[str] | None = (TARGET_CLASS,),
                     metrics: Sequence[str] = METRICS, with_curves: bool = False) -> dict:
     """Evaluate detection and GT tables of the same frames (see the module doc for the result).
 
@@ -181,7 +182,7 @@ def evaluate_tables(gt: ObjectTable, dt: ObjectTable, classes: Sequence[str] | N
         raise ValueError("detections need scores")
     if classes is None:
         detected = [c for c in CLASSES if dt.of_type(c).any()]
-        classes = detected or ["Car"]
+        classes = detected or [TARGET_CLASS]
     classes = normalise_names(classes, CLASSES, "class")
     metrics = normalise_names(metrics, METRICS, "metric")
     kinds = {OVERLAP_OF_METRIC[m] for m in metrics}
@@ -287,7 +288,7 @@ def _meta(gt: ObjectTable, dt: ObjectTable, classes: tuple[str, ...], metrics: t
     }
 
 
-def evaluate(gt: Sequence[Labels], dt: Sequence[Labels], classes: Sequence[str] | None = ("Car",),
+def evaluate(gt: Sequence[Labels], dt: Sequence[Labels], classes: Sequence[str] | None = (TARGET_CLASS,),
              metrics: Sequence[str] = METRICS) -> dict:
     """AP of detections ``dt`` against ground truth ``gt``, one :class:`Labels` per frame each.
 

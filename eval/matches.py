@@ -24,7 +24,7 @@ import numpy as np
 
 from robustbench3d.eval.kitti_eval import ClassEvaluation, ThresholdStats, class_overlaps
 from robustbench3d.eval.matching import assign_at_thresholds, true_positives
-from robustbench3d.eval.rules import DIFFICULTIES, OVERLAP_OF_METRIC
+from robustbench3d.eval.rules import DIFFICULTIES, OVERLAP_OF_METRIC, TARGET_CLASS
 from robustbench3d.eval.table import ObjectTable
 from robustbench3d.kitti.labels import Labels
 
@@ -66,7 +66,7 @@ class _Matching:
         return np.split(flat, np.cumsum(self.sizes)[:-1]) if self.sizes else []
 
 
-def best_f1_threshold(gt: Sequence[Labels], dt: Sequence[Labels], cls: str = "Car", metric: str = "bev",
+def best_f1_threshold(gt: Sequence[Labels], dt: Sequence[Labels], cls: str = TARGET_CLASS, metric: str = "bev",
                       difficulty: str = "moderate") -> float | None:
     """The F1-maximising sampled score threshold (module doc); None without any true positive."""
     m = _Matching(gt, dt, cls, metric, difficulty)
@@ -79,7 +79,7 @@ def best_f1_threshold(gt: Sequence[Labels], dt: Sequence[Labels], cls: str = "Ca
     return float(m.stats.config_threshold[at][int(np.argmax(f1))])
 
 
-def matched_ground_truth(gt: Sequence[Labels], dt: Sequence[Labels], threshold: float | None, cls: str = "Car",
+def matched_ground_truth(gt: Sequence[Labels], dt: Sequence[Labels], threshold: float | None, cls: str = TARGET_CLASS,
                          metric: str = "bev", difficulty: str = "moderate") -> GtMatches:
     """Which GT objects are matched with detections scoring at least ``threshold`` (module doc)."""
     m = _Matching(gt, dt, cls, metric, difficulty)

@@ -12,6 +12,9 @@ EVALUATOR_VERSION = "1.0.0"
 
 #: Classes the devkit evaluates, in its order.
 CLASSES: tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
+#: The benchmark's target class: the objects attacks are placed on and every headline number is about (its AP,
+#: drop and attack success rate; the evaluator's default class). Defined here, the lowest layer, once.
+TARGET_CLASS = "Car"
 #: Ground-truth types that are ignored (neither TP nor FN; detections on them are not FP).
 NEIGHBOURS: dict[str, tuple[str, ...]] = {"Car": ("Van",), "Pedestrian": ("Person_sitting",), "Cyclist": ()}
 

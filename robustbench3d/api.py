@@ -91,7 +91,7 @@ def benchmark(victim: Any, attacks: Sequence[str] = DEFAULT_ATTACKS, frames: int
     """
     import pandas as pd
 
-    from robustbench3d.attacks.controls import resolve_attack_references
+    from robustbench3d.attacks import ATTACKS
     from robustbench3d.runner import RunConfig, run_benchmark
     from robustbench3d.victims import VICTIMS
     from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
@@ -119,7 +119,7 @@ def benchmark(victim: Any, attacks: Sequence[str] = DEFAULT_ATTACKS, frames: int
             supported = (detector if detector is not None else VICTIMS.get(run_name).create(
                 **dict(victim_args or {}))).supported_proposals
             proposals = tuple(p for p in ("detector", "gt") if p in supported) or tuple(supported)
-        names, attack_args = resolve_attack_references(list(attacks), {})
+        names, attack_args = ATTACKS.resolve_all(list(attacks), {})
         attack_list = tuple(names) if "none" in names else ("none", *names)
         with tempfile.TemporaryDirectory(prefix="rb3d-benchmark-") as tmp, _one_thread():
             target = Path(out) if out is not None else Path(tmp) / "run"

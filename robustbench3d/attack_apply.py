@@ -51,11 +51,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def resolve_attack(reference: str) -> tuple[str, Any]:
-    """(registered name, the attack instance) of a registered name or an object file ``.ply``."""
-    from robustbench3d.attacks import create_attack
-    from robustbench3d.attacks.controls import resolve_attack_reference
+    """(registered name, the attack instance) of a reference: a registered name or an object file ``.ply``
+    (:meth:`~robustbench3d.registry.Registry.resolve`)."""
+    from robustbench3d.attacks import ATTACKS, create_attack
 
-    name = resolve_attack_reference(reference)
+    name = ATTACKS.resolve(reference)
     return name, create_attack(name)
 
 

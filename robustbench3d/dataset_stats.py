@@ -17,6 +17,7 @@ def dataset_statistics(root: str, max_frames: int | None = None, split: str | No
     import numpy as np
 
     from robustbench3d.errors import DataFormatError
+    from robustbench3d.eval.rules import TARGET_CLASS
     from robustbench3d.geometry import points_in_boxes
     from robustbench3d.kitti import KittiDataset
     from robustbench3d.scan_stats import azimuth_step_deg, fit_ring_cones, ground_height
@@ -42,7 +43,7 @@ def dataset_statistics(root: str, max_frames: int | None = None, split: str | No
         labels = ds.labels(fid)
         if labels is None:
             continue
-        cars = labels.type == "Car"
+        cars = labels.type == TARGET_CLASS
         if not cars.any():
             continue
         calib = ds.calib(fid)

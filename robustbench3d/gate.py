@@ -51,14 +51,20 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import DataFormatError, RobustBenchError
-from robustbench3d.results import dumps, read_json, validate_summary
+from robustbench3d.eval.rules import DIFFICULTIES
+from robustbench3d.metrics import HEADLINE, attack_metric
+from robustbench3d.results import CellResult, dumps, read_json, validate_summary
 from robustbench3d.texttable import format_table
 
 FORMAT = "robustbench3d.baseline"
 VERSION = 1
-CLASS, RECALL = "Car", "R40"
+#: The gated AP: the headline's class and recall sampling, every difficulty of :data:`GATE_METRICS`.
+CLASS, RECALL = HEADLINE.cls, HEADLINE.recall
 GATE_METRICS: tuple[str, ...] = ("bev", "3d")
-DIFFICULTIES: tuple[str, ...] = ("easy", "moderate", "hard")
+#: The gated attack metric (:data:`robustbench3d.metrics.ATTACK_METRICS`), at the headline difficulty; the
+#: baseline format (``drop_moderate``) and ``--tol-drop`` are its, so gating another one is a format change.
+GATED_EFFECT = attack_metric("drop")
+GATED_DIFFICULTY = HEADLINE.difficulty
 #: Dataset identity keys compared between the baseline and the run (``root`` is informational).
 DATASET_KEYS: tuple[str, ...] = ("split", "frames", "split_frames", "sha256", "embedded")
 #: Evaluation protocol keys compared between the baseline and the run.
@@ -104,7 +110,7 @@ def read_run(run: str | Path) -> tuple[Path, list[dict[str, Any]]]:
 
 
 def _cell_id(cell: Mapping[str, Any]) -> CellId:
-    return (cell["victim"], cell["attack"], cell["proposals"])
+    return CellResult(cell).id
 
 
 def _name(cid: CellId) -> str:
@@ -112,46 +118,54 @@ def _name(cid: CellId) -> str:
 
 
 def _dataset(cell: Mapping[str, Any]) -> dict[str, Any]:
-    return {k: cell["dataset"].get(k) for k in (*DATASET_KEYS, "root")}
+    dataset = CellResult(cell).dataset
+    return {k: dataset.get(k) for k in (*DATASET_KEYS, "root")}
 
 
 def _protocol(cell: Mapping[str, Any]) -> dict[str, Any]:
-    prov = cell["provenance"]
-    overlap = (cell["metrics"] or {}).get("meta", {}).get("min_overlap", {}).get(CLASS, {})
+    r = CellResult(cell)
+    overlap = r.result.min_overlap(CLASS) if r.result is not None else {}
     return {"class": CLASS, "recall": RECALL, "metrics": list(GATE_METRICS),
             "min_overlap": {m: overlap.get(m) for m in GATE_METRICS},
-            "evaluation": prov["config"].get("evaluation"), "seed": prov["seed"]}
+            "evaluation": r.config.get("evaluation"), "seed": r.seed}
+
+
+def _gated_effect(cell: CellResult, m: str) -> float | None:
+    """The gated attack metric of ``cell`` at metric ``m`` (None where its comparison has no value there)."""
+    try:
+        return cell.effect_value(GATED_EFFECT.name, CLASS, m, RECALL, GATED_DIFFICULTY)
+    except LookupError:
+        return None
 
 
 def _values(cell: Mapping[str, Any], path: Path, index: int) -> tuple[dict | None, dict | None]:
     """(AP table, moderate-drop table) of a summary cell (None where it has none)."""
-    if cell["status"] != "ok":
+    r = CellResult(cell)
+    result = r.result
+    if result is None:
         return None, None
     where = f"$[{index}].metrics.{CLASS}"
-    table = cell["metrics"].get(CLASS)
-    if table is None:
-        raise DataFormatError(path, f"cell {_name(_cell_id(cell))} has no {CLASS} AP", field=where)
+    have = result.metrics(CLASS)
+    if not have:
+        raise DataFormatError(path, f"cell {r.name} has no {CLASS} AP", field=where)
     ap: dict[str, dict[str, float]] = {}
     for m in GATE_METRICS:
-        if m not in table:
-            raise DataFormatError(path, f"cell {_name(_cell_id(cell))} has no {CLASS} {m} AP", field=f"{where}.{m}")
-        ap[m] = {d: float(table[m][RECALL][d]) for d in DIFFICULTIES}
-    effect = cell.get("attack_effect")
-    drop = None
-    if effect is not None:
-        drop = {m: effect["drop"].get(CLASS, {}).get(m, {}).get(RECALL, {}).get("moderate") for m in GATE_METRICS}
+        if m not in have:
+            raise DataFormatError(path, f"cell {r.name} has no {CLASS} {m} AP", field=f"{where}.{m}")
+        ap[m] = {d: float(result.ap(CLASS, m, RECALL, d)) for d in DIFFICULTIES}
+    drop = None if r.effect is None else {m: _gated_effect(r, m) for m in GATE_METRICS}
     return ap, drop
 
 
 def _object_sha(cell: Mapping[str, Any]) -> str | None:
-    obj = cell["provenance"]["config"]["attack"].get("object") or {}
+    obj = CellResult(cell).config["attack"].get("object") or {}
     inner = obj.get("object") if isinstance(obj, dict) else None
     return inner.get("ply_sha256") if isinstance(inner, dict) else None
 
 
 def _common(cells: Sequence[Mapping[str, Any]], what: str, fn: Any, path: Path) -> dict[str, Any]:
     """``fn(cell)`` of the ok cells (or all cells), refusing a summary whose cells disagree."""
-    ok = [c for c in cells if c["status"] == "ok"] or list(cells)
+    ok = [c for c in cells if CellResult(c).ok] or list(cells)
     first = fn(ok[0])
     for c in ok[1:]:
         if fn(c) != first:
@@ -163,15 +177,16 @@ def _common(cells: Sequence[Mapping[str, Any]], what: str, fn: Any, path: Path) 
 def baseline_from_run(run: str | Path) -> dict[str, Any]:
     """The baseline record of a run (module doc). Refuses a run with ``error`` cells."""
     path, cells = read_run(run)
-    failed = [_name(_cell_id(c)) for c in cells if c["status"] == "error"]
+    failed = [CellResult(c).name for c in cells if CellResult(c).status == "error"]
     if failed:
         raise RobustBenchError(f"{path}: cell(s) {', '.join(failed)} failed; a baseline records finished cells only")
     out_cells = []
     for i, cell in enumerate(cells):
         ap, drop = _values(cell, path, i)
-        out_cells.append({"victim": cell["victim"], "attack": cell["attack"], "proposals": cell["proposals"],
-                          "status": cell["status"], "ap": ap, "drop_moderate": drop,
-                          "victim_weights_sha256": cell["provenance"]["config"]["victim"].get("weights_sha256"),
+        r = CellResult(cell)
+        out_cells.append({"victim": r.victim, "attack": r.attack, "proposals": r.proposals,
+                          "status": r.status, "ap": ap, "drop_moderate": drop,
+                          "victim_weights_sha256": r.config["victim"].get("weights_sha256"),
                           "attack_object_sha256": _object_sha(cell)})
     from robustbench3d import __version__
     from robustbench3d.provenance import utc_now
@@ -443,10 +458,10 @@ def compare(baseline: Mapping[str, Any], cells: Sequence[Mapping[str, Any]], run
 def _cell_problem(bcell: Mapping[str, Any], found: tuple[int, Mapping[str, Any]] | None, name: str) -> str | None:
     if found is None:
         return f"cell {name} is in the baseline but not in the run"
-    cell = found[1]
-    if cell["status"] != bcell["status"]:
-        reason = f": {cell['reason']}" if cell.get("reason") else ""
-        return f"cell {name} is {cell['status']} (baseline: {bcell['status']}){reason}"
+    cell = CellResult(found[1])
+    if cell.status != bcell["status"]:
+        reason = f": {cell.reason}" if cell.reason else ""
+        return f"cell {name} is {cell.status} (baseline: {bcell['status']}){reason}"
     return None
 
 
@@ -473,8 +488,8 @@ def _compare_values(report: GateReport, name: str, bcell: Mapping[str, Any], ap:
     for m in GATE_METRICS if ap is not None else ():
         found += [_judge(name, "ap", m, d, bcell["ap"][m][d], ap[m][d], report.tol_ap, True) for d in DIFFICULTIES]
     bdrop = bcell["drop_moderate"] or {}
-    found += [_judge(name, "drop", m, "moderate", bdrop.get(m), (drop or {}).get(m), report.tol_drop, False)
-              for m in GATE_METRICS]
+    found += [_judge(name, GATED_EFFECT.name, m, GATED_DIFFICULTY, bdrop.get(m), (drop or {}).get(m),
+                     report.tol_drop, not GATED_EFFECT.higher_is_stronger) for m in GATE_METRICS]
     report.values += [v for v in found if v is not None]
 
 
@@ -482,7 +497,7 @@ def _explain(report: GateReport, name: str, bcell: Mapping[str, Any], cell: Mapp
     """Notes on what changed under a cell whose values moved (its victim's weights, its attack's object)."""
     if not any(v.cell == name for v in report.moves):
         return
-    if bcell.get("victim_weights_sha256") != cell["provenance"]["config"]["victim"].get("weights_sha256"):
+    if bcell.get("victim_weights_sha256") != CellResult(cell).config["victim"].get("weights_sha256"):
         report.notes.append(f"{name}: the victim's weights changed since the baseline")
     if bcell.get("attack_object_sha256") != _object_sha(cell):
         report.notes.append(f"{name}: the attack's object changed since the baseline")

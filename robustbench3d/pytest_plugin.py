@@ -43,6 +43,9 @@ from typing import Any
 
 import pytest
 
+from robustbench3d.metrics import HEADLINE
+from robustbench3d.results import CellResult
+
 MARKER = "robustbench3d"
 DEFAULT_FRAMES = 8
 
@@ -91,36 +94,34 @@ class BenchmarkResult:
     def cell(self, attack: str = "none", proposals: str = "detector") -> dict[str, Any]:
         """The summary cell; a failed or skipped cell fails the test with its reason."""
         for c in self.cells:
-            if (c["attack"], c["proposals"]) == (attack, proposals):
+            r = CellResult(c)
+            if (r.attack, r.proposals) == (attack, proposals):
                 if self._seen is not None:
-                    self._seen.cell(cell_name(c))
-                if c["status"] != "ok":
-                    pytest.fail(f"robustbench3d cell {self.victim} / {attack} / {proposals} is {c['status']}: "
-                                f"{c['reason']}", pytrace=False)
+                    self._seen.cell(r.name)
+                if not r.ok:
+                    pytest.fail(f"robustbench3d cell {self.victim} / {attack} / {proposals} is {r.status}: "
+                                f"{r.reason}", pytrace=False)
                 return c
-        have = ", ".join(f"{c['attack']}/{c['proposals']}" for c in self.cells)
+        have = ", ".join(f"{r.attack}/{r.proposals}" for r in map(CellResult, self.cells))
         raise LookupError(f"no cell {attack}/{proposals} in this run (cells: {have}); add it to the marker")
 
-    def ap(self, attack: str = "none", metric: str = "bev", difficulty: str = "moderate",
-           proposals: str = "detector", recall: str = "R40", cls: str = "Car") -> float:
+    def ap(self, attack: str = "none", metric: str = HEADLINE.metric, difficulty: str = HEADLINE.difficulty,
+           proposals: str = "detector", recall: str = HEADLINE.recall, cls: str = HEADLINE.cls) -> float:
         """AP in percent of one cell."""
-        from robustbench3d.results import CellResult
-
         value = CellResult(self.cell(attack, proposals)).ap(cls, metric, recall, difficulty)
         kind = "clean_ap" if attack == "none" else f"ap.{attack}"
         return self._record(f"{kind}.{proposals}.{cls}.{metric}.{recall}.{difficulty}", value)
 
-    def clean_ap(self, metric: str = "bev", difficulty: str = "moderate", proposals: str = "detector",
-                 recall: str = "R40", cls: str = "Car") -> float:
+    def clean_ap(self, metric: str = HEADLINE.metric, difficulty: str = HEADLINE.difficulty,
+                 proposals: str = "detector", recall: str = HEADLINE.recall, cls: str = HEADLINE.cls) -> float:
         """AP in percent of the clean cell (attack ``none``)."""
         return self.ap("none", metric, difficulty, proposals, recall, cls)
 
-    def drop(self, attack: str, metric: str = "bev", difficulty: str = "moderate", proposals: str = "detector",
-             recall: str = "R40", cls: str = "Car", relative: bool = False) -> float | None:
+    def drop(self, attack: str, metric: str = HEADLINE.metric, difficulty: str = HEADLINE.difficulty,
+             proposals: str = "detector", recall: str = HEADLINE.recall, cls: str = HEADLINE.cls,
+             relative: bool = False) -> float | None:
         """Clean AP - attacked AP in percentage points (``relative``: as a fraction of the clean AP, None where
         it is 0), from the attacked cell's ``attack_effect``."""
-        from robustbench3d.results import CellResult
-
         value = CellResult(self.cell(attack, proposals)).drop(cls, metric, recall, difficulty, relative=relative)
         kind = "relative_drop" if relative else "drop"
         return self._record(f"{kind}.{attack}.{proposals}.{cls}.{metric}.{recall}.{difficulty}", value)
@@ -133,11 +134,11 @@ class BenchmarkResult:
 
     def flags(self, attack: str = "none", proposals: str = "detector") -> list[dict[str, str]]:
         """The cell's sanity flags (:mod:`robustbench3d.runner.flags`)."""
-        return list(self.cell(attack, proposals).get("flags") or [])
+        return [dict(f) for f in CellResult(self.cell(attack, proposals)).flags]
 
     @property
     def frames(self) -> int:
-        return int(self.cells[0]["dataset"]["frames"])
+        return int(CellResult(self.cells[0]).frames)
 
     def for_test(self, item: pytest.Item) -> BenchmarkResult:
         """This run, recording what the test ``item`` reads (its properties and failure section)."""
@@ -151,15 +152,16 @@ class BenchmarkResult:
 
 def cell_name(cell: Mapping[str, Any]) -> str:
     """``victim+attack+proposals``, the name of a cell in a run's output and in ``check``."""
-    return f"{cell['victim']}+{cell['attack']}+{cell['proposals']}"
+    return CellResult(cell).name
 
 
 def _cell_lines(cell: Mapping[str, Any]) -> Iterator[str]:
     """A cell's status, sanity flags and evaluator notes / skipped metrics, for the failure section."""
-    yield f"  {cell_name(cell)}: {cell['status']}" + (f" ({cell['reason']})" if cell.get("reason") else "")
-    for flag in cell.get("flags") or []:
+    r = CellResult(cell)
+    yield f"  {r.name}: {r.status}" + (f" ({r.reason})" if r.reason else "")
+    for flag in r.flags:
         yield f"    flag {flag['code']}: {flag['message']}"
-    meta = (cell.get("metrics") or {}).get("meta", {})
+    meta = r.result.meta if r.result is not None else {}
     notes = [*meta.get("notes", []),
              *(f"skipped {s['class']} {s['metric']}: {s['reason']}" for s in meta.get("skipped", []))]
     yield from (f"    evaluator note: {n}" for n in notes) if notes else ["    evaluator notes: none"]
@@ -167,7 +169,7 @@ def _cell_lines(cell: Mapping[str, Any]) -> Iterator[str]:
 
 def describe(run: BenchmarkResult, seen: _Seen) -> str:
     """The ``robustbench3d`` section of a failing test's report: run, frames, cells read, numbers."""
-    dataset = run.cells[0]["dataset"]
+    dataset = CellResult(run.cells[0]).dataset
     lines = [f"run: victim {run.victim}, {run.frames} frame(s) of split {dataset['split']!r} "
              f"({dataset['split_frames']} in the split) under {dataset['root']}; output {run.out}"]
     by_name = {cell_name(c): c for c in run.cells}

@@ -17,6 +17,14 @@ raises :class:`PluginImportError` naming the distribution, the entry point and t
 setting the environment variable ``ROBUSTBENCH3D_NO_PLUGINS=1`` disables entry-point discovery
 altogether.
 
+References: what a user types for a target (``run --victims``/``--attacks``, ``attack apply OBJECT``, the keys of
+``--victim-arg``/``--attack-arg``) is a *reference*, turned into a registered name by :meth:`Registry.resolve`
+(the one resolver of victims and attacks alike). A name passes through; a reference that names a file or a
+directory is claimed by one of the registry's *path resolvers* (``"module:function"``, like the loaders: an ONNX
+victim directory, an object file ``NAME.ply``), which registers it for this process under a name derived from
+the path (:func:`sanitise_name`) with :meth:`Registry.register_reference`. Factory arguments ``NAME:KEY=VALUE``
+(and ``KEY=VALUE``) are parsed by :func:`parse_factory_args` (and :func:`parse_kwargs`).
+
 Targets are typically :class:`Spec` objects (a factory plus whatever metadata the kind of target
 declares: :class:`robustbench3d.victims.spec.VictimSpec`, :class:`robustbench3d.attacks.spec.AttackSpec`).
 This module knows no kind of target and imports only the standard library.
@@ -27,10 +35,12 @@ from __future__ import annotations
 import difflib
 import fnmatch
 import importlib
+import json
 import os
 import re
 import threading
-from collections.abc import Callable, Iterator
+import unicodedata
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from importlib import metadata as importlib_metadata
 from typing import Any, Generic, TypeVar, cast, overload
@@ -44,6 +54,7 @@ F = TypeVar("F")
 NO_PLUGINS_ENV = "ROBUSTBENCH3D_NO_PLUGINS"
 
 _NAME = re.compile(r"^[a-z0-9][a-z0-9._-]*$")
+_INVALID = re.compile(r"[^a-z0-9._-]+")
 
 
 class RegistryError(RobustBenchError, ValueError):
@@ -126,6 +137,57 @@ def import_reference(ref: str) -> Any:
     return obj
 
 
+def sanitise_name(text: str) -> str:
+    """A registry name from free text (a directory or file name): NFKD-folded to ASCII with accents
+    dropped, lowercase, runs of other characters -> "-". "" when nothing is left or when a letter
+    or digit has no ASCII form (the name would not be readable)."""
+    folded = []
+    for ch in unicodedata.normalize("NFKD", text):
+        if ch.isascii():
+            folded.append(ch)
+        elif unicodedata.category(ch)[0] in "LN":
+            return ""
+        elif not unicodedata.combining(ch):
+            folded.append(" ")  # a non-ASCII symbol or space separates words
+    return _INVALID.sub("-", "".join(folded).lower()).strip("-._")
+
+
+def parse_value(raw: str) -> Any:
+    """A factory argument's VALUE: parsed as JSON when it is valid JSON (numbers, true/false, null, lists),
+    else kept as the string (paths)."""
+    try:
+        return json.loads(raw)
+    except json.JSONDecodeError:
+        return raw
+
+
+def parse_kwargs(items: list[str] | None, option: str, example: str = "weights=cascade.pt") -> dict[str, Any]:
+    """``["KEY=VALUE", ...]`` -> ``{KEY: VALUE}`` (VALUE: :func:`parse_value`); an item without ``=`` or
+    without a key raises :class:`RobustBenchError` naming ``option`` and the item."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, eq, raw = item.partition("=")
+        if not eq or not key.strip():
+            raise RobustBenchError(f"{option} {item!r}: expected KEY=VALUE (e.g. {example})")
+        out[key.strip()] = parse_value(raw)
+    return out
+
+
+def parse_factory_args(items: list[str] | None, option: str,
+                       example: str = "fpointnet-v1:weights=cascade.pt") -> dict[str, dict[str, Any]]:
+    """``["NAME:KEY=VALUE", ...]`` -> ``{NAME: {KEY: VALUE}}`` (VALUE: :func:`parse_value`); NAME is a
+    reference, resolved later (:meth:`Registry.resolve_all`). A malformed item raises
+    :class:`RobustBenchError` naming ``option`` and the item."""
+    out: dict[str, dict[str, Any]] = {}
+    for item in items or []:
+        name, sep, assignment = item.partition(":")
+        key, eq, raw = assignment.partition("=")
+        if not sep or not eq or not name.strip() or not key.strip():
+            raise RobustBenchError(f"{option} {item!r}: expected NAME:KEY=VALUE (e.g. {example})")
+        out.setdefault(name.strip(), {})[key.strip()] = parse_value(raw)
+    return out
+
+
 def _normalize_dist(name: str) -> str:
     return re.sub(r"[-_.]+", "-", name).lower()
 
@@ -142,17 +204,21 @@ class Registry(Generic[T]):
         modules: in-tree modules imported on the first lookup (their decorators register).
         loaders: ``"module:function"`` references called (no arguments) on the first lookup, after
             ``modules``: registrations read from files happen on first use, not at import.
+        path_resolvers: ``"module:function"`` references of the functions :meth:`resolve` asks, in order,
+            about a reference: ``function(reference) -> name | None``; one that claims it (a file or
+            directory of its kind) registers it (:meth:`register_reference`) and returns the name.
     """
 
     def __init__(self, kind: str, *, group: str | None = None, base: type | None = None,
                  key: Callable[[Any], Any] | None = None, modules: tuple[str, ...] = (),
-                 loaders: tuple[str, ...] = ()):
+                 loaders: tuple[str, ...] = (), path_resolvers: tuple[str, ...] = ()):
         self.kind = kind
         self.group = group
         self.base = base
         self._key = key
         self._modules = modules
         self._loaders = loaders
+        self._path_resolvers = path_resolvers
         self._entries: dict[str, Entry[T]] = {}
         self._rejected: dict[str, str] = {}  # invalid entry-point name -> why it was rejected
         self._lock = threading.RLock()
@@ -219,11 +285,41 @@ class Registry(Generic[T]):
             self.entry(name)
             del self._entries[name]
 
+    def register_reference(self, name: str, target: T, *, origin: str, taken: str) -> str:
+        """Register ``target``, built from a path reference, under ``name`` for this process and return
+        ``name``. The registry's own entries (in-tree, loaded, plugins) are discovered first, so they take
+        precedence: a name they hold, or that holds another target, raises :class:`RobustBenchError` with the
+        message ``taken``; the same target again is a no-op."""
+        self._discover()
+        try:
+            self.register(name, target, origin=origin)
+        except RegistryError:
+            raise RobustBenchError(taken) from None
+        return name
+
     def freeze(self) -> None:
         """Make the registry read-only (after discovery)."""
         with self._lock:
             self._discover()
             self._frozen = True
+
+    # ---- references ---------------------------------------------------------------------
+    def resolve(self, reference: str) -> str:
+        """The registered name ``reference`` stands for (module doc, "References"): the name a path
+        resolver registered it under, or ``reference`` itself (a name: looked up when it is used, so an
+        unknown one fails there, with did-you-mean)."""
+        for resolver in self._path_resolvers:
+            name = import_reference(resolver)(reference)
+            if name is not None:
+                return str(name)
+        return reference
+
+    def resolve_all(self, references: list[str],
+                    args: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], dict[str, dict[str, Any]]]:
+        """:meth:`resolve` of each reference, and ``args`` (factory arguments per reference, e.g. from
+        :func:`parse_factory_args`) keyed by the resolved names: a path given both ways stays one target."""
+        return ([self.resolve(r) for r in references],
+                {self.resolve(k): dict(v) for k, v in args.items()})
 
     # ---- lookup -------------------------------------------------------------------------
     def get(self, name: str) -> T:
@@ -371,5 +467,5 @@ class Registry(Generic[T]):
 
 __all__ = [
     "NO_PLUGINS_ENV", "Entry", "PluginImportError", "Registry", "RegistryError", "Spec", "UnknownNameError",
-    "import_reference", "plugins_disabled",
+    "import_reference", "parse_factory_args", "parse_kwargs", "parse_value", "plugins_disabled", "sanitise_name",
 ]

@@ -7,13 +7,13 @@
      "dataset": {...identity...}, "metrics": <evaluator JSON> | null, "provenance": {...}}
 
 validated against ``robustbench3d/schemas/summary.schema.json`` (shipped with the package).
-The long-format CSV has one row per AP number of every ``ok`` cell (columns :data:`CSV_COLUMNS`);
-it is the single source later leaderboards are built from.
+The long-format CSV has one row per AP number of every ``ok`` cell (columns :data:`CSV_COLUMNS`: the AP's,
+then each attack metric's, :mod:`robustbench3d.metrics`); it is the single source later leaderboards are built
+from. :class:`CellResult` is the typed read access to one cell that every reader of summaries goes through.
 """
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
@@ -28,13 +28,25 @@ from typing import Any, NamedTuple
 from robustbench3d.errors import DataFormatError
 from robustbench3d.eval.rules import DIFFICULTIES, RECALL_SAMPLES
 from robustbench3d.fileio import atomic_write_text, read_data_text
+from robustbench3d.metrics import (
+    ATTACK_METRICS,
+    HEADLINE,
+    SUCCESS_CLASS,
+    SUCCESS_DIFFICULTY,
+    SUCCESS_METRIC,
+    attack_metric,
+    csv_columns,
+    drop_tables,  # re-exported, as are success_rate and SUCCESS_*: attack train's held-out curve reads them here
+    success_rate,
+)
 
 SCHEMA_VERSION = 1
 SCHEMA_RESOURCE = "summary.schema.json"
-CSV_COLUMNS: tuple[str, ...] = (
+#: The columns of an AP value, then of each attack metric (:func:`robustbench3d.metrics.csv_columns`).
+AP_COLUMNS: tuple[str, ...] = (
     "victim", "attack", "proposals", "class", "metric", "iou", "recall_points", "difficulty", "ap",
-    "clean_ap", "ap_drop", "relative_drop", "attack_success_rate",
 )
+CSV_COLUMNS: tuple[str, ...] = (*AP_COLUMNS, *csv_columns())
 #: Recall sampling name -> number of recall points (``R40`` -> 40, ``R11`` -> 11), in report order.
 RECALL_POINTS: dict[str, int] = {name: len(idx) for name, idx in RECALL_SAMPLES.items()}
 
@@ -188,6 +200,16 @@ class APResult:
         """Evaluated classes, in the evaluator's order."""
         return tuple(self.data["meta"]["classes"])
 
+    @property
+    def meta(self) -> Mapping[str, Any]:
+        """The evaluation's record of itself (evaluator, version, frames, classes, metrics, min_overlap, ...)."""
+        return self.data["meta"]
+
+    @property
+    def evaluated_metrics(self) -> tuple[str, ...]:
+        """The metrics the evaluation was asked for (``meta.metrics``), in the evaluator's order."""
+        return tuple(self.data["meta"]["metrics"])
+
     def metrics(self, cls: str) -> tuple[str, ...]:
         """Metrics with AP values for ``cls`` (none if the class was skipped), in result order."""
         return tuple(self.data.get(cls, {}))
@@ -195,6 +217,10 @@ class APResult:
     def iou(self, cls: str, metric: str) -> float:
         """Minimum overlap of ``metric`` for ``cls``."""
         return self.data["meta"]["min_overlap"][cls][metric]
+
+    def min_overlap(self, cls: str) -> Mapping[str, float]:
+        """Minimum overlap per metric for ``cls`` (empty if the evaluation records none)."""
+        return self.data["meta"].get("min_overlap", {}).get(cls, {})
 
     def ap(self, cls: str, metric: str, recall: str, difficulty: str) -> float:
         """AP in percent; :class:`LookupError` naming what is missing if there is no such value."""
@@ -216,47 +242,11 @@ class APResult:
                         yield APValue(cls, metric, recall, diff, self.data[cls][metric][recall][diff])
 
 
-#: The attack-success-rate criterion: class, metric, difficulty (the IoU is the evaluator's for the metric).
-SUCCESS_CLASS, SUCCESS_METRIC, SUCCESS_DIFFICULTY = "Car", "bev", "moderate"
-
-
-def drop_tables(clean: APResult, attacked: APResult) -> tuple[dict, dict, dict]:
-    """Clean AP, drop (clean - attacked, points) and relative drop (drop / clean AP, a fraction; None where
-    the clean AP is 0), each ``{class: {metric: {recall: {difficulty: value}}}}``, for every value both
-    evaluations have (an attack effect's ``clean``, ``drop`` and ``relative_drop``)."""
-    out: tuple[dict, dict, dict] = ({}, {}, {})
-    for v in clean.values():
-        if v.cls not in attacked.classes or v.metric not in attacked.metrics(v.cls):
-            continue
-        drop = v.ap - attacked.ap(v.cls, v.metric, v.recall, v.difficulty)
-        for table, value in zip(out, (v.ap, drop, drop / v.ap if v.ap > 0 else None), strict=True):
-            table.setdefault(v.cls, {}).setdefault(v.metric, {}).setdefault(v.recall, {})[v.difficulty] = value
-    return out
-
-
-def success_rate(gt: Sequence[Any], clean: Sequence[Any], attacked: Sequence[Any], iou: float) -> dict[str, Any]:
-    """The attack success rate (an attack effect's ``success`` record) from the frames' GT and both cells'
-    detections (one :class:`~robustbench3d.kitti.labels.Labels` per frame each): of the Cars matched clean,
-    the share not matched attacked; "matched" is the evaluator's greedy matching
-    (:mod:`robustbench3d.eval.matches`) at :data:`SUCCESS_CLASS`, :data:`SUCCESS_METRIC`,
-    :data:`SUCCESS_DIFFICULTY`, at the score threshold that maximises F1 on the clean detections (the same
-    threshold for the attacked ones). ``rate`` is None when nothing is matched clean."""
-    from robustbench3d.eval.matches import best_f1_threshold, matched_ground_truth
-
-    crit = {"cls": SUCCESS_CLASS, "metric": SUCCESS_METRIC, "difficulty": SUCCESS_DIFFICULTY}
-    threshold = best_f1_threshold(gt, clean, **crit)
-    before = matched_ground_truth(gt, clean, threshold, **crit).matched
-    after = matched_ground_truth(gt, attacked, threshold, **crit).matched
-    n_clean = int(sum(int(b.sum()) for b in before))
-    missed = int(sum(int((b & ~a).sum()) for b, a in zip(before, after, strict=True)))
-    return {"class": SUCCESS_CLASS, "metric": SUCCESS_METRIC, "iou": iou, "difficulty": SUCCESS_DIFFICULTY,
-            "score_threshold": threshold, "clean_matched": n_clean, "attacked_missed": missed,
-            "rate": missed / n_clean if n_clean else None}
-
-
 @dataclass(frozen=True)
 class CellResult:
-    """Typed read access to one summary cell (see the module docstring)."""
+    """Typed read access to one summary cell (see the module docstring): its identity, dataset, provenance,
+    evaluation (:class:`APResult`), intervals and attack metrics (:mod:`robustbench3d.metrics`). AP positions
+    default to :data:`robustbench3d.metrics.HEADLINE`."""
 
     cell: Mapping[str, Any]
 
@@ -273,28 +263,90 @@ class CellResult:
         return self.cell["proposals"]
 
     @property
+    def id(self) -> tuple[str, str, str]:
+        """(victim, attack, proposals): what names the cell in a summary."""
+        return (self.victim, self.attack, self.proposals)
+
+    @property
+    def name(self) -> str:
+        """``victim+attack+proposals``, the cell's directory name (registry names hold no ``+``)."""
+        return "+".join(self.id)
+
+    @property
     def status(self) -> str:
         return self.cell["status"]
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
 
     @property
     def reason(self) -> str | None:
         return self.cell["reason"]
 
     @property
+    def dataset(self) -> Mapping[str, Any]:
+        """The dataset identity record (split, frames, split_frames, sha256, embedded, root, ...)."""
+        return self.cell["dataset"]
+
+    @property
     def frames(self) -> int:
-        return self.cell["dataset"]["frames"]
+        return self.dataset["frames"]
+
+    @property
+    def provenance(self) -> Mapping[str, Any]:
+        return self.cell["provenance"]
+
+    @property
+    def config(self) -> Mapping[str, Any]:
+        """Everything the result depends on (``provenance.config``; its sha256 is :attr:`fingerprint`)."""
+        return self.provenance["config"]
+
+    @property
+    def fingerprint(self) -> str:
+        return self.provenance["fingerprint"]
+
+    @property
+    def seed(self) -> int:
+        """The run seed (``provenance.seed``)."""
+        return self.provenance["seed"]
+
+    @property
+    def flags(self) -> list[Mapping[str, str]]:
+        """The sanity flags (:mod:`robustbench3d.runner.flags`); empty when none were recorded."""
+        return list(self.cell.get("flags") or [])
 
     @property
     def result(self) -> APResult | None:
         """The cell's evaluation, or None unless it is ``ok``."""
-        return APResult(self.cell["metrics"]) if self.status == "ok" else None
+        return APResult(self.cell["metrics"]) if self.ok else None
 
-    def ap(self, cls: str, metric: str, recall: str, difficulty: str) -> float:
+    def ap(self, cls: str = HEADLINE.cls, metric: str = HEADLINE.metric, recall: str = HEADLINE.recall,
+           difficulty: str = HEADLINE.difficulty) -> float:
         """AP in percent of an ``ok`` cell (:class:`LookupError` for another status or a missing value)."""
         result = self.result
         if result is None:
             raise LookupError(f"cell {self.victim} / {self.attack} / {self.proposals} is {self.status}: no AP")
         return result.ap(cls, metric, recall, difficulty)
+
+    def interval(self, cls: str = HEADLINE.cls, metric: str = HEADLINE.metric, recall: str = HEADLINE.recall,
+                 difficulty: str = HEADLINE.difficulty, table: str = "metrics_ci") -> Any:
+        """The recorded bootstrap interval (``[lo, hi]``) of an AP (``table`` ``metrics_ci``, the cell's) or of an
+        ``interval`` attack metric (``table`` its name, e.g. ``drop_ci``, in the attack effect); None where the
+        summary has none."""
+        in_effect = table in ATTACK_METRICS and ATTACK_METRICS[table].kind == "interval"
+        tree = (self.effect or {}).get(table) if in_effect else self.cell.get(table)
+        for key in (cls, metric, recall, difficulty):
+            if not isinstance(tree, Mapping) or key not in tree:
+                return None
+            tree = tree[key]
+        return tree
+
+    @property
+    def interval_meta(self) -> Mapping[str, Any] | None:
+        """How the cell's AP intervals were drawn (``metrics_ci.meta``: level, resamples, seed, ...), or None."""
+        ci = self.cell.get("metrics_ci")
+        return ci["meta"] if ci else None
 
     @property
     def effect(self) -> Mapping[str, Any] | None:
@@ -302,43 +354,70 @@ class CellResult:
         None (the clean cell itself, a cell that is not ``ok``, or no ``ok`` clean cell)."""
         return self.cell.get("attack_effect")
 
-    def _effect_value(self, table: str, cls: str, metric: str, recall: str, difficulty: str) -> float | None:
+    @property
+    def clean_cell(self) -> str | None:
+        """The directory name of the clean cell the attack effect was computed against, or None."""
+        effect = self.effect
+        return None if effect is None else effect.get("clean_cell")
+
+    def effect_value(self, name: str, cls: str = HEADLINE.cls, metric: str = HEADLINE.metric,
+                     recall: str = HEADLINE.recall, difficulty: str = HEADLINE.difficulty) -> Any:
+        """The attack metric ``name`` (:data:`robustbench3d.metrics.ATTACK_METRICS`): an ``ap`` metric's value at
+        the AP position, a ``cell`` metric's number (the position is ignored). :class:`LookupError` for an
+        unknown or ``interval`` metric (see :meth:`interval`), without a clean-cell comparison, or for a position
+        the comparison lacks."""
+        m = attack_metric(name)
         effect = self.effect
         if effect is None:
             raise LookupError(f"cell {self.victim} / {self.attack} / {self.proposals} has no clean-cell comparison")
         try:
-            return effect[table][cls][metric][recall][difficulty]
+            if m.kind == "cell":
+                return effect[name][m.value_key]
+            if m.kind == "ap":
+                return effect[name][cls][metric][recall][difficulty]
         except KeyError:
-            raise LookupError(f"no {table} for class {cls!r} metric {metric!r} {recall} {difficulty}") from None
+            raise LookupError(f"no {name} for class {cls!r} metric {metric!r} {recall} {difficulty}") from None
+        raise LookupError(f"attack metric {name!r} is an interval: read it with CellResult.interval")
 
-    def clean_ap(self, cls: str = "Car", metric: str = "bev", recall: str = "R40",
-                 difficulty: str = "moderate") -> float:
+    def clean_ap(self, cls: str = HEADLINE.cls, metric: str = HEADLINE.metric, recall: str = HEADLINE.recall,
+                 difficulty: str = HEADLINE.difficulty) -> float:
         """AP in percent of the clean cell this attacked cell is compared with (:class:`LookupError` if none)."""
-        value = self._effect_value("clean", cls, metric, recall, difficulty)
+        value = self.effect_value("clean", cls, metric, recall, difficulty)
         assert value is not None
         return value
 
-    def drop(self, cls: str = "Car", metric: str = "bev", recall: str = "R40", difficulty: str = "moderate",
-             relative: bool = False) -> float | None:
+    def drop(self, cls: str = HEADLINE.cls, metric: str = HEADLINE.metric, recall: str = HEADLINE.recall,
+             difficulty: str = HEADLINE.difficulty, relative: bool = False) -> float | None:
         """Clean AP - attacked AP in percentage points, or with ``relative`` that drop / clean AP (a
         fraction; None where the clean AP is 0). :class:`LookupError` without a clean-cell comparison."""
-        return self._effect_value("relative_drop" if relative else "drop", cls, metric, recall, difficulty)
+        return self.effect_value("relative_drop" if relative else "drop", cls, metric, recall, difficulty)
 
     @property
     def attack_success_rate(self) -> float | None:
-        """Share of the Cars matched clean that the attacked cell misses (see ``attack_effect.success``);
-        None without a comparison or when the clean cell matches no Car."""
-        effect = self.effect
-        return None if effect is None else effect["success"]["rate"]
+        """Share of the target-class objects matched clean that the attacked cell misses (see
+        ``attack_effect.success``); None without a comparison or when the clean cell matches none."""
+        return None if self.effect is None else self.effect_value("success")
+
+
+def _metric_columns(cell: CellResult, v: APValue) -> dict[str, Any]:
+    """The attack metrics' CSV values of one AP value of ``cell`` (all None unless every one is found)."""
+    columns = {m.column: None for m in ATTACK_METRICS.values() if m.column is not None}
+    if cell.effect is None:
+        return columns
+    where = (v.cls, v.metric, v.recall, v.difficulty)
+    try:
+        return {m.column: cell.effect_value(m.name, *where) for m in ATTACK_METRICS.values() if m.column is not None}
+    except LookupError:
+        return columns
 
 
 def long_rows(cells: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per AP value of every ``ok`` cell, in cell order, then class, metric, recall
     sampling (R40 before R11) and difficulty. ``iou`` is the metric's minimum overlap,
     ``recall_points`` 40 or 11, ``ap`` in percent. Attacked cells compared with a clean cell also fill
-    ``clean_ap``, ``ap_drop`` (percentage points), ``relative_drop`` (fraction) and the cell's
-    ``attack_success_rate`` (repeated on each of its rows); these are empty otherwise, as is a
-    relative drop from a clean AP of 0."""
+    each attack metric's column (:mod:`robustbench3d.metrics`: ``clean_ap``, ``ap_drop`` in percentage points,
+    ``relative_drop`` and the cell's ``attack_success_rate``, repeated on each of its rows, as fractions); these
+    are empty otherwise, as is a relative drop from a clean AP of 0."""
     rows = []
     for cell in map(CellResult, cells):
         result = cell.result
@@ -348,21 +427,16 @@ def long_rows(cells: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             row = {"victim": cell.victim, "attack": cell.attack, "proposals": cell.proposals, "class": v.cls,
                    "metric": v.metric, "iou": result.iou(v.cls, v.metric),
                    "recall_points": RECALL_POINTS[v.recall], "difficulty": v.difficulty, "ap": v.ap,
-                   "clean_ap": None, "ap_drop": None, "relative_drop": None, "attack_success_rate": None}
-            if cell.effect is not None:
-                where = (v.cls, v.metric, v.recall, v.difficulty)
-                with contextlib.suppress(LookupError):
-                    row.update(clean_ap=cell.clean_ap(*where), ap_drop=cell.drop(*where),
-                               relative_drop=cell.drop(*where, relative=True),
-                               attack_success_rate=cell.attack_success_rate)
+                   **_metric_columns(cell, v)}
             rows.append(row)
     return rows
 
 
 def long_csv_text(rows: Sequence[dict[str, Any]]) -> str:
-    """CSV text of :func:`long_rows` (floats written in their shortest exact form)."""
+    """CSV text of :func:`long_rows` (floats written in their shortest exact form; the columns are
+    :data:`CSV_COLUMNS`, read from the attack metrics' table when called)."""
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    writer = csv.DictWriter(buf, fieldnames=(*AP_COLUMNS, *csv_columns()), lineterminator="\n")
     writer.writeheader()
     for row in rows:
         writer.writerow({k: repr(v) if isinstance(v, float) else "" if v is None else v for k, v in row.items()})
@@ -377,8 +451,8 @@ def write_long_csv(path: str | Path, cells: Sequence[dict[str, Any]]) -> list[di
 
 
 __all__ = [
-    "CSV_COLUMNS", "RECALL_POINTS", "SCHEMA_VERSION", "SUCCESS_CLASS", "SUCCESS_DIFFICULTY", "SUCCESS_METRIC",
-    "APResult", "APValue", "CellResult", "drop_tables", "dumps", "load_schema", "long_csv_text", "long_rows",
-    "read_json", "read_summary", "schema_errors", "success_rate", "validate_summary", "write_long_csv",
+    "AP_COLUMNS", "CSV_COLUMNS", "RECALL_POINTS", "SCHEMA_VERSION", "SUCCESS_CLASS", "SUCCESS_DIFFICULTY",
+    "SUCCESS_METRIC", "APResult", "APValue", "CellResult", "drop_tables", "dumps", "load_schema", "long_csv_text",
+    "long_rows", "read_json", "read_summary", "schema_errors", "success_rate", "validate_summary", "write_long_csv",
     "write_validated",
 ]

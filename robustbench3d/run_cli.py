@@ -33,27 +33,11 @@ from robustbench3d.ranges import (
     check_range,
     default_processes,
 )
+from robustbench3d.registry import parse_factory_args
 
 
 def _names(text: str) -> list[str]:
     return [t.strip() for t in text.split(",") if t.strip()]
-
-
-def parse_factory_args(items: list[str] | None, option: str) -> dict[str, dict[str, Any]]:
-    """``["NAME:KEY=VALUE", ...]`` -> ``{NAME: {KEY: VALUE}}``; VALUE is parsed as JSON when it is
-    valid JSON (numbers, true/false, null, lists), else kept as a string (paths)."""
-    out: dict[str, dict[str, Any]] = {}
-    for item in items or []:
-        name, sep, assignment = item.partition(":")
-        key, eq, raw = assignment.partition("=")
-        if not sep or not eq or not name.strip() or not key.strip():
-            raise RobustBenchError(f"{option} {item!r}: expected NAME:KEY=VALUE (e.g. fpointnet-v1:weights=cascade.pt)")
-        try:
-            value: Any = json.loads(raw)
-        except json.JSONDecodeError:
-            value = raw
-        out.setdefault(name.strip(), {})[key.strip()] = value
-    return out
 
 
 def frames_line(max_frames: int | None, requested: int | None, full: bool, data: str | None, split: str,
@@ -393,14 +377,14 @@ def _check_run_names(victims: list[str], attacks: list[str]) -> None:
 def run_config(settings: Mapping[str, Any], args: argparse.Namespace) -> Any:
     """The :class:`~robustbench3d.runner.RunConfig` of ``settings`` (object files and ONNX directories
     registered under their names) with the command line's execution options."""
-    from robustbench3d.attacks.controls import resolve_attack_references
+    from robustbench3d.attacks import ATTACKS
     from robustbench3d.runner import RunConfig
-    from robustbench3d.victims import resolve_victim_references
+    from robustbench3d.victims import VICTIMS
 
-    victims, _ = resolve_victim_references(list(settings["victims"]), {})
-    _, victim_args = resolve_victim_references([], dict(settings["victim_args"]))
-    attacks, _ = resolve_attack_references(list(settings["attacks"]), {})
-    _, attack_args = resolve_attack_references([], dict(settings["attack_args"]))
+    victims, _ = VICTIMS.resolve_all(list(settings["victims"]), {})
+    _, victim_args = VICTIMS.resolve_all([], settings["victim_args"])
+    attacks, _ = ATTACKS.resolve_all(list(settings["attacks"]), {})
+    _, attack_args = ATTACKS.resolve_all([], settings["attack_args"])
     return RunConfig(
         victims=tuple(victims), attacks=tuple(attacks), proposals=tuple(settings["proposals"]), out=settings["out"],
         data=settings["data"], split=settings["split"], max_frames=settings["max_frames"], seed=settings["seed"],

@@ -32,15 +32,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from robustbench3d.eval.rules import DIFFICULTIES
+from robustbench3d.eval.rules import DIFFICULTIES, MIN_OVERLAP
 from robustbench3d.fileio import atomic_write_text
-from robustbench3d.results import CellResult
+from robustbench3d.metrics import HEADLINE, relative_drop
+from robustbench3d.results import RECALL_POINTS, CellResult
 from robustbench3d.texttable import format_table
 from robustbench3d.victims.spec import PROTOCOL_LABELS
 
 #: File name of the markdown table next to ``summary.json``.
 SEED_TABLE_FILE = "seed_table.md"
-CLASS, METRIC = "Car", "bev"
+#: The layout's AP: the headline's class and metric (Car BEV), its difficulty for the relative drop (moderate).
+CLASS, METRIC, MODERATE = HEADLINE.cls, HEADLINE.metric, HEADLINE.difficulty
+#: Recall samplings of the layout, in column order (R40, R11).
+RECALLS: tuple[str, ...] = tuple(RECALL_POINTS)
 
 
 @dataclass(frozen=True)
@@ -144,18 +148,9 @@ _NONE = "-"
 
 def paper_relative_drop(row: PaperRow) -> float:
     """The paper row's relative drop at moderate against the paper's clean row (a fraction)."""
-    return (PAPER_CLEAN.bev[1] - row.bev[1]) / PAPER_CLEAN.bev[1]
-
-
-def interval(cell: CellResult, cls: str, metric: str, recall: str, difficulty: str, drop: bool = False
-             ) -> list[float] | None:
-    """The bootstrap 95 % interval of a cell's AP (``metrics_ci``) or, with ``drop``, of its paired drop
-    (``attack_effect.drop_ci``); None where the summary has none."""
-    table = (cell.effect or {}).get("drop_ci") if drop else cell.cell.get("metrics_ci")
-    try:
-        return None if table is None else table[cls][metric][recall][difficulty]
-    except KeyError:
-        return None
+    value = relative_drop(PAPER_CLEAN.bev[1], row.bev[1])
+    assert value is not None  # the paper's clean AP is not 0
+    return value
 
 
 def with_interval(text: str, ci: list[float] | None) -> str:
@@ -185,9 +180,9 @@ def _percent(value: float | None) -> str:
 
 def _relative(cell: CellResult) -> str:
     parts = []
-    for recall in ("R40", "R11"):
+    for recall in RECALLS:
         try:
-            parts.append(_percent(cell.drop(CLASS, METRIC, recall, "moderate", relative=True)))
+            parts.append(_percent(cell.drop(CLASS, METRIC, recall, MODERATE, relative=True)))
         except LookupError:
             return _NONE
     return " ".join(parts)
@@ -199,9 +194,9 @@ def _row(spec: SeedRow, cell: CellResult) -> list[str]:
     paper = spec.paper
     return [
         spec.name, spec.proposals,
-        _aps(lambda d: cell.ap(CLASS, METRIC, "R40", d), "6.2f", lambda d: interval(cell, CLASS, METRIC, "R40", d)),
-        _aps(lambda d: cell.ap(CLASS, METRIC, "R11", d), "6.2f", lambda d: interval(cell, CLASS, METRIC, "R11", d)),
-        _aps(lambda d: cell.clean_ap(CLASS, METRIC, "R40", d), "6.2f") if attacked else _NONE,
+        *(_aps(lambda d, r=r: cell.ap(CLASS, METRIC, r, d), "6.2f", lambda d, r=r: cell.interval(CLASS, METRIC, r, d))
+          for r in RECALLS),
+        _aps(lambda d: cell.clean_ap(CLASS, METRIC, HEADLINE.recall, d), "6.2f") if attacked else _NONE,
         _relative(cell) if attacked else _NONE,
         _percent(cell.attack_success_rate) if attacked else _NONE,
         paper.label if paper else _NONE,
@@ -235,9 +230,6 @@ class MeasuredRow:
     success_rate: float | None
 
 
-RECALLS = ("R40", "R11")
-
-
 def _triple(get: Callable[[str], float | None]) -> Triple:
     values = []
     for d in DIFFICULTIES:
@@ -259,7 +251,7 @@ def measured_row(spec: SeedRow, cell: CellResult) -> MeasuredRow:
 
     def rel(recall: str) -> float | None:
         try:
-            return cell.drop(CLASS, METRIC, recall, "moderate", relative=True)
+            return cell.drop(CLASS, METRIC, recall, MODERATE, relative=True)
         except LookupError:
             return None
 
@@ -267,7 +259,7 @@ def measured_row(spec: SeedRow, cell: CellResult) -> MeasuredRow:
         spec=spec, victim=cell.victim, status=cell.status, reason=cell.reason, frames=cell.frames,
         bev={r: _triple(lambda d, r=r: cell.ap(CLASS, METRIC, r, d)) if ok else (None, None, None)
              for r in RECALLS},
-        ci={r: tuple(_pair(interval(cell, CLASS, METRIC, r, d)) if ok else None for d in DIFFICULTIES)
+        ci={r: tuple(_pair(cell.interval(CLASS, METRIC, r, d)) if ok else None for d in DIFFICULTIES)
             for r in RECALLS},
         clean={r: _triple(lambda d, r=r: cell.clean_ap(CLASS, METRIC, r, d)) for r in RECALLS} if attacked else None,
         relative_drop={r: rel(r) for r in RECALLS} if attacked else None,
@@ -282,7 +274,7 @@ def victim_layout(cells: Sequence[Mapping[str, Any]]) -> dict[str, list[tuple[Se
     by_victim: dict[str, dict[tuple[str, str], CellResult]] = {}
     for cell in map(CellResult, cells):
         by_victim.setdefault(cell.victim, {}).setdefault((cell.attack, cell.proposals), cell)
-    rows = layout_rows(c["proposals"] for c in cells)
+    rows = layout_rows(CellResult(c).proposals for c in cells)
     out = {}
     for victim, have in by_victim.items():
         found = ((spec, have.get((spec.attack, spec.proposals))) for spec in rows)
@@ -292,7 +284,7 @@ def victim_layout(cells: Sequence[Mapping[str, Any]]) -> dict[str, list[tuple[Se
 
 def interval_meta(cells: Sequence[Mapping[str, Any]]) -> Mapping[str, Any] | None:
     """How the first cell with ``metrics_ci`` drew its intervals (its ``meta``: level, resamples, ...), or None."""
-    return next((c["metrics_ci"]["meta"] for c in cells if c.get("metrics_ci")), None)
+    return next((meta for meta in (CellResult(c).interval_meta for c in cells) if meta is not None), None)
 
 
 @dataclass
@@ -320,7 +312,7 @@ def sections(cells: Sequence[dict[str, Any]]) -> list[VictimSection]:
     by_victim: dict[str, dict[tuple[str, str], CellResult]] = {}
     for cell in map(CellResult, cells):
         by_victim.setdefault(cell.victim, {}).setdefault((cell.attack, cell.proposals), cell)
-    specs = layout_rows(c["proposals"] for c in cells)
+    specs = layout_rows(CellResult(c).proposals for c in cells)
     out = []
     for victim, have in by_victim.items():
         section = VictimSection(victim, next(iter(have.values())).frames, specs=specs)
@@ -342,7 +334,7 @@ def _iou(cells: Sequence[dict[str, Any]]) -> float:
         if result is not None and METRIC in result.metrics(CLASS):
             with contextlib.suppress(KeyError):
                 return result.iou(CLASS, METRIC)
-    return 0.7
+    return MIN_OVERLAP[METRIC][CLASS]  # the devkit's, when no cell evaluated it
 
 
 TITLE = "Seed paper Table 1 layout"
@@ -386,7 +378,7 @@ def _notes(section: VictimSection) -> list[str]:
 def _protocols(cells: Sequence[dict[str, Any]]) -> str:
     """With a further LiDAR protocol among the cells' proposal sources, ``"; proposals: gt = ..., ..."`` (each
     source with its protocol's words, :data:`PROPOSAL_LABELS`), else ''."""
-    sources = list(dict.fromkeys(c["proposals"] for c in cells))
+    sources = list(dict.fromkeys(CellResult(c).proposals for c in cells))
     if all(s in (DETECTOR_PROPOSALS, GT_PROPOSALS) for s in sources):
         return ""
     return "; proposals: " + ", ".join(f"{s} = {PROPOSAL_LABELS.get(s, 'another source')}" for s in sources)

@@ -10,15 +10,14 @@ import shutil
 import numpy as np
 import pytest
 
-from robustbench3d.attacks import create_attack
+from robustbench3d.attacks import ATTACKS, create_attack
 from robustbench3d.attacks.base import target_cars
-from robustbench3d.attacks.controls import resolve_attack_reference
 from robustbench3d.attacks.object import benign_sphere
 from robustbench3d.attacks.roof import SETTINGS, RoofObjectAttack
 from robustbench3d.attacks.shipped import shipped_objects
 from robustbench3d.attacks.spec import AttackSpecError
 from robustbench3d.errors import RobustBenchError
-from robustbench3d.run_cli import parse_factory_args
+from robustbench3d.registry import parse_factory_args
 
 #: A value other than the default for every setting.
 OTHER = {"eot": True, "position_jitter_m": 0.1, "yaw_jitter_rad": 0.2, "range_noise_m": 0.02, "dropout": 0.05,
@@ -34,7 +33,7 @@ def factories(tmp_path_factory) -> dict[str, dict]:
     path = tmp_path_factory.mktemp("obj") / "my-shape.ply"  # a copy of a shipped object file and its sidecar
     shutil.copyfile(shipped[0].path, path)
     shutil.copyfile(shipped[0].sidecar_path, path.with_suffix(".json"))
-    named = resolve_attack_reference(str(path))  # a .ply given to --attacks
+    named = ATTACKS.resolve(str(path))  # a .ply given to --attacks
     out = {"benign-sphere": {}, "random-shape": {"seed": 3}, "object-file": {"path": str(path)}, named: {}}
     out.update({entry.name: {} for entry in shipped})
     return out

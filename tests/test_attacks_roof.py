@@ -10,7 +10,6 @@ import pytest
 
 from robustbench3d.attacks import ATTACKS, create_attack
 from robustbench3d.attacks.base import target_cars
-from robustbench3d.attacks.controls import resolve_attack_references
 from robustbench3d.attacks.object import benign_sphere, random_shape
 from robustbench3d.attacks.objectfile import object_sha256, save_object
 from robustbench3d.attacks.roof import RoofObjectAttack
@@ -132,13 +131,13 @@ def test_registry_entries_and_parameter_errors(tmp_path):
 
 def test_attacks_option_accepts_object_files(tmp_path):
     path = save_object(tmp_path / "My Object.ply", random_shape(6), {"attack": "random-shape", "seed": 6})
-    names, args = resolve_attack_references(["none", str(path)], {str(path): {"eot": True}})
+    names, args = ATTACKS.resolve_all(["none", str(path)], {str(path): {"eot": True}})
     assert names == ["none", "my-object"] and args == {"my-object": {"eot": True}}
     attack = create_attack("my-object", eot=True)
     assert attack.obj == random_shape(6) and attack.eot
-    assert resolve_attack_references([str(path)], {})[0] == ["my-object"]  # idempotent for the same file
+    assert ATTACKS.resolve_all([str(path)], {})[0] == ["my-object"]  # idempotent for the same file
     with pytest.raises(RobustBenchError, match="no such object file"):
-        resolve_attack_references([str(tmp_path / "nope.ply")], {})
+        ATTACKS.resolve_all([str(tmp_path / "nope.ply")], {})
     clash = save_object(tmp_path / "sub" / "none.ply", benign_sphere())
     with pytest.raises(RobustBenchError, match="'none' is already a registered attack"):
-        resolve_attack_references([str(clash)], {})
+        ATTACKS.resolve_all([str(clash)], {})

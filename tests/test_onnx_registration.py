@@ -16,11 +16,12 @@ import torch
 from robustbench3d.cli import main
 from robustbench3d.errors import DataFormatError
 from robustbench3d.fileio import sha256_file
+from robustbench3d.registry import sanitise_name
 from robustbench3d.testing import link_frames
 from robustbench3d.victims import VICTIMS, create_victim
 from robustbench3d.victims.cascade import FPointNetCascade
 from robustbench3d.victims.onnx.export import legacy_exporter_available
-from robustbench3d.victims.onnx.registration import resolve_victim_reference, sanitise_name, user_registry_file
+from robustbench3d.victims.onnx.registration import user_registry_file
 from robustbench3d.victims.onnx.runtime import OnnxCascade
 
 torch.set_num_threads(1)
@@ -95,12 +96,12 @@ def test_a_broken_registry_file_does_not_break_other_victims(cache):
 
 
 def test_victim_references_resolve_names_and_directories(onnx_dir, tmp_path):
-    assert resolve_victim_reference("fpointnet-v1") == "fpointnet-v1"
+    assert VICTIMS.resolve("fpointnet-v1") == "fpointnet-v1"
     assert sanitise_name("My_Export.v1") == "my_export.v1" and sanitise_name("  //") == ""
-    name = resolve_victim_reference(str(onnx_dir))
-    assert name == "my_export.v1" and resolve_victim_reference(str(onnx_dir) + os.sep) == name  # idempotent
+    name = VICTIMS.resolve(str(onnx_dir))
+    assert name == "my_export.v1" and VICTIMS.resolve(str(onnx_dir) + os.sep) == name  # idempotent
     with pytest.raises(DataFormatError, match="not an ONNX victim directory"):
-        resolve_victim_reference(str(tmp_path))
+        VICTIMS.resolve(str(tmp_path))
 
 
 def test_run_accepts_an_onnx_directory(onnx_dir, kitti_samples, tmp_path, capsys):

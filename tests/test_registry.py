@@ -1,6 +1,7 @@
 """Registry semantics: decorator and lazy registration, collisions, did-you-mean, entry points
 (through fake installed distributions written to a temporary sys.path entry), duplicate
-distributions, the disable switch, metadata validation."""
+distributions, the disable switch, metadata validation; references (names and paths) resolved by the
+registry's path resolvers, and factory arguments ``NAME:KEY=VALUE`` / ``KEY=VALUE``."""
 
 from __future__ import annotations
 
@@ -10,12 +11,15 @@ from pathlib import Path
 
 import pytest
 
+from robustbench3d.errors import RobustBenchError
 from robustbench3d.registry import (
     NO_PLUGINS_ENV,
     Registry,
     RegistryError,
     Spec,
     UnknownNameError,
+    parse_factory_args,
+    parse_kwargs,
 )
 
 GROUP = "robustbench3d.test_plugins"
@@ -209,3 +213,62 @@ def test_spec_creates_through_its_factory_and_is_identified_by_it():
     reg.register("t", Spec(factory=Thing))  # the same factory again: a no-op
     with pytest.raises(RegistryError, match="already registered"):
         reg.register("t", Spec(factory=dict))
+
+
+def test_references_resolve_names_and_paths_through_the_path_resolvers(plugin_path, tmp_path):
+    write_module(plugin_path, "rb3d_refs_a", """
+        from pathlib import Path
+
+        from robustbench3d.registry import Registry, sanitise_name
+
+        REG = Registry("thing", base=dict, key=lambda t: t["path"],
+                       path_resolvers=("rb3d_refs_a:nothing", "rb3d_refs_a:thing_file"))
+        asked = []
+
+        def nothing(reference):
+            asked.append(reference)
+            return None
+
+        def thing_file(reference):
+            if not reference.endswith(".thing"):
+                return None
+            path = Path(reference).resolve()
+            name = sanitise_name(path.stem)
+            return REG.register_reference(name, {"path": str(path)}, origin="thing file",
+                                          taken=f"--things {reference}: {name!r} is taken")
+    """)
+    import rb3d_refs_a
+
+    reg = rb3d_refs_a.REG
+    reg.register("taken", {"path": "elsewhere"})
+    assert reg.resolve("plain-name") == "plain-name" and "plain-name" not in reg  # a name: looked up when used
+    first = tmp_path / "Mÿ Fïle.thing"
+    assert reg.resolve(str(first)) == "my-file"  # folded to ASCII, lowercase, "-" between words
+    assert reg.entry("my-file").origin == "thing file" and reg.get("my-file") == {"path": str(first.resolve())}
+    assert reg.resolve(str(first)) == "my-file"  # the same file again: the same entry
+    assert rb3d_refs_a.asked == ["plain-name", str(first), str(first)]  # every reference asked, in order
+    with pytest.raises(RobustBenchError, match=r"^--things .*taken\.thing: 'taken' is taken$"):
+        reg.resolve(str(tmp_path / "taken.thing"))  # the registry's own entries take precedence
+    with pytest.raises(RobustBenchError, match="'my-file' is taken"):
+        reg.resolve(str(tmp_path / "sub" / "my file.thing"))  # another file under the same name
+    names, args = reg.resolve_all(["plain-name", str(first)], {str(first): {"k": 1}, "plain-name": {"j": 2}})
+    assert names == ["plain-name", "my-file"] and args == {"my-file": {"k": 1}, "plain-name": {"j": 2}}
+
+
+def test_factory_arguments_are_name_key_value_with_json_values():
+    items = ["fpointnet-v1:weights=runs/c.pt", "fpointnet-v1:num_points=1024", "adv-object:eot=true",
+             "adv-object:range=[0.1, 0.2]", "my.ply:path=C:/x=y", " spaced : key = null", "a:empty="]
+    assert parse_factory_args(items, "--victim-arg") == {
+        "fpointnet-v1": {"weights": "runs/c.pt", "num_points": 1024},
+        "adv-object": {"eot": True, "range": [0.1, 0.2]},
+        "my.ply": {"path": "C:/x=y"},  # the first ":" ends the name, the first "=" the key
+        "spaced": {"key": None},
+        "a": {"empty": ""},
+    }
+    for bad in ("weights=x.pt", "fpointnet-v1:weights", ":k=1", "v:=1"):
+        with pytest.raises(RobustBenchError, match=rf"^--attack-arg '{bad}': expected NAME:KEY=VALUE \(e\.g\. "):
+            parse_factory_args(["ok:k=1", bad], "--attack-arg")
+    assert parse_kwargs(["weights=a.pt", "seed=3", "allow_untrained=true"], "--victim-arg") == {
+        "weights": "a.pt", "seed": 3, "allow_untrained": True}
+    with pytest.raises(RobustBenchError, match=r"^--victim-arg 'weights': expected KEY=VALUE \(e\.g\. weights=cascade"):
+        parse_kwargs(["weights"], "--victim-arg")

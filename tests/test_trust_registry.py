@@ -23,9 +23,10 @@ from robustbench3d.cli import main
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import sha256_file
 from robustbench3d.kitti.calib import read_calibration
+from robustbench3d.registry import sanitise_name
 from robustbench3d.testing import link_frames
 from robustbench3d.victims import VICTIMS
-from robustbench3d.victims.onnx.registration import resolve_victim_reference, sanitise_name, user_registry_file
+from robustbench3d.victims.onnx.registration import user_registry_file
 from robustbench3d.victims.shipped import weights_dir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -181,7 +182,7 @@ def test_unreadable_folder_names_require_a_name(tmp_path, cache, capsys):
     err = capsys.readouterr().err
     assert "victim name 'Dét' must be lowercase letters, digits, '.', '_' or '-' (e.g. 'det')" in err
     with pytest.raises(RobustBenchError, match="victims add-onnx DIR --name NAME"):
-        resolve_victim_reference(str(directory))  # run --victims DIR
+        VICTIMS.resolve(str(directory))  # run --victims DIR
 
 
 # ---- 7. UTF-8 byte-order marks ---------------------------------------------------------------

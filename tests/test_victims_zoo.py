@@ -16,11 +16,10 @@ from robustbench3d.victims.base import (
     Detector,
     FrustumSegmentationOracle,
     ImageObjectnessOracle,
-    VictimSpec,
     check_victim,
 )
 from robustbench3d.victims.shipped import shipped
-from robustbench3d.victims.spec import Capabilities, EntryInfo
+from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
 
 
 def test_in_tree_victims_are_registered_with_metadata():

@@ -1,11 +1,12 @@
 """Victim models: the detectors under attack.
 
 ``VICTIMS`` is the registry (:class:`robustbench3d.registry.Registry` of
-:class:`~robustbench3d.victims.base.VictimSpec`). In-tree victims are declared in
+:class:`~robustbench3d.victims.spec.VictimSpec`). In-tree victims are declared in
 :mod:`robustbench3d.victims.zoo` with :func:`register_victim`; installed packages add theirs
 through the entry-point group ``robustbench3d.victims`` (an entry point names a ``VictimSpec``);
 ONNX victim directories added with ``victims add-onnx`` come from
-:mod:`robustbench3d.victims.onnx.registration`.
+:mod:`robustbench3d.victims.onnx.registration`, which also resolves an ONNX victim directory given as
+a reference (``run --victims DIR``: ``VICTIMS.resolve(DIR)``, :meth:`~robustbench3d.registry.Registry.resolve`).
 
     >>> from robustbench3d.victims import VICTIMS, create_victim
     >>> VICTIMS.names()                                   # doctest: +SKIP
@@ -31,6 +32,7 @@ VICTIMS: Registry[VictimSpec] = Registry(
     "victim", group=ENTRY_POINT_GROUP, base=VictimSpec, key=lambda spec: spec.key,
     modules=("robustbench3d.victims.zoo",),
     loaders=("robustbench3d.victims.onnx.registration:register_user_victims",),
+    path_resolvers=("robustbench3d.victims.onnx.registration:directory_reference",),
 )
 
 #: A factory ``(**kwargs) -> Detector``.
@@ -56,15 +58,4 @@ def create_victim(name: str, **kwargs: Any) -> Detector:
     return VICTIMS.get(name).create(**kwargs)
 
 
-def resolve_victim_references(references: list[str], victim_args: dict[str, Any]) -> tuple[list[str], dict[str, Any]]:
-    """Registered names for ``run --victims`` entries and the keys of its ``--victim-arg`` mapping:
-    names pass through; an entry naming a directory (an ONNX export, the one kind of victim given by
-    path) is registered for this run under its directory name, which replaces it (so
-    ``--victim-arg DIR:threads=2`` follows the directory)."""
-    from robustbench3d.victims.onnx.registration import resolve_victim_reference
-
-    return ([resolve_victim_reference(v) for v in references],
-            {resolve_victim_reference(k): v for k, v in victim_args.items()})
-
-
-__all__ = ["ENTRY_POINT_GROUP", "VICTIMS", "create_victim", "register_victim", "resolve_victim_references"]
+__all__ = ["ENTRY_POINT_GROUP", "VICTIMS", "create_victim", "register_victim"]

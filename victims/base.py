@@ -18,8 +18,9 @@ implements the protocols that make sense for it and declares its :class:`Capabil
   rect frame), differentiable w.r.t. the point coordinates (the mask and the discrete choices of
   heading bin and size template held fixed), the same box ``detect`` reports.
 
-Victims are registered in :data:`robustbench3d.victims.VICTIMS` as :class:`VictimSpec` objects
-(a factory plus :class:`EntryInfo` metadata; both in :mod:`robustbench3d.victims.spec`).
+Victims are registered in :data:`robustbench3d.victims.VICTIMS` as
+:class:`~robustbench3d.victims.spec.VictimSpec` objects (a factory plus :class:`EntryInfo` metadata; both in
+:mod:`robustbench3d.victims.spec`, whose ``create`` checks this contract: :func:`check_victim`).
 
 What the harness hands ``detect`` (:func:`victim_inputs`), per proposal mode of a cell:
 
@@ -64,7 +65,7 @@ import numpy as np
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels, type_mask
 from robustbench3d.kitti.velodyne import row_indices
-from robustbench3d.victims.spec import (
+from robustbench3d.victims.capabilities import (
     GT_PROPOSAL_SOURCES,
     OBJECT_PROPOSAL_SOURCES,
     PROPOSAL_SOURCES,
@@ -72,7 +73,6 @@ from robustbench3d.victims.spec import (
     Capabilities,
     EntryInfo,
     ProposalSource,
-    VictimSpec,
 )
 
 if TYPE_CHECKING:
@@ -493,7 +493,6 @@ __all__ = [
     "ProposalSource",
     "Proposals",
     "ProposalsArg",
-    "VictimSpec",
     "check_victim",
     "empty_detections",
     "gt_proposals",

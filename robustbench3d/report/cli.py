@@ -68,6 +68,7 @@ def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = pri
     from robustbench3d.report import data, figures
     from robustbench3d.report.scenes import SceneSource, scene
     from robustbench3d.report.view import Figure, SectionView
+    from robustbench3d.results import CellResult
 
     check_scenes(scenes)
     secs = data.sections(data.read_runs(runs), strict=strict)
@@ -107,7 +108,7 @@ def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = pri
             attacked = ok[ok["rel_drop_R40"].notna()].sort_values("rel_drop_R40", ascending=False, kind="stable")
             picked = attacked.drop_duplicates("attack").head(scenes)
             if len(picked):
-                source = SceneSource(sec.cells[int(picked.index[0])].cell["dataset"])
+                source = SceneSource(CellResult(sec.cells[int(picked.index[0])].cell).dataset)
                 for i in picked.index:
                     log(f"report: scene figure of {sec.cells[int(i)].name}")
                     sc = scene(source, sec.cells[int(i)])

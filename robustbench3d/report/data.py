@@ -7,22 +7,28 @@ package versions. Cells that differ in any of these are never put in one table: 
 separates them and says which fields differ, and ``strict`` refuses instead. The proposal source is a
 column of every table and every comparison (clean reference, drop, transfer) stays within one source.
 
-pandas is imported inside the functions that build tables; the module itself is standard library only.
+Every cell is read through :class:`robustbench3d.results.CellResult`; the attack columns of :func:`table` are
+the attack metrics' (:data:`robustbench3d.metrics.ATTACK_METRICS`, their ``report`` columns). pandas is imported
+inside the functions that build tables; the module itself is standard library only.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import DataFormatError, RobustBenchError
+from robustbench3d.eval.rules import DIFFICULTIES
+from robustbench3d.metrics import HEADLINE, of_kind
+from robustbench3d.results import RECALL_POINTS, CellResult
 
-CLASS = "Car"
-DIFFICULTIES = ("easy", "moderate", "hard")
-RECALLS = ("R40", "R11")
+#: The leaderboard's AP: the headline's class (Car); its attack columns are at the headline's metric and difficulty.
+CLASS = HEADLINE.cls
+#: Recall samplings, in column order (R40, R11).
+RECALLS: tuple[str, ...] = tuple(RECALL_POINTS)
 METRICS = ("bev", "3d")
 SUMMARY = "summary.json"
 CLEAN_ATTACK = "none"
@@ -39,7 +45,7 @@ class RunCell:
     @property
     def name(self) -> str:
         """The cell's directory name, ``victim+attack+proposals``."""
-        return f"{self.cell['victim']}+{self.cell['attack']}+{self.cell['proposals']}"
+        return CellResult(self.cell).name
 
     @property
     def source(self) -> str:
@@ -50,7 +56,7 @@ class RunCell:
 def read_summary_tolerant(path: Path) -> list[dict[str, Any]]:
     """A ``summary.json`` validated against the shipped schema; cell keys the schema does not know (``flags``,
     confidence intervals written by newer runs) are kept but not validated."""
-    from robustbench3d.results import load_schema, read_json, validate_summary
+    from robustbench3d.results import load_schema, read_json, validate_summary  # jsonschema on use
 
     data = read_json(path)
     known = set(load_schema()["$defs"]["cell"]["properties"])
@@ -89,17 +95,18 @@ FROM_METRICS = ("iou", "recall_points", "difficulty")
 def comparability_key(cell: Mapping[str, Any]) -> dict[str, Any]:
     """What must be equal for two cells to share a table (see the module doc); plain JSON types. A cell
     without metrics has None for the :data:`FROM_METRICS` fields."""
-    ds = cell["dataset"]
-    prov = cell["provenance"]
-    meta = (cell.get("metrics") or {}).get("meta")
+    r = CellResult(cell)
+    ds = r.dataset
+    prov = r.provenance
+    meta = None if r.result is None else r.result.meta
     return {
         "dataset": {k: ds.get(k) for k in ("sha256", "split", "frames", "split_frames", "embedded")},
         "protocol": {
-            "evaluation": prov["config"].get("evaluation"),
+            "evaluation": r.config.get("evaluation"),
             "iou": None if meta is None else meta.get("min_overlap"),
             "recall_points": None if meta is None else meta.get("recall_points", sorted(RECALLS)),
             "difficulty": None if meta is None else meta.get("difficulty"),
-            "seed": prov["config"].get("seed"),
+            "seed": r.config.get("seed"),
         },
         "versions": {"robustbench3d": prov["package"]["version"], **prov.get("versions", {})},
     }
@@ -170,7 +177,7 @@ def sections(cells: Iterable[RunCell], strict: bool = False) -> list[Section]:
     first)."""
     groups: list[Section] = []
     cells_list = list(cells)
-    for rc in sorted(cells_list, key=lambda c: c.cell.get("metrics") is None):  # cells with metrics found sections
+    for rc in sorted(cells_list, key=lambda c: CellResult(c.cell).result is None):  # cells with metrics found sections
         key = comparability_key(rc.cell)
         partial = key["protocol"]["iou"] is None and key["protocol"]["recall_points"] is None
         # a cell without metrics prefers a section holding cells of its own run
@@ -184,7 +191,7 @@ def sections(cells: Iterable[RunCell], strict: bool = False) -> list[Section]:
         twin = next((c for c in sec.cells if c.name == rc.name), None)
         if twin is None:
             sec.cells.append(rc)
-        elif twin.cell["provenance"]["fingerprint"] != rc.cell["provenance"]["fingerprint"]:
+        elif CellResult(twin.cell).fingerprint != CellResult(rc.cell).fingerprint:
             raise RobustBenchError(f"report: cell {rc.name} is in {twin.source} and {rc.source} with different "
                                    "configurations on the same dataset and protocol; report the runs separately")
         else:
@@ -209,7 +216,8 @@ def _results(cell: Mapping[str, Any]) -> tuple[Any, ...]:
 
 
 def _status(cell: Mapping[str, Any]) -> str:
-    return cell["status"] + (f", {cell['reason']}" if cell.get("reason") else "")
+    r = CellResult(cell)
+    return r.status + (f", {r.reason}" if r.reason else "")
 
 
 def left_out(section: Section) -> list[str]:
@@ -217,12 +225,11 @@ def left_out(section: Section) -> list[str]:
     naming each cell and where it comes from): cells with no AP (not ``ok``), and attacked cells without a
     clean comparison (no ``attack_effect``: no ``ok`` clean cell of the same victim and proposals)."""
     out = []
-    no_ap = [rc for rc in section.cells if rc.cell["status"] != "ok"]
+    no_ap = [rc for rc in section.cells if not CellResult(rc.cell).ok]
     if no_ap:
         out.append("No AP, so not in the figures or the transfer matrix (the leaderboard shows their status): "
                    + "; ".join(f"{rc.name} ({rc.source}): {_status(rc.cell)}" for rc in no_ap) + ".")
-    lone = [rc for rc in section.cells if rc.cell["status"] == "ok" and rc.cell["attack"] != CLEAN_ATTACK
-            and not rc.cell.get("attack_effect")]
+    lone = [rc for rc in section.cells if (r := CellResult(rc.cell)).ok and r.attack != CLEAN_ATTACK and not r.effect]
     if lone:
         out.append("No clean cell with the same victim and proposals to compare with, so no drop (not in the drop "
                    "figure or the transfer matrix): " + "; ".join(f"{rc.name} ({rc.source})" for rc in lone) + ".")
@@ -254,7 +261,7 @@ def _interval(value: Any) -> tuple[float, float] | None:
 def cell_ci(cell: Mapping[str, Any], metric: str, recall: str, difficulty: str) -> tuple[float, float] | None:
     """The AP's confidence interval when the cell carries one (``metrics_ci`` in the metrics' layout)."""
     for name in ("metrics_ci", "ci"):
-        found = _interval(_get(cell.get(name), CLASS, metric, recall, difficulty))
+        found = _interval(CellResult(cell).interval(CLASS, metric, recall, difficulty, table=name))
         if found is not None:
             return found
     return None
@@ -262,7 +269,7 @@ def cell_ci(cell: Mapping[str, Any], metric: str, recall: str, difficulty: str) 
 
 def trained_against(cell: Mapping[str, Any]) -> str | None:
     """The victim the cell's attack object was optimised against, or None (clean cell, controls)."""
-    name = _get(cell, "provenance", "config", "attack", "object", "object", "made_by", "victim", "name")
+    name = _get(CellResult(cell).config, "attack", "object", "object", "made_by", "victim", "name")
     return name if isinstance(name, str) else None
 
 
@@ -274,9 +281,38 @@ def effect_column(what: str, recall: str) -> str:
     return f"{what}_{recall}"
 
 
+def _number(get: Callable[..., Any], *args: str) -> float:
+    """``get(*args)`` as a float; NaN where the cell has no such value (None, or :class:`LookupError`)."""
+    try:
+        value = get(*args)
+    except LookupError:
+        return float("nan")
+    return float("nan") if value is None else float(value)
+
+
+def _effect_columns(r: CellResult, row: dict[str, Any]) -> None:
+    """The attack metrics' columns of ``row`` (their ``report`` columns, at the headline's metric and difficulty;
+    NaN for a cell that is not ``ok``), with the AP interval's after the ``ap`` metrics of each recall sampling."""
+    nan = float("nan")
+    for recall in RECALLS:
+        where = (CLASS, HEADLINE.metric, recall, HEADLINE.difficulty)
+        for m in of_kind("ap"):
+            if m.report is not None:
+                row[effect_column(m.report.key, recall)] = _number(r.effect_value, m.name, *where) if r.ok else nan
+        for key, bounds in (("ci", cell_ci(r.cell, *where[1:])),
+                            *((m.report.key, _interval(r.interval(*where, table=m.name)) if r.ok else None)
+                              for m in of_kind("interval") if m.report is not None)):
+            row[effect_column(f"{key}_low", recall)] = nan if bounds is None else bounds[0]
+            row[effect_column(f"{key}_high", recall)] = nan if bounds is None else bounds[1]
+    for m in of_kind("cell"):
+        if m.report is not None:
+            row[m.report.key] = _number(r.effect_value, m.name) if r.ok else nan
+
+
 def table(section: Section) -> Any:
-    """One row per cell: identity, status, BEV and 3D AP (R40 and R11, E/M/H); the clean AP, drop and relative
-    drop of BEV moderate (R40 and R11); attack success rate; the intervals of BEV moderate AP and drop where
+    """One row per cell: identity, status, BEV and 3D AP (R40 and R11, E/M/H); the attack metrics' columns
+    (:data:`robustbench3d.metrics.ATTACK_METRICS`: clean AP, drop and relative drop of BEV moderate, R40 and R11;
+    attack success rate; the interval of the drop where recorded) and the interval of BEV moderate AP where
     recorded; flags; the object's training victim and where the numbers come from. A pandas DataFrame (AP in
     percent, relative drop and ASR as fractions, NaN where there is no value)."""
     import pandas as pd
@@ -284,37 +320,23 @@ def table(section: Section) -> Any:
     rows = []
     nan = float("nan")
     for rc in section.cells:
-        c = rc.cell
-        ok = c["status"] == "ok"
-        row: dict[str, Any] = {"run": str(rc.run), "cell": rc.name, "victim": c["victim"], "attack": c["attack"],
-                               "proposals": c["proposals"], "status": c["status"], "reason": c.get("reason") or "",
-                               "trained_against": trained_against(c) or "", "source": rc.source}
+        r = CellResult(rc.cell)
+        row: dict[str, Any] = {"run": str(rc.run), "cell": rc.name, "victim": r.victim, "attack": r.attack,
+                               "proposals": r.proposals, "status": r.status, "reason": r.reason or "",
+                               "trained_against": trained_against(rc.cell) or "", "source": rc.source}
         for metric in METRICS:
             for recall in RECALLS:
                 for d in DIFFICULTIES:
-                    v = _get(c, "metrics", CLASS, metric, recall, d) if ok else None
-                    row[ap_column(metric, recall, d)] = nan if v is None else float(v)
-        effect = c.get("attack_effect") if ok else None
-        for recall in RECALLS:
-            for what, tab in (("clean", "clean"), ("drop", "drop"), ("rel_drop", "relative_drop")):
-                v = _get(effect, tab, CLASS, "bev", recall, "moderate")
-                row[effect_column(what, recall)] = nan if v is None else float(v)
-            ci = cell_ci(c, "bev", recall, "moderate")
-            row[effect_column("ci_low", recall)] = nan if ci is None else ci[0]
-            row[effect_column("ci_high", recall)] = nan if ci is None else ci[1]
-            dci = _interval(_get(effect, "drop_ci", CLASS, "bev", recall, "moderate"))
-            row[effect_column("dci_low", recall)] = nan if dci is None else dci[0]
-            row[effect_column("dci_high", recall)] = nan if dci is None else dci[1]
-        rate = _get(effect, "success", "rate")
-        row["asr"] = nan if rate is None else float(rate)
-        flags = c.get("flags") or []
-        row["flags"] = [(str(f.get("code", "?")), str(f.get("message", ""))) for f in flags if isinstance(f, Mapping)]
+                    row[ap_column(metric, recall, d)] = _number(r.ap, CLASS, metric, recall, d) if r.ok else nan
+        _effect_columns(r, row)
+        row["flags"] = [(str(f.get("code", "?")), str(f.get("message", ""))) for f in r.flags
+                        if isinstance(f, Mapping)]
         rows.append(row)
     return pd.DataFrame(rows)
 
 
-def transfer_entries(cells: Iterable[Mapping[str, Any]], metric: str = "bev", recall: str = "R40",
-                     difficulty: str = "moderate") -> list[dict[str, Any]]:
+def transfer_entries(cells: Iterable[Mapping[str, Any]], metric: str = HEADLINE.metric,
+                     recall: str = HEADLINE.recall, difficulty: str = HEADLINE.difficulty) -> list[dict[str, Any]]:
     """The transfer matrix in long form: one entry per ``ok`` attacked cell whose object was trained against a
     victim: ``trained_against``, ``object`` (attack name), ``evaluated`` (the cell's victim), ``proposals`` and
     ``value``, the relative drop of ``metric`` AP (fraction; None where the clean AP is 0). Cells without a
@@ -325,25 +347,29 @@ def transfer_entries(cells: Iterable[Mapping[str, Any]], metric: str = "bev", re
     objects: dict[str, Any] = {}
     for c in cells:
         source = trained_against(c)
-        if source is None or c.get("status") != "ok" or not c.get("attack_effect"):
+        r = CellResult(c)
+        if source is None or not r.ok or not r.effect:
             continue
-        sha = _get(c, "provenance", "config", "attack", "object", "object", "ply_sha256")
-        if objects.setdefault(c["attack"], sha) != sha:
-            raise RobustBenchError(f"report: attack {c['attack']!r} names two different object files "
-                                   f"({objects[c['attack']]} and {sha}); report their runs separately")
-        value = _get(c["attack_effect"], "relative_drop", CLASS, metric, recall, difficulty)
-        entry = {"trained_against": source, "object": c["attack"], "evaluated": c["victim"],
-                 "proposals": c["proposals"], "value": None if value is None else float(value)}
-        k = (source, c["attack"], c["victim"], c["proposals"])
+        sha = _get(r.config, "attack", "object", "object", "ply_sha256")
+        if objects.setdefault(r.attack, sha) != sha:
+            raise RobustBenchError(f"report: attack {r.attack!r} names two different object files "
+                                   f"({objects[r.attack]} and {sha}); report their runs separately")
+        try:
+            value = r.drop(CLASS, metric, recall, difficulty, relative=True)
+        except LookupError:
+            value = None
+        entry = {"trained_against": source, "object": r.attack, "evaluated": r.victim,
+                 "proposals": r.proposals, "value": None if value is None else float(value)}
+        k = (source, r.attack, r.victim, r.proposals)
         if k in out and out[k]["value"] != entry["value"]:
-            raise RobustBenchError(f"report: two cells evaluate object {c['attack']!r} on {c['victim']} with "
-                                   f"{c['proposals']} proposals with different results")
+            raise RobustBenchError(f"report: two cells evaluate object {r.attack!r} on {r.victim} with "
+                                   f"{r.proposals} proposals with different results")
         out[k] = entry
     return list(out.values())
 
 
-def transfer_matrix(cells: Iterable[Mapping[str, Any]], proposals: str, metric: str = "bev", recall: str = "R40",
-                    difficulty: str = "moderate") -> Any:
+def transfer_matrix(cells: Iterable[Mapping[str, Any]], proposals: str, metric: str = HEADLINE.metric,
+                    recall: str = HEADLINE.recall, difficulty: str = HEADLINE.difficulty) -> Any:
     """The transfer matrix of one proposal source: a DataFrame, rows (victim trained against, object), columns
     the evaluated victims (sorted), values the relative drop (fraction, NaN where not run or undefined).
     Empty (no rows) when no cell carries an object trained against a victim."""

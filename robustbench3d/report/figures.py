@@ -15,7 +15,8 @@ from typing import Any
 
 from robustbench3d.report.data import DIFFICULTIES, ap_column, effect_column
 
-DIFF_COLOURS = {"easy": "#4c78a8", "moderate": "#f58518", "hard": "#54a24b"}
+#: A colour per difficulty (easy, moderate, hard).
+DIFF_COLOURS = dict(zip(DIFFICULTIES, ("#4c78a8", "#f58518", "#54a24b"), strict=True))
 
 
 def _pyplot() -> Any:

@@ -16,11 +16,14 @@ name must describe itself as the cell recorded, or no figure is made (the reason
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from robustbench3d.eval.rules import TARGET_CLASS
 from robustbench3d.report.data import RunCell
+from robustbench3d.results import CellResult
 
 BEV_RANGE = 50.0
 
@@ -41,7 +44,7 @@ def _result(path: Path, threshold: float) -> Any:
 
     if not path.exists():
         return Labels.empty(with_score=True)
-    dets = read_labels(path, scored=True).of_types(["Car"])
+    dets = read_labels(path, scored=True).of_types([TARGET_CLASS])
     return dets.select(dets.score >= threshold)
 
 
@@ -71,7 +74,7 @@ class SceneSource:
     ``problem`` says why no figure can be drawn (dataset absent, a label file missing or changed).
     """
 
-    def __init__(self, dataset: dict[str, Any]):
+    def __init__(self, dataset: Mapping[str, Any]):
         from robustbench3d.datasets import ResolvedDataset, load_ground_truth
         from robustbench3d.errors import RobustBenchError
 
@@ -102,7 +105,7 @@ def worst_frames(source: SceneSource, attacked_dir: Path, clean_dir: Path, thres
     """The ``count`` frames with the most Cars found clean and lost attacked (see the module doc)."""
     scored = []
     for fid in source.frames:
-        gt = source.gt[fid].of_types(["Car"])
+        gt = source.gt[fid].of_types([TARGET_CLASS])
         if len(gt) == 0:
             continue
         clean = _matched(gt, _result(clean_dir / f"{fid}.txt", threshold))
@@ -119,35 +122,35 @@ def scene(source: SceneSource, rc: RunCell, frame: str | None = None) -> Scene:
     from robustbench3d.report.figures import _pyplot, png_bytes
     from robustbench3d.show import attacked_frame, render
 
-    cell = rc.cell
-    effect = cell.get("attack_effect") or {}
+    cell = CellResult(rc.cell)
+    effect = cell.effect or {}
     if source.kitti is None:
         return Scene(rc, frame, None, f"{rc.name}: no scene figure: {source.problem}")
-    clean_dir = rc.run / "cells" / effect.get("clean_cell", "") / "data"
+    clean_dir = rc.run / "cells" / (cell.clean_cell or "") / "data"
     att_dir = rc.run / "cells" / rc.name / "data"
     if not effect or not clean_dir.is_dir() or not att_dir.is_dir():
         return Scene(rc, frame, None, f"{rc.name}: no scene figure: the result files of the cell or of its clean "
                                       f"cell are not in {rc.run / 'cells'}")
     try:
-        _, attack = resolve_attack(cell["attack"])
+        _, attack = resolve_attack(cell.attack)
         described = json.loads(json.dumps(attack.describe()))
     except Exception as exc:  # an object file of another machine, a plugin that is not installed
-        return Scene(rc, frame, None, f"{rc.name}: no scene figure: attack {cell['attack']!r} cannot be rebuilt "
+        return Scene(rc, frame, None, f"{rc.name}: no scene figure: attack {cell.attack!r} cannot be rebuilt "
                                       f"here ({exc})")
-    if described != cell["provenance"]["config"]["attack"]["object"]:
-        return Scene(rc, frame, None, f"{rc.name}: no scene figure: attack {cell['attack']!r} here is not the "
+    if described != cell.config["attack"]["object"]:
+        return Scene(rc, frame, None, f"{rc.name}: no scene figure: attack {cell.attack!r} here is not the "
                                       "object the cell evaluated (its description differs)")
-    threshold = float(effect["success"]["score_threshold"])
+    threshold = float(effect["success"]["score_threshold"])  # the attack success rate's record
     if frame is None:
         found = worst_frames(source, att_dir, clean_dir, threshold, 1)
         if not found:
             return Scene(rc, None, None, f"{rc.name}: no scene figure: no frame with Cars")
         frame = found[0]
     clean = source.kitti.frame(frame)
-    attacked, added = attacked_frame(source.kitti, clean, cell["attack"], int(cell["provenance"]["config"]["seed"]))
+    attacked, added = attacked_frame(source.kitti, clean, cell.attack, int(cell.config["seed"]))
     clean_dets = _result(clean_dir / f"{frame}.txt", threshold)
     att_dets = _result(att_dir / f"{frame}.txt", threshold)
-    gt = source.gt[frame].of_types(["Car"])
+    gt = source.gt[frame].of_types([TARGET_CLASS])
     lost = int((_matched(gt, clean_dets) & ~_matched(gt, att_dets)).sum())
     panels = [render(clean, clean_dets, BEV_RANGE), render(attacked, att_dets, BEV_RANGE, highlight=added)]
 
@@ -155,7 +158,7 @@ def scene(source: SceneSource, rc: RunCell, frame: str | None = None) -> Scene:
     from matplotlib.patches import Patch
 
     fig, axes = plt.subplots(1, 2, figsize=(16, 16 / 2 * panels[0].shape[0] / panels[0].shape[1] + 0.9))
-    titles = [f"clean ({effect['clean_cell']}): {len(clean_dets)} detections",
+    titles = [f"clean ({cell.clean_cell}): {len(clean_dets)} detections",
               f"attacked ({rc.name}): {len(att_dets)} detections, {len(added)} object LiDAR returns"]
     for ax, pic, title in zip(axes, panels, titles, strict=True):
         ax.imshow(np.asarray(pic), interpolation="antialiased")

@@ -19,7 +19,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from robustbench3d.metrics import HEADLINE
 from robustbench3d.report.data import Section
+from robustbench3d.results import CellResult
 from robustbench3d.seed_table import (
     PAPER_BOTH,
     PAPER_CLEAN,
@@ -159,7 +161,7 @@ def _outside(section: Section, specs: Sequence[SeedRow]) -> list[str]:
     rows = {(s.attack, s.proposals) for s in specs if s.paper is not None}
     by_run: dict[str, list[str]] = {}
     for rc in section.cells:
-        if (rc.cell["attack"], rc.cell["proposals"]) not in rows:
+        if CellResult(rc.cell).id[1:] not in rows:
             by_run.setdefault(str(rc.run), []).append(rc.name)
     if not by_run:
         return []
@@ -169,7 +171,7 @@ def _outside(section: Section, specs: Sequence[SeedRow]) -> list[str]:
 
 
 def _iou(section: Section) -> float | None:
-    iou = ((section.key["protocol"].get("iou") or {}).get("Car") or {}).get("bev")
+    iou = ((section.key["protocol"].get("iou") or {}).get(HEADLINE.cls) or {}).get(HEADLINE.metric)
     return iou if isinstance(iou, int | float) else None
 
 
@@ -190,7 +192,7 @@ def build(section: Section) -> Table1:
     """The Table 1 block of ``section``."""
     cells = [rc.cell for rc in section.cells]
     layout = victim_layout(cells)
-    specs = layout_rows(c["proposals"] for c in cells)
+    specs = layout_rows(CellResult(c).proposals for c in cells)
     groups = []
     for paper in PAPER_ROWS:
         lines = [_paper_line(paper)]

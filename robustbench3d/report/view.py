@@ -11,7 +11,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from robustbench3d.report.data import DIFFICULTIES, RECALLS, Section, ap_column, effect_column, left_out
+from robustbench3d.metrics import ATTACK_METRICS, AttackMetric, of_kind
+from robustbench3d.report.data import CLASS, DIFFICULTIES, RECALLS, Section, ap_column, effect_column, left_out
 
 #: Optional column groups of the HTML table: (id, the toggle's label), in toolbar order.
 GROUPS: tuple[tuple[str, str], ...] = (("3d", "3D AP"), ("ci", "intervals"), ("more", "run, object's victim"))
@@ -42,28 +43,28 @@ def columns(has_ci: bool, has_flags: bool, several_runs: bool, has_drop_ci: bool
         for d in DIFFICULTIES:
             cols.append(Column(f"{name} {d[0].upper()}", ap_column(metric, "{recall}", d), "ap", True,
                                f"Car {name} AP, {d}, IoU 0.7 (%)", "3d" if metric == "3d" else ""))
-    cols += [
-        Column("clean BEV M", effect_column("clean", "{recall}"), "ap", True,
-               "BEV AP, moderate, of the clean cell with the same proposals (%)"),
-        Column("drop pts", effect_column("drop", "{recall}"), "points", True,
-               "clean − attacked BEV AP, moderate (points)"),
-        Column("rel. drop %", effect_column("rel_drop", "{recall}"), "percent", True,
-               "drop / clean BEV AP, moderate (%)"),
-        Column("ASR %", "asr", "percent", False,
-               "attack success rate: Cars matched clean and missed attacked (moderate, BEV IoU 0.7) (%)"),
-    ]
+    cols += [metric_column(m) for m in ATTACK_METRICS.values() if m.kind != "interval" and m.report is not None]
     if has_ci:
         cols.append(Column("BEV M CI", effect_column("ci_low", "{recall}"), "ci", True,
                            "confidence interval of BEV AP, moderate, as the run recorded it (%)", "ci"))
     if has_drop_ci:
-        cols.append(Column("drop CI", effect_column("dci_low", "{recall}"), "ci", True,
-                           "confidence interval of the BEV moderate drop, as the run recorded it (points)", "ci"))
+        cols += [metric_column(m) for m in of_kind("interval") if m.report is not None]
     if has_flags:
         cols.append(Column("flags", "flags", "flags"))
     cols.append(Column("trained against", "trained_against", "str", False,
                        "victim the attack object was optimised against", "more"))
     cols.append(Column("status", "status"))
     return cols
+
+
+def metric_column(m: AttackMetric) -> Column:
+    """The leaderboard column of an attack metric with a ``report`` column (an interval's is in group ``ci``)."""
+    assert m.report is not None
+    if m.kind == "interval":
+        return Column(m.report.title, effect_column(f"{m.report.key}_low", "{recall}"), m.report.kind, True,
+                      m.report.tip, "ci")
+    key = effect_column(m.report.key, "{recall}") if m.kind == "ap" else m.report.key
+    return Column(m.report.title, key, m.report.kind, m.kind == "ap", m.report.tip)
 
 
 LEGEND = ("E, M, H: easy, moderate, hard. BEV, 3D: Car AP (%) in bird's-eye view and in 3D at the section's IoU. "
@@ -126,8 +127,10 @@ class SectionView:
     def columns(self) -> list[Column]:
         """The leaderboard's columns for this section's cells."""
         df = self.df
-        has = {k: any(bool(df[effect_column(k, r)].notna().any()) for r in RECALLS) for k in ("ci_low", "dci_low")}
-        return columns(has["ci_low"], any(len(f) for f in df["flags"]), len(self.section.runs) > 1, has["dci_low"])
+        lows = ["ci_low", *(f"{m.report.key}_low" for m in of_kind("interval") if m.report is not None)]
+        has = {k: any(bool(df[effect_column(k, r)].notna().any()) for r in RECALLS) for k in lows}
+        return columns(has["ci_low"], any(len(f) for f in df["flags"]), len(self.section.runs) > 1,
+                       any(has[k] for k in lows[1:]))
 
     def cell_notes(self) -> list[str]:
         """Every cell given but not shown (a duplicate) or left out of the figures or transfer matrix, and why."""
@@ -145,7 +148,7 @@ def section_title(view: SectionView, k: int) -> str:
 def section_facts(view: SectionView) -> str:
     key = view.section.key
     iou = key["protocol"]["iou"] or {}
-    ious = ", ".join(f"{m} {v}" for m, v in (iou.get("Car") or {}).items())
+    ious = ", ".join(f"{m} {v}" for m, v in (iou.get(CLASS) or {}).items())
     return (f"Runs: {', '.join(map(str, view.section.runs))}. Car AP in % at IoU {ious}; recall points "
             f"{', '.join(key['protocol']['recall_points'])}; drops and the transfer matrix compare cells "
             "with the same proposal source only.")

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import DataFormatError
-from robustbench3d.results import read_json, validate_summary
+from robustbench3d.results import CellResult, read_json, validate_summary
 from robustbench3d.runner.cell import results_complete
 
 #: Dataset identity keys too long to print in a reason.
@@ -33,16 +33,17 @@ class EarlierCells:
 def incompatibility(cell: dict[str, Any], identity: dict[str, Any], evaluation: dict[str, Any],
                     seed: int) -> str | None:
     """Why ``cell`` cannot share a summary with the current run, or None if it can."""
-    theirs = cell["dataset"]
+    result = CellResult(cell)
+    theirs = result.dataset
     differing = sorted(k for k in set(theirs) | set(identity) if theirs.get(k) != identity.get(k))
     if differing:
         parts = [f"{k} differs" if k in _LONG else f"{k} {theirs.get(k)!r} (this run: {identity.get(k)!r})"
                  for k in differing]
         return "another dataset: " + "; ".join(parts)
-    if cell["provenance"]["config"].get("evaluation") != evaluation:
+    if result.config.get("evaluation") != evaluation:
         return "evaluated with other settings (evaluator, classes, metrics or result precision)"
-    if cell["provenance"]["seed"] != seed:
-        return f"seed {cell['provenance']['seed']} (this run: {seed})"
+    if result.seed != seed:
+        return f"seed {result.seed} (this run: {seed})"
     return None
 
 
@@ -65,7 +66,7 @@ def earlier_cells(cells_dir: Path, exclude: Collection[str], identity: dict[str,
             out.left_out.append(f"{cell_dir.name}: unreadable ({exc})")
             continue
         reason = incompatibility(cell, identity, evaluation, seed)
-        if reason is None and cell["status"] == "ok" and not results_complete(cell_dir, frame_ids):
+        if reason is None and CellResult(cell).ok and not results_complete(cell_dir, frame_ids):
             reason = f"result files in {cell_dir / 'data'} are incomplete"
         if reason is None:
             out.included.append(cell)

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import RobustBenchError
+from robustbench3d.eval.rules import TARGET_CLASS
 from robustbench3d.victims.spec import PROPOSAL_SOURCES, describe_sources
 
 #: Frames a ``robustbench3d run`` on the embedded ``val`` split evaluates by default: the first N ids
@@ -75,7 +76,7 @@ class RunConfig:
     batch_size: int = 4
     victim_args: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     attack_args: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
-    classes: tuple[str, ...] = ("Car",)
+    classes: tuple[str, ...] = (TARGET_CLASS,)
     workers: int = 1
     progress: bool = True
     bootstrap: int = 1000

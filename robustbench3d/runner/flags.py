@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from robustbench3d.errors import RobustBenchError
-from robustbench3d.results import APResult, write_validated
+from robustbench3d.results import CellResult, write_validated
 from robustbench3d.runner.cell import RECORDED_SOURCES
 from robustbench3d.runner.config import CellKey
 from robustbench3d.runner.outcome import RunReport
@@ -71,7 +71,7 @@ def flag(code: str, message: str) -> Flag:
 
 def partial_split(cell: Mapping[str, Any]) -> list[Flag]:
     """``partial-split`` when the cell saw fewer frames than its split has."""
-    ds = cell["dataset"]
+    ds = CellResult(cell).dataset
     if ds["frames"] >= ds["split_frames"]:
         return []
     return [flag(PARTIAL_SPLIT, f"evaluated on {ds['frames']} of the {ds['split_frames']} frames of split "
@@ -79,12 +79,12 @@ def partial_split(cell: Mapping[str, Any]) -> list[Flag]:
 
 
 def attack_raises_ap(cell: Mapping[str, Any], tol: float = RAISE_TOL_AP) -> list[Flag]:
-    """``attack-raises-ap`` from the cell's ``attack_effect`` (Car, BEV, R40, moderate)."""
-    effect = cell.get("attack_effect")
+    """``attack-raises-ap`` from the cell's ``attack_effect`` at the headline AP
+    (:data:`robustbench3d.metrics.HEADLINE`: Car, BEV, R40, moderate)."""
+    result = CellResult(cell)
     try:
-        drop = effect["drop"]["Car"]["bev"]["R40"]["moderate"] if effect else None
-        clean = effect["clean"]["Car"]["bev"]["R40"]["moderate"] if effect else None
-    except KeyError:
+        drop, clean = result.drop(), result.clean_ap()
+    except LookupError:  # no comparison, or none at the headline AP
         return []
     if drop is None or drop >= -tol:
         return []
@@ -228,27 +228,30 @@ def twin_source(victim: str) -> dict[str, Any] | None:
 def onnx_divergence(cells: Sequence[Mapping[str, Any]],
                     twin_of: Callable[[str], Mapping[str, Any] | None] = twin_source) -> dict[int, list[Flag]]:
     """``onnx-torch-divergence`` per index of ``cells`` (ok cells of ONNX victims whose twin cell is there)."""
-    by_key = {(c["victim"], c["attack"], c["proposals"]): c for c in cells if c["status"] == "ok"}
+    results = [CellResult(c) for c in cells]
+    by_key = {r.id: r for r in results if r.ok}
     out: dict[int, list[Flag]] = {}
-    for i, cell in enumerate(cells):
-        caps = cell["provenance"]["config"]["victim"].get("capabilities") or {}
-        if cell["status"] != "ok" or caps.get("backend") != "onnx":
+    for i, cell in enumerate(results):
+        caps = cell.config["victim"].get("capabilities") or {}
+        if not cell.ok or caps.get("backend") != "onnx":
             continue
         try:
-            source = twin_of(cell["victim"])
+            source = twin_of(cell.victim)
         except RobustBenchError:
             continue
         if not source:
             continue
-        twin = by_key.get((source.get("victim"), cell["attack"], cell["proposals"]))
+        twin = by_key.get((source.get("victim"), cell.attack, cell.proposals))
         want_sha = source.get("weights_sha256")
-        if twin is None or (want_sha and twin["provenance"]["config"]["victim"].get("weights_sha256") != want_sha):
+        if twin is None or (want_sha and twin.config["victim"].get("weights_sha256") != want_sha):
             continue
         from robustbench3d.victims.onnx.parity import Tolerances  # loads torch: only for an ONNX cell with a twin
 
         atol = Tolerances().ap_atol
-        a = {v[:4]: v.ap for v in APResult(cell["metrics"]).values()}
-        b = {v[:4]: v.ap for v in APResult(twin["metrics"]).values()}
+        mine, theirs = cell.result, twin.result
+        assert mine is not None and theirs is not None  # both ok
+        a = {v[:4]: v.ap for v in mine.values()}
+        b = {v[:4]: v.ap for v in theirs.values()}
         deltas = {k: abs(a[k] - b[k]) for k in a if k in b}  # result order: the first of equal deltas wins
         if not deltas:
             continue
@@ -270,7 +273,7 @@ def record_flags(report: RunReport, cells_dir: Path, attacks: Mapping[str, Attac
     flags that need what it lacks."""
     checked: dict[tuple[str, str], list[Flag]] = {}
     for o in report.outcomes:
-        if not o.reused and o.cell["status"] == "ok" and o.probe is not None:
+        if not o.reused and CellResult(o.cell).ok and o.probe is not None:
             pair = (o.key.victim, o.key.proposals)
             if not checked.get(pair):
                 checked[pair] = list(o.probe)
@@ -278,15 +281,16 @@ def record_flags(report: RunReport, cells_dir: Path, attacks: Mapping[str, Attac
     cells = report.summary
     divergent = onnx_divergence(cells)
     for i, cell in enumerate(cells):
-        key = CellKey(cell["victim"], cell["attack"], cell["proposals"])
-        old = cell.get("flags") or []
+        result = CellResult(cell)
+        key = CellKey(*result.id)
+        old = [dict(f) for f in result.flags]
         new = partial_split(cell) + attack_raises_ap(cell)
-        if cell["attack"] in attacks:
-            new += attack_flags(attacks[cell["attack"]])
+        if key.attack in attacks:
+            new += attack_flags(attacks[key.attack])
         else:
             new += [f for f in old if f["code"] in ATTACK_CODES]
         if key.dirname in computed:
-            new += checked.get((key.victim, key.proposals), []) if cell["status"] == "ok" else []
+            new += checked.get((key.victim, key.proposals), []) if result.ok else []
         else:
             new += [f for f in old if f["code"] == VICTIM_NONDETERMINISTIC]
         new += divergent.get(i, [])

@@ -46,7 +46,7 @@ from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.logs import line_log, warn
 from robustbench3d.provenance import host_provenance, reset_peak_rss, utc_now
-from robustbench3d.results import SCHEMA_VERSION, write_long_csv, write_validated
+from robustbench3d.results import SCHEMA_VERSION, CellResult, write_long_csv, write_validated
 from robustbench3d.runner.cell import (
     CellFailure,
     CellInputs,
@@ -149,17 +149,18 @@ def _check_finished(out: Path, cells: list[CellKey], cfgs: list[dict[str, Any]],
     kept, changed = 0, []
     for key, cfg in zip(cells, cfgs, strict=True):
         cell_dir = out / "cells" / key.dirname
-        old = finished_cell(cell_dir)
-        if old is None or old["status"] == "error":  # nothing finished there, or an error cell: always retried
+        found = finished_cell(cell_dir)
+        old = None if found is None else CellResult(found)
+        if old is None or old.status == "error":  # nothing finished there, or an error cell: always retried
             continue
-        if old["provenance"]["fingerprint"] != fingerprint(cfg):
-            why = config_differences(old["provenance"]["config"], cfg)
+        if old.fingerprint != fingerprint(cfg):
+            why = config_differences(old.config, cfg)
             dependents = _compared_with(out / "cells", key.dirname, {k.dirname for k in cells})
             if dependents:
                 why += (f"; {len(dependents)} attacked cell(s) of earlier runs are compared with it and lose their "
                         f"clean reference when it is replaced: {', '.join(dependents)}")
             changed.append((key.dirname, why))
-        elif old["status"] == "skipped" or results_complete(cell_dir, frame_ids):
+        elif old.status == "skipped" or results_complete(cell_dir, frame_ids):
             kept += 1
     if not force:
         refuse_changed_cells(out, changed)
@@ -174,7 +175,7 @@ def _compared_with(cells_dir: Path, clean: str, grid_cells: set[str]) -> list[st
     out = []
     for cell_dir in sorted(p for p in cells_dir.iterdir() if p.is_dir() and p.name not in grid_cells):
         cell = finished_cell(cell_dir)
-        if cell is not None and (cell.get("attack_effect") or {}).get("clean_cell") == clean:
+        if cell is not None and CellResult(cell).clean_cell == clean:
             out.append(cell_dir.name)
     return out
 
@@ -237,7 +238,7 @@ def run_benchmark(config: RunConfig, print_fn: Callable[[str], None] | None = No
                 log(f"[{i}/{len(cells)}] {key}: {describe_outcome(outcome)}")
                 report.outcomes.append(outcome)
             for outcome in report.outcomes:  # determinism checks, on the victims the computed cells used
-                if not outcome.reused and outcome.cell["status"] == "ok":
+                if not outcome.reused and CellResult(outcome.cell).ok:
                     outcome.probe = slots[outcome.key.victim].probe(outcome.key.proposals, inputs)
         found = earlier_cells(out / "cells", {key.dirname for key in cells}, identity, evaluation, config.seed,
                               gt.frame_ids, CELL_FILE)
@@ -262,8 +263,7 @@ def _record_effects(report: RunReport, cells_dir: Path, inputs: CellInputs,
     for i in attach_effects(cells, cells_dir, inputs.gt.labels, inputs.gt.frame_ids, inputs.bootstrap, inputs.seed,
                             log):
         cell = cells[i]
-        key = CellKey(cell["victim"], cell["attack"], cell["proposals"])
-        write_validated(cells_dir / key.dirname / CELL_FILE, cell, cell_only=True)
+        write_validated(cells_dir / CellKey(*CellResult(cell).id).dirname / CELL_FILE, cell, cell_only=True)
 
 
 def _create_attack(name: str, config: RunConfig) -> Attack:

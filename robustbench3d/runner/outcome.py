@@ -24,7 +24,7 @@ from typing import Any
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.logs import LineLog, warn
 from robustbench3d.provenance import determinism_flags, library_versions, peak_rss_mb, utc_now
-from robustbench3d.results import read_json, validate_summary
+from robustbench3d.results import CellResult, read_json, validate_summary
 from robustbench3d.runner.cell import ATTACK_STREAM, CellFailure, CellInputs, results_complete
 from robustbench3d.runner.config import CellKey, RunConfig
 
@@ -90,7 +90,7 @@ class RunReport:
 
     @property
     def failed(self) -> list[CellOutcome]:
-        return [o for o in self.outcomes if o.cell["status"] == "error"]
+        return [o for o in self.outcomes if CellResult(o.cell).status == "error"]
 
 
 def finished_cell(cell_dir: Path, print_fn: Callable[[str], None] | None = None) -> dict | None:
@@ -113,9 +113,10 @@ def reusable_cell(cell_dir: Path, print_fn: Callable[[str], None], want: str, fr
     """The finished cell of ``cell_dir`` if a run with fingerprint ``want`` reuses it (same fingerprint, not an
     error, all its result files there), else None (why it is recomputed is said through ``print_fn``)."""
     cell = finished_cell(cell_dir, print_fn)
-    if cell is None or cell["provenance"]["fingerprint"] != want or cell["status"] == "error":
+    result = None if cell is None else CellResult(cell)
+    if result is None or result.fingerprint != want or result.status == "error":
         return None
-    if cell["status"] == "ok" and not results_complete(cell_dir, frame_ids):
+    if result.ok and not results_complete(cell_dir, frame_ids):
         print_fn(f"  recomputing: result files in {cell_dir / 'data'} are incomplete")
         return None
     return cell
@@ -123,10 +124,10 @@ def reusable_cell(cell_dir: Path, print_fn: Callable[[str], None], want: str, fr
 
 def describe_outcome(outcome: CellOutcome) -> str:
     """The cell's status as the run's line for it says it (``ok (1.2 s)``, ``reused``, ``error: ...``)."""
-    cell = outcome.cell
-    if cell["status"] == "ok":
-        return "reused" if outcome.reused else f"ok ({cell['provenance']['seconds']:.1f} s)"
-    return f"{cell['status']}{' (reused)' if outcome.reused else ''}: {cell['reason']}"
+    cell = CellResult(outcome.cell)
+    if cell.ok:
+        return "reused" if outcome.reused else f"ok ({cell.provenance['seconds']:.1f} s)"
+    return f"{cell.status}{' (reused)' if outcome.reused else ''}: {cell.reason}"
 
 
 def failure_verdict(exc: CellFailure, log: Callable[[str], None]) -> Verdict:

@@ -15,9 +15,10 @@ import textwrap
 from collections.abc import Sequence
 from typing import Any
 
-from robustbench3d.eval.rules import DIFFICULTIES
+from robustbench3d.eval.rules import DIFFICULTIES, MIN_OVERLAP
+from robustbench3d.metrics import HEADLINE
 from robustbench3d.results import CellResult
-from robustbench3d.seed_table import interval, with_interval
+from robustbench3d.seed_table import with_interval
 from robustbench3d.texttable import format_table
 
 #: (metric, recall sampling) column groups of the table.
@@ -28,11 +29,11 @@ _LABEL = {"bev": "BEV", "3d": "3D"}
 def _value(cell: CellResult, cls: str, metric: str, recall: str, difficulty: str) -> str:
     """AP, followed for an attacked cell by its change against the clean cell, e.g. ``71.20(-8.15)``; each
     with its bootstrap interval where the cell has one, e.g. ``71.20 [69.8, 72.6](-8.15 [-9.9, -6.4])``."""
-    text = with_interval(f"{cell.ap(cls, metric, recall, difficulty):6.2f}",
-                         interval(cell, cls, metric, recall, difficulty))
+    where = (cls, metric, recall, difficulty)
+    text = with_interval(f"{cell.ap(*where):6.2f}", cell.interval(*where))
     if cell.effect is not None:
         with contextlib.suppress(LookupError):
-            drop_ci = interval(cell, cls, metric, recall, difficulty, drop=True)
+            drop_ci = cell.interval(*where, table="drop_ci")
             change = None if drop_ci is None else [-drop_ci[1], -drop_ci[0]]
             text += f"({with_interval(f'{-cell.drop(cls, metric, recall, difficulty):+.2f}', change)})"
     return text
@@ -51,19 +52,19 @@ def _asr(cell: CellResult) -> str:
     return "-" if rate is None else f"{100 * rate:.1f}"
 
 
-def summary_table(cells: Sequence[dict[str, Any]], cls: str = "Car", width: int | None = None) -> str:
+def summary_table(cells: Sequence[dict[str, Any]], cls: str = HEADLINE.cls, width: int | None = None) -> str:
     """Plain-text table of summary cells, then one line per skipped or failed cell; with ``width``
     (characters, e.g. :func:`terminal_width`) folded to it (:func:`fold_table`; prose lines wrapped)."""
     results = [CellResult(c) for c in cells]
     iou = next((r.result.iou(cls, "bev") for r in results
-                if r.result is not None and "bev" in r.result.metrics(cls)), 0.7)
+                if r.result is not None and "bev" in r.result.metrics(cls)), MIN_OVERLAP["bev"][HEADLINE.cls])
     attacked = any(r.effect is not None for r in results)
     frames = next((r.frames for r in results), 0)
     title = f"{cls} AP in % at IoU {iou:.2f}, easy / moderate / hard, {frames} frames"
     if attacked:
         title += ("; attacked cells: (AP change against the clean cell 'none'), ASR = Cars matched clean "
                   "and missed attacked (moderate, BEV IoU 0.7)")
-    ci_meta = next((r.cell["metrics_ci"]["meta"] for r in results if "metrics_ci" in r.cell), None)
+    ci_meta = next((r.interval_meta for r in results if r.interval_meta is not None), None)
     if ci_meta is not None:
         title += (f"; [lo, hi] = {100 * ci_meta['level']:.0f} % bootstrap interval over frames "
                   f"({ci_meta['resamples']} resamples; AP changes: paired, the same frames for both cells)")

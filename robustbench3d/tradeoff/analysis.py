@@ -25,11 +25,13 @@ import numpy as np
 
 from robustbench3d.eval.bootstrap import APKey, FrameBootstrap, percentile_interval, resample_weights
 from robustbench3d.kitti.labels import Labels
+from robustbench3d.metrics import HEADLINE
+from robustbench3d.metrics import drop as ap_drop
 from robustbench3d.tradeoff.measure import CellMeasure
 from robustbench3d.tradeoff.sweeps import CLEAN, FrameSweep, Setting, Sweep
 
 #: The AP every point is scored on (class, metric, recall sampling, difficulty).
-DEFAULT_AP: APKey = ("Car", "bev", "R40", "moderate")
+DEFAULT_AP: APKey = (HEADLINE.cls, HEADLINE.metric, HEADLINE.recall, HEADLINE.difficulty)
 
 
 @dataclass
@@ -71,15 +73,15 @@ def _interval(values: np.ndarray) -> list[float]:
 def _row(sweep: str, knob: str, value: str, setting: Setting | None, n: int, clean: _Scores, att: _Scores,
          ref_clean: _Scores, ref_att: _Scores, paired: bool, wall: float, cpu: float, is_ref: bool,
          is_default: bool, default_wall: float) -> dict[str, Any]:
-    drop = clean.samples - att.samples
+    drop = ap_drop(clean.samples, att.samples)  # paired: the same resampled frames
     row: dict[str, Any] = {
         "sweep": sweep, "knob": knob, "value": value, "reference": is_ref, "default": is_default, "frames": n,
         "wall_s": wall, "cpu_s": cpu, "wall_s_per_frame": wall / n,
         "time_vs_default": wall / default_wall if default_wall > 0 else None,
-        "ap_clean": clean.ap, "ap_attacked": att.ap, "drop": clean.ap - att.ap,
+        "ap_clean": clean.ap, "ap_attacked": att.ap, "drop": ap_drop(clean.ap, att.ap),
         "d_clean": clean.ap - ref_clean.ap, "d_attacked": att.ap - ref_att.ap,
     }
-    row["d_drop"] = row["drop"] - (ref_clean.ap - ref_att.ap)
+    row["d_drop"] = row["drop"] - ap_drop(ref_clean.ap, ref_att.ap)
     for name, values in (("ap_clean", clean.samples), ("ap_attacked", att.samples), ("drop", drop)):
         row[f"{name}_lo"], row[f"{name}_hi"] = _interval(values)
     if paired:

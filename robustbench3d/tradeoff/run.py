@@ -9,6 +9,7 @@ from typing import Any
 
 from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
 from robustbench3d.errors import RobustBenchError
+from robustbench3d.metrics import HEADLINE
 from robustbench3d.provenance import host_provenance, library_versions, utc_now
 from robustbench3d.tradeoff.analysis import Scorer, score
 from robustbench3d.tradeoff.measure import CellMeasure, CellPlan, Context, measure_cell, plan_cell, warm_caches
@@ -88,7 +89,7 @@ def run_tradeoff(cfg: TradeoffConfig, out: Path, log: Callable[[str], None] = pr
         plan, plans[i] = plans[i], None  # its attack (and the caches it fills) is released after the cell
         log(f"tradeoff: cell {i + 1}/{len(specs)}: {spec.key}")
         measures[spec.key] = measure_cell(spec, ctx, log, plan)
-    key = ("Car", cfg.metric, "R40", "moderate")
+    key = (HEADLINE.cls, cfg.metric, HEADLINE.recall, HEADLINE.difficulty)
     rows = score(sweeps, measures, cfg.attack, Scorer(gt.labels, cfg.resamples, cfg.seed, key), default)
     host = host_provenance()
     doc = {

@@ -3,7 +3,7 @@
 The directory is checked in full first (manifest, stage hashes, onnxruntime loads every graph with
 the manifest's inputs and outputs), then recorded in the user registry file
 (``<cache>/victims/onnx.json``). Without ``--name`` the name is the folder's name folded to ASCII
-(see :func:`~robustbench3d.victims.onnx.registration.sanitise_name`). Standard library only at
+(see :func:`~robustbench3d.registry.sanitise_name`). Standard library only at
 module level.
 """
 

@@ -59,36 +59,14 @@ from robustbench3d.victims.onnx.manifest import (
     read_manifest,
     verify_files,
 )
+from robustbench3d.victims.onnx.options import DEFAULT_OPSET, EXPORTERS, ExportOptions
 
-EXPORTERS: tuple[str, ...] = ("dynamo", "legacy")
-#: Default opset: the lowest the dynamo exporter builds, also supported by the legacy one.
-DEFAULT_OPSET = 18
 #: Batch size of the T-Net and box graphs (see the module docstring).
 PER_FRUSTUM_BATCH = 1
 
 
 class ExportError(RobustBenchError):
     """The exporter failed or produced a graph that is not plain ONNX."""
-
-
-@dataclass(frozen=True)
-class ExportOptions:
-    """How to export: exporter ("dynamo" | "legacy"), opset, 2D and segmentation graph batches."""
-
-    exporter: str
-    opset: int = DEFAULT_OPSET
-    batch_2d: int = 1
-    batch_seg: int = 4
-
-    def __post_init__(self) -> None:
-        if self.exporter not in EXPORTERS:
-            raise ValueError(f"exporter must be one of {EXPORTERS}, got {self.exporter!r}")
-        from robustbench3d.victims.onnx.export_command import BATCH_2D_RANGE, BATCH_SEG_RANGE, OPSET_RANGE
-
-        for what, value, (lo, hi) in (("opset", self.opset, OPSET_RANGE), ("batch_2d", self.batch_2d, BATCH_2D_RANGE),
-                                      ("batch_seg", self.batch_seg, BATCH_SEG_RANGE)):
-            if not lo <= value <= hi:
-                raise ValueError(f"{what} must be an integer in [{lo}, {hi}], got {value}")
 
 
 @dataclass(frozen=True)

@@ -9,20 +9,14 @@ import argparse
 import json
 from typing import Any
 
-#: Defaults shared with :mod:`robustbench3d.victims.onnx.export` (kept here so ``--help`` needs no torch).
-DEFAULT_OPSET = 18
-DEFAULT_BATCH_2D = 1
-DEFAULT_BATCH_SEG = 4
-#: ``--opset`` range: 18 is the lowest opset the dynamo exporter builds, 23 the highest the supported
-#: torch (2.13) exporters write; onnxruntime runs both.
-OPSET_RANGE = (18, 23)
-#: ``--batch-2d`` range: the 2D graph's fixed batch of letterboxed frame images. Partial batches are
-#: zero-padded, so a batch larger than the frames a run evaluates together only wastes time and memory.
-BATCH_2D_RANGE = (1, 64)
-#: ``--batch-seg`` range: the segmentation graph's fixed batch of frustums (zero-padded likewise; a frame
-#: has a few dozen proposals). The full config holds 1024 x 1603 float32 per-point features per frustum
-#: (6.6 MB), so 256 frustums already take 1.7 GB.
-BATCH_SEG_RANGE = (1, 256)
+from robustbench3d.victims.onnx.options import (
+    BATCH_2D_RANGE,
+    BATCH_SEG_RANGE,
+    DEFAULT_BATCH_2D,
+    DEFAULT_BATCH_SEG,
+    DEFAULT_OPSET,
+    OPSET_RANGE,
+)
 
 
 def check_int_option(option: str, value: int | None, lo: int, hi: int | None = None) -> None:
@@ -33,23 +27,6 @@ def check_int_option(option: str, value: int | None, lo: int, hi: int | None = N
     if value is not None and not (lo <= value and (hi is None or value <= hi)):
         bounds = f"in [{lo}, {hi}]" if hi is not None else f">= {lo}"
         raise RobustBenchError(f"{option}: {value} is out of range (an integer {bounds})")
-
-
-def parse_kwargs(items: list[str] | None) -> dict[str, Any]:
-    """``["KEY=VALUE", ...]`` -> kwargs; VALUE is parsed as JSON when it is valid JSON, else kept
-    as a string (paths)."""
-    from robustbench3d.errors import RobustBenchError
-
-    out: dict[str, Any] = {}
-    for item in items or []:
-        key, eq, raw = item.partition("=")
-        if not eq or not key.strip():
-            raise RobustBenchError(f"--victim-arg {item!r}: expected KEY=VALUE (e.g. weights=cascade.pt)")
-        try:
-            out[key.strip()] = json.loads(raw)
-        except json.JSONDecodeError:
-            out[key.strip()] = raw
-    return out
 
 
 def add_victim_arguments(parser: argparse.ArgumentParser) -> None:
@@ -131,6 +108,7 @@ def create_cascade(name: str, kwargs: dict[str, Any]) -> Any:
 def run(args: argparse.Namespace) -> int:
     from robustbench3d.errors import RobustBenchError
     from robustbench3d.fileio import check_output_dir
+    from robustbench3d.registry import parse_kwargs
     from robustbench3d.victims.onnx import require
 
     check_int_option("--opset", args.opset, *OPSET_RANGE)
@@ -147,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         legacy_exporter_available,
     )
 
-    kwargs = parse_kwargs(args.victim_arg)
+    kwargs = parse_kwargs(args.victim_arg, "--victim-arg")
     if args.exporter == "legacy" and not legacy_exporter_available():
         raise RobustBenchError("this torch has no legacy (TorchScript) ONNX exporter; use --exporter dynamo")
     try:

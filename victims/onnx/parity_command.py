@@ -60,8 +60,9 @@ def run(args: argparse.Namespace) -> int:
     from robustbench3d.datasets import load_ground_truth, resolve_dataset
     from robustbench3d.fileio import atomic_write_text, check_output_file, replacing_note
     from robustbench3d.kitti.dataset import Frame
+    from robustbench3d.registry import parse_kwargs
     from robustbench3d.victims.onnx import require
-    from robustbench3d.victims.onnx.export_command import check_int_option, create_cascade, parse_kwargs
+    from robustbench3d.victims.onnx.export_command import check_int_option, create_cascade
     from robustbench3d.victims.zoo import SEED_RANGE
 
     if args.json:
@@ -71,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     check_int_option("--max-frames", args.max_frames, 1)
     check_int_option("--seed", args.seed, *SEED_RANGE)
     proposals = _proposals(args.proposals)
-    kwargs = parse_kwargs(args.victim_arg)
+    kwargs = parse_kwargs(args.victim_arg, "--victim-arg")
     require("onnx")
     require("onnxruntime")
     if not args.onnx and args.exporter == "dynamo":

@@ -8,11 +8,12 @@ register with origin ``onnx shipped``. Users add theirs in two ways, both throug
   file ``<cache>/victims/onnx.json`` (:func:`user_registry_file`; origin ``onnx user registry``);
   :func:`register_user_victims` is one of the registry's loaders, so the file is read on the
   first lookup (not when this module is imported). ``victims remove NAME`` deletes an entry.
-* a directory given directly to ``run --victims`` (:func:`resolve_victim_reference`) is
-  registered under its directory name for the run (origin ``onnx directory``).
+* a directory given directly to ``run --victims`` is registered under its directory name for the run
+  (origin ``onnx directory``): :func:`directory_reference` is the registry's path resolver
+  (:meth:`robustbench3d.registry.Registry.resolve`).
 
-Names derived from a directory name (:func:`sanitise_name`) are folded to ASCII (NFKD, accents
-dropped: ``nüscénes-dét`` -> ``nuscenes-det``); a letter or digit with no ASCII form (``日本``)
+Names derived from a directory name (:func:`robustbench3d.registry.sanitise_name`) are folded to ASCII
+(NFKD, accents dropped: ``nüscénes-dét`` -> ``nuscenes-det``); a letter or digit with no ASCII form (``日本``)
 makes the name underivable, and ``--name`` is then required.
 
 An entry's ``weights_sha256`` is the sha256 of the directory's ``manifest.json`` (which pins every
@@ -26,8 +27,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
-import unicodedata
 import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -35,7 +34,7 @@ from typing import TYPE_CHECKING
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import atomic_write_text, read_user_text, sha256_file
 from robustbench3d.paths import cache_dir
-from robustbench3d.registry import RegistryError
+from robustbench3d.registry import RegistryError, sanitise_name
 from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.onnx import MANIFEST_FILE
 from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
@@ -45,7 +44,6 @@ if TYPE_CHECKING:
 
 REGISTRY_FORMAT = "robustbench3d.onnx_victims/1"
 ONNX_CAPABILITIES = Capabilities(modalities=("camera", "lidar"), backend="onnx", gradients=False, deterministic=True)
-_INVALID = re.compile(r"[^a-z0-9._-]+")
 ORIGIN_SHIPPED = "onnx shipped"
 ORIGIN_USER = "onnx user registry"
 ORIGIN_DIRECTORY = "onnx directory"
@@ -97,21 +95,6 @@ def register_directory(name: str, directory: str | Path, origin: str = ORIGIN_DI
     return name
 
 
-def sanitise_name(text: str) -> str:
-    """A registry name from free text (a directory name): NFKD-folded to ASCII with accents
-    dropped, lowercase, runs of other characters -> "-". "" when nothing is left or when a letter
-    or digit has no ASCII form (the name would not be readable)."""
-    folded = []
-    for ch in unicodedata.normalize("NFKD", text):
-        if ch.isascii():
-            folded.append(ch)
-        elif unicodedata.category(ch)[0] in "LN":
-            return ""
-        elif not unicodedata.combining(ch):
-            folded.append(" ")  # a non-ASCII symbol or space separates words
-    return _INVALID.sub("-", "".join(folded).lower()).strip("-._")
-
-
 def name_for_directory(directory: Path, how: str = "give one with --name NAME") -> str:
     """The victim name derived from ``directory``'s name (:func:`sanitise_name`); raises
     :class:`RobustBenchError` when none can be derived, saying ``how`` to name it instead."""
@@ -129,22 +112,20 @@ def looks_like_path(reference: str) -> bool:
             or (Path(reference).is_dir() and (Path(reference) / MANIFEST_FILE).is_file()))
 
 
-def resolve_victim_reference(reference: str) -> str:
-    """A registered victim name for a ``--victims`` entry: names pass through; an ONNX victim
-    directory is registered under its sanitised directory name, which is returned."""
+def directory_reference(reference: str) -> str | None:
+    """The victim registry's path resolver: None for a name; an ONNX victim directory is registered under
+    its sanitised directory name (origin ``onnx directory``), which is returned."""
     if not looks_like_path(reference):
-        return reference
+        return None
     directory = Path(reference).expanduser().resolve()
     if not (directory / MANIFEST_FILE).is_file():
         raise DataFormatError(directory / MANIFEST_FILE, "not an ONNX victim directory (no manifest.json); "
                                                          "write one with `robustbench3d export-onnx`")
     name = name_for_directory(directory, "register it with `robustbench3d victims add-onnx DIR --name NAME`")
-    try:
-        return register_directory(name, directory)
-    except RegistryError:
-        raise RobustBenchError(f"--victims {reference}: the directory's name {name!r} is already a registered "
-                               "victim; rename the directory or register it under another name with "
-                               "`robustbench3d victims add-onnx DIR --name NAME`") from None
+    return VICTIMS.register_reference(
+        name, victim_spec(directory), origin=ORIGIN_DIRECTORY,
+        taken=f"--victims {reference}: the directory's name {name!r} is already a registered victim; rename the "
+              "directory or register it under another name with `robustbench3d victims add-onnx DIR --name NAME`")
 
 
 def read_user_registry(path: Path | None = None) -> dict[str, str]:
