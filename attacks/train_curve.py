@@ -20,7 +20,7 @@ last step) records one row (:data:`CSV_COLUMNS`):
   detections rounded to result-file precision), with the proposals of :func:`eval_proposals`; Car BEV AP
   R40 moderate (percent) of the evaluator, the relative drop (a fraction, empty where the clean AP is 0) and
   the attack success rate (empty without a Car matched clean) as a benchmark run's attack effect defines
-  them (:func:`robustbench3d.results.drop_tables`, :func:`robustbench3d.results.success_rate`);
+  them (:func:`robustbench3d.metrics.drop_tables`, :func:`robustbench3d.metrics.success_rate`);
 * ``best``: 1 where the row's held-out loss is below every earlier row's (the best state so far), else 0.
 
 **The best state** is the one of lowest held-out loss (:data:`CRITERION`): the loss is what the optimiser

@@ -193,3 +193,16 @@ def test_attacks_may_import_the_victim_contract():
     proc = lint_imports.run(["--contract", "attacks-know-no-backend"],
                             edit=lambda root: _append_code(root, "robustbench3d.attacks.zoo", code))
     assert proc.returncode == 0 and "Contracts: 1 kept, 0 broken." in proc.stdout, proc.stdout + proc.stderr
+
+
+def _readme_layers() -> list[str]:
+    """The first column of README "Architecture"'s layer table, as written in the contract."""
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    table = text[text.index("| layer | what lives there |"):].split("\n\n", 1)[0].splitlines()[2:]
+    return [row.split(" | ", 1)[0].strip("| ").replace("\\|", "|").replace("`", "") for row in table]
+
+
+def test_the_readme_architecture_table_is_the_layers_contract() -> None:
+    data = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
+    (layers,) = [c["layers"] for c in data["tool"]["importlinter"]["contracts"] if c["id"] == "layers"]
+    assert _readme_layers() == layers

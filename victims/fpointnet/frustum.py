@@ -11,6 +11,7 @@ the 2D-box centre onto +z. Headings in the frustum frame are ``ry − rot_angle`
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -38,6 +39,13 @@ class ProjectedScan:
     uv: np.ndarray
     in_fov: np.ndarray
     in_front: np.ndarray | None = None
+
+    @cached_property
+    def fov_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rows inside the FOV (ascending int64) and their (F, 2) pixel coordinates: what each
+        box's test needs, computed once per frame rather than once per box over the whole scan."""
+        rows = np.flatnonzero(self.in_fov)
+        return rows, self.uv[rows]
 
 
 @dataclass(frozen=True)
@@ -127,10 +135,11 @@ def extract_frustum(projected: ProjectedScan, box2d: np.ndarray, calib: Calibrat
     keeps scan order and holds each row once. None or empty: the box's points alone.
     """
     box = np.asarray(box2d, dtype=np.float64).reshape(4)
-    chosen = projected.in_fov & box_mask(projected.uv, box)
     if extra_rows is not None and len(extra_rows):
-        chosen |= _extra_mask(projected, extra_rows)
-    idx = np.flatnonzero(chosen)
+        idx = np.flatnonzero((projected.in_fov & box_mask(projected.uv, box)) | _extra_mask(projected, extra_rows))
+    else:
+        rows, uv = projected.fov_rows
+        idx = rows[box_mask(uv, box)]
     return Frustum(idx.astype(np.int64), projected.points_rect[idx], box, frustum_angle(box, calib))
 
 

@@ -9,7 +9,9 @@ fused multiply-adds. :func:`letterbox_image` therefore agrees with the different
 rounding, bit for bit on CPUs where torch uses FMA. Pixel coordinates map as
 x_in = x·(W'/W) + pad_x (and likewise y).
 
-Imports numpy only (no torch): the ONNX victim runs it.
+Imports numpy and numba only (no torch): the ONNX victim runs it. The taps run in one compiled pass
+(:func:`_resize_last_axis`) with the arithmetic of :func:`_resize_axis_numpy`, kept as its reference
+(tests/test_yolo_preprocess_compiled.py compares them bit for bit).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 
 @dataclass(frozen=True)
@@ -100,7 +103,31 @@ def resize_taps(in_size: int, out_size: int) -> tuple[np.ndarray, np.ndarray]:
     return np.where(valid, index, 0), weight
 
 
+@njit(cache=True, nogil=True)
+def _resize_last_axis(x: np.ndarray, index: np.ndarray, weight: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """(R, N) float32 rows -> (R, M) with the taps ``index``/``weight`` (M, K): each output the float32
+    rounding of the float64 multiply-add of the previous one and the next tap, as :func:`_resize_axis_numpy`."""
+    rows, m_out, k_taps = x.shape[0], index.shape[0], index.shape[1]
+    out = np.empty((rows, m_out), dtype=np.float32)
+    for r in range(rows):
+        for m in range(m_out):
+            acc = np.float32(np.float64(x[r, index[m, 0]]) * np.float64(weight[m, 0]))
+            for k in range(1, k_taps):
+                acc = np.float32(np.float64(acc) + np.float64(x[r, index[m, k]]) * np.float64(weight[m, k]))
+            out[r, m] = acc
+    return out
+
+
 def _resize_axis(x: np.ndarray, axis: int, out_size: int) -> np.ndarray:
+    """Resize float32 ``x`` along ``axis`` (compiled; the bits of :func:`_resize_axis_numpy`)."""
+    index, weight = resize_taps(x.shape[axis], out_size)
+    moved = np.ascontiguousarray(np.moveaxis(np.asarray(x, dtype=np.float32), axis, -1))
+    out = _resize_last_axis(moved.reshape(-1, moved.shape[-1]), np.ascontiguousarray(index, dtype=np.int64),
+                            np.ascontiguousarray(weight, dtype=np.float32))
+    return np.moveaxis(out.reshape(*moved.shape[:-1], out_size), -1, axis)
+
+
+def _resize_axis_numpy(x: np.ndarray, axis: int, out_size: int) -> np.ndarray:
     """Resize float32 ``x`` along ``axis``; taps are accumulated in order with one rounding per
     multiply-add (a fused multiply-add, exact here: float32 products are exact in float64)."""
     index, weight = resize_taps(x.shape[axis], out_size)
