@@ -11,14 +11,14 @@ from robustbench3d.sensors import camera_model as cm
 from robustbench3d.sensors.camera_depth import DepthMap
 from robustbench3d.sensors.camera_model import Lighting
 from robustbench3d.sensors.camera_render import (
-    _rect_lighting,
     camera_ray_tests,
     mesh_box,
     render_camera,
     render_camera_crop_torch,
     render_camera_torch,
-    shade,
 )
+from robustbench3d.sensors.camera_shade import rect_lighting as _rect_lighting
+from robustbench3d.sensors.camera_shade import shade
 from robustbench3d.sensors.mesh import icosphere
 from robustbench3d.synth.calibs import DAY_0926
 
@@ -290,7 +290,8 @@ def test_colours_of_another_dtype_render_in_the_vertices_dtype():
 def test_candidate_pair_chunks_equal_one_pass_and_lie_in_the_face_spans():
     """Chunked candidate pairs (two meshes: a masked region) concatenate to the one-pass pairs, every chunk
     within its bound unless one span is larger, and each pair's sample lies in its face's span."""
-    from robustbench3d.sensors.camera_render import _candidate_pairs, _check_meshes, _Geometry, _pixel_set
+    from robustbench3d.sensors.camera_cull import candidate_pairs as _candidate_pairs
+    from robustbench3d.sensors.camera_render import _check_meshes, _Geometry, _pixel_set
 
     calib = DAY_0926.calib
     v, f = icosphere(2, 0.4)
@@ -373,15 +374,11 @@ def test_numpy_pair_search_equals_the_pair_casters_bit_for_bit(dtype):
     pairs of deformed objects near and far plus random pairs in several chunks, and with every face doubled
     (equal t everywhere: the smaller face index must win)."""
     from robustbench3d.attacks.object import random_shape
+    from robustbench3d.sensors.camera_cull import candidate_pairs as _candidate_pairs
     from robustbench3d.sensors.camera_depth import camera_centre_rect, pixel_rays_rect
-    from robustbench3d.sensors.camera_render import (
-        _candidate_pairs,
-        _check_meshes,
-        _Geometry,
-        _pixel_set,
-        _search_pairs,
-    )
-    from robustbench3d.sensors.raycast import PairCaster, PairTable
+    from robustbench3d.sensors.camera_render import _check_meshes, _Geometry, _pixel_set, _search_pairs
+    from robustbench3d.sensors.pair_search import PairTable
+    from robustbench3d.sensors.raycast import PairCaster
 
     calib = DAY_0926.calib
     rng = np.random.default_rng(11)
@@ -424,17 +421,12 @@ def test_compiled_region_walk_equals_the_numpy_spans_and_pair_search_bit_for_bit
     faces touching it (two meshes, the second pass of a render), deformed objects from 0.6 m (faces crossing the
     camera plane) to 60 m, s = 1 and 3, and every face doubled (equal t: the smaller face index must win)."""
     from robustbench3d.attacks.object import random_shape
+    from robustbench3d.sensors.camera_cull import Region as _Region
+    from robustbench3d.sensors.camera_cull import candidate_pairs as _candidate_pairs
+    from robustbench3d.sensors.camera_cull import nearest_in_region
     from robustbench3d.sensors.camera_depth import camera_centre_rect, pixel_rays_rect
-    from robustbench3d.sensors.camera_render import (
-        _candidate_pairs,
-        _check_meshes,
-        _Geometry,
-        _pixel_set,
-        _Region,
-        _search_pairs,
-    )
-    from robustbench3d.sensors.kernels import nearest_in_region
-    from robustbench3d.sensors.raycast import PairTable
+    from robustbench3d.sensors.camera_render import _check_meshes, _Geometry, _pixel_set, _search_pairs
+    from robustbench3d.sensors.pair_search import PairTable
 
     calib = DAY_0926.calib
     w, h = DAY_0926.image_size
@@ -482,7 +474,8 @@ def test_visible_hits_search_in_the_geometry_dtype_like_a_brute_force_cast(dtype
     from robustbench3d.attacks.object import random_shape
     from robustbench3d.sensors.camera_depth import camera_centre_rect, pixel_rays_rect
     from robustbench3d.sensors.camera_render import _check_meshes, _Geometry, _pixel_set, _visible_hits
-    from robustbench3d.sensors.raycast import PairCaster, PairTable
+    from robustbench3d.sensors.pair_search import PairTable
+    from robustbench3d.sensors.raycast import PairCaster
 
     calib = DAY_0926.calib
     obj = random_shape(seed=3, amplitude=0.45)
@@ -512,7 +505,8 @@ def test_scanline_edge_functions_are_barycentrics_plus_the_hand_computed_margin(
     barycentric of the opposite vertex plus delta_f = SPAN_MARGIN + 64 eps cond, cond = |ray| / (min edge * cos),
     for v0 (0, 0, 10), v1 (1, 0, 10), v2 (0, 1, 11) seen from the origin (float32 ray test): normal (0, -1, 1),
     ray to the centroid (1, 1, 31) / 3, cos = 10 / sqrt(2 * 107), shortest edge 1: cond = sqrt(22898) / 10."""
-    from robustbench3d.sensors.camera_render import SPAN_MARGIN, _FaceCull
+    from robustbench3d.sensors.camera_cull import SPAN_MARGIN
+    from robustbench3d.sensors.camera_cull import FaceCull as _FaceCull
 
     calib = DAY_0926.calib
     verts = np.array([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0], [0.0, 1.0, 11.0]])
@@ -530,8 +524,10 @@ def test_cached_rays_and_edge_pixels_equal_their_references():
     """The crop's helpers against plain references: rays through image positions with a cached K^-1 equal
     pixel_rays_rect bit for bit, and the edge pixels (3 x 3 min != max) equal a loop over each pixel's 8
     neighbours on random masked regions."""
+    from robustbench3d.sensors.camera_cull import Region as _Region
     from robustbench3d.sensors.camera_depth import pixel_ray_components, pixel_rays_rect
-    from robustbench3d.sensors.camera_render import _constants, _edge_pixels, _Region
+    from robustbench3d.sensors.camera_render import _edge_pixels
+    from robustbench3d.sensors.camera_shade import camera_constants as _constants
 
     rng = np.random.default_rng(4)
     calib = DAY_0926.calib
@@ -645,7 +641,7 @@ def test_srgb_tone_curve_equals_the_generator_curve_on_its_toe_breakpoint_and_cl
     """srgb_tone_curve against camera_model.tone_curve (its numpy original) where the linear toe 12.92 x applies
     (x <= 0.0031308, dark haze-free pixels), exactly at the breakpoint (where the two branches differ by 3e-8:
     the toe is taken), and its documented clip to [0, 1] below 0 and above the shoulder."""
-    from robustbench3d.sensors.camera_render import srgb_tone_curve
+    from robustbench3d.sensors.camera_shade import srgb_tone_curve
 
     at = 0.003133252396650859  # x / (1 + x / 4) == 0.0031308 exactly
     assert at / (1.0 + 0.25 * at) == 0.0031308
@@ -705,7 +701,7 @@ def test_ray_test_counts_of_a_face_kept_whole_box_rows():
     whole box: with one sample per pixel its candidate pairs are exactly the pixel centres inside its projected
     vertices' box widened by BOX_MARGIN_PX (by hand; the box's last row and column included, nothing beyond),
     fewer than the rendered pixels (footprints overlapping the box). The default sampling is 3 x 3."""
-    from robustbench3d.sensors.camera_render import BOX_MARGIN_PX, SPAN_DEPTH_RATIO
+    from robustbench3d.sensors.camera_cull import BOX_MARGIN_PX, SPAN_DEPTH_RATIO
 
     calib = small_calib()
     # depths 0.2 and 5 (ratio 25): projected to (20.0, 15.0), (12.6, 7.6) and (30.7, 22.6)
@@ -727,7 +723,8 @@ def test_ray_test_counts_of_a_face_kept_whole_box_rows():
 def test_candidate_pair_chunks_of_long_spans_hold_one_span_each():
     """Chunks of whole spans, at most ``chunk`` pairs each unless one span alone is longer: then that span is a
     chunk by itself (never two spans over the bound); together still the one-pass pairs."""
-    from robustbench3d.sensors.camera_render import _candidate_pairs, _check_meshes, _Geometry, _pixel_set
+    from robustbench3d.sensors.camera_cull import candidate_pairs as _candidate_pairs
+    from robustbench3d.sensors.camera_render import _check_meshes, _Geometry, _pixel_set
 
     calib = small_calib()
     meshes = _check_meshes([(TRI, TRI_FACES, np.eye(3))])
@@ -908,7 +905,7 @@ def test_a_vertex_exactly_at_the_near_depth_makes_the_face_crossing():
     """A vertex at camera depth exactly 1e-6 (_NEAR, included): the mesh box is the whole 40 x 30 image and the
     face a crossing one (whichever of its vertices it is), paired with every sample of it (one per pixel), not
     only those of its projected box."""
-    from robustbench3d.sensors.camera_render import _FaceCull
+    from robustbench3d.sensors.camera_cull import FaceCull as _FaceCull
 
     calib = small_calib()
     verts = np.array([[0.0, 0.0, 1e-6], [-1.0, -1.0, 2.0], [1.0, -1.0, 2.0]])
@@ -923,7 +920,8 @@ def test_scanline_margin_uses_the_shortest_edge_of_a_face_of_edges_2_and_more():
     """As the hand case above, scaled: v0 (0, 0, 10), v1 (2, 0, 10), v2 (0, 2, 12), float32 ray test: normal
     (0, -1, 1), ray (2, 2, 32) / 3, |ray|^2 = 1032 / 9, cos = 30 / sqrt(2064), shortest edge 2:
     cond = |ray| / (2 cos) = sqrt(1032 * 2064) / 180."""
-    from robustbench3d.sensors.camera_render import SPAN_MARGIN, _FaceCull
+    from robustbench3d.sensors.camera_cull import SPAN_MARGIN
+    from robustbench3d.sensors.camera_cull import FaceCull as _FaceCull
 
     calib = DAY_0926.calib
     verts = np.array([[0.0, 0.0, 10.0], [2.0, 0.0, 10.0], [0.0, 2.0, 12.0]])
@@ -958,7 +956,7 @@ def test_the_lighting_cache_evicts_and_each_lighting_still_renders_its_own_expos
     after its eviction: the fronto-parallel face shows tone(exposure * albedo) for each (FLAT, by hand)."""
     import dataclasses
 
-    from robustbench3d.sensors.camera_render import _MAX_LIGHTS
+    from robustbench3d.sensors.camera_shade import MAX_LIGHTS as _MAX_LIGHTS
 
     calib = small_calib()
     c = np.array([0.2, 0.5, 0.8])
@@ -1008,8 +1006,8 @@ def test_compiled_face_cull_equals_the_numpy_reference_bit_for_bit(dtype):
     deformed objects ahead, straddling the camera plane and behind it, with skipped faces, a degenerate face
     (two equal vertices) and a sliver."""
     from robustbench3d.attacks.object import random_shape
+    from robustbench3d.sensors.camera_cull import FaceCull as _FaceCull
     from robustbench3d.sensors.camera_depth import camera_centre_rect
-    from robustbench3d.sensors.camera_render import _FaceCull
 
     calib = DAY_0926.calib
     centre = camera_centre_rect(calib)
@@ -1041,7 +1039,8 @@ def test_compiled_touching_equals_its_numpy_reference():
     dense masks of two deformed objects, near (faces crossing the camera plane) and far, and a one-pixel mask
     at the region's corner."""
     from robustbench3d.attacks.object import random_shape
-    from robustbench3d.sensors.camera_render import _check_meshes, _Geometry, _pixel_set, _Region
+    from robustbench3d.sensors.camera_cull import Region as _Region
+    from robustbench3d.sensors.camera_render import _check_meshes, _Geometry, _pixel_set
 
     calib = DAY_0926.calib
     w, h = DAY_0926.image_size
@@ -1067,9 +1066,9 @@ def test_compiled_touching_equals_its_numpy_reference():
 
 def _face_cull_reference(calib, vertices, faces, skip, dtype, centre):
     """The numpy _FaceCull.of that kernels.face_cull replaced (its arithmetic, array by array)."""
-    from robustbench3d.sensors.camera_render import _NEAR, BOX_MARGIN_PX, SPAN_DEPTH_RATIO, SPAN_MARGIN
-    from robustbench3d.sensors.mesh import cross_rows
-    from robustbench3d.sensors.raycast import dot3
+    from robustbench3d.sensors.camera_cull import BOX_MARGIN_PX, SPAN_DEPTH_RATIO, SPAN_MARGIN
+    from robustbench3d.sensors.camera_cull import NEAR_DEPTH_M as _NEAR
+    from robustbench3d.sensors.mesh import cross_rows, dot3
 
     uv, depth = calib.rect_to_image(vertices)
     p, fd = uv[faces], depth[faces]  # (F, 3, 2), (F, 3)

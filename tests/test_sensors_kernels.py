@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robustbench3d.sensors.kernels import scatter_add, scatter_rows
+from robustbench3d.sensors.array_kernels import scatter_add, scatter_rows
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
@@ -54,7 +54,7 @@ def test_scatters_refuse_an_index_out_of_range_or_of_the_wrong_length():
 def test_scatter_pair_grads_equals_the_stacked_columns_summed_by_bincount(dtype, offsets):
     """The columns FaceRows.edge_grads sums per face (gdet d, gun d, gvn d, gtn; with offsets h also those but
     gdet d times h), formed in the arrays' dtype and summed by np.bincount: the same bits."""
-    from robustbench3d.sensors.kernels import scatter_pair_grads
+    from robustbench3d.sensors.ray_kernels import scatter_pair_grads
 
     rng = np.random.default_rng(2)
     k, n = 3000, 41
@@ -74,7 +74,7 @@ def test_star_faces_against_the_per_face_formulas_in_numpy():
     """kernels.star_faces on a deformed sphere: the triple products' sign, the solid-angle sum (4 pi for one
     sheet seen from inside, to rounding) and the cull mask (o - c - a) . (e1 x e2) <= 0, bit for bit."""
     from robustbench3d.attacks.object import random_shape
-    from robustbench3d.sensors.kernels import star_faces
+    from robustbench3d.sensors.ray_kernels import star_faces
 
     obj = random_shape(seed=1, amplitude=0.3)
     v, f = obj.vertices() + np.array([0.2, -0.1, 7.0]), obj.faces
@@ -101,7 +101,7 @@ def test_face_rows_and_pair_tuv_equal_their_numpy_formulas_bit_for_bit(dtype, of
     """FaceRows.of / .tuv (compiled when every array has one float dtype) against the formulas written with
     np.cross and element-wise numpy in that dtype: the rows, t, u, v and 1 / det bit for bit, det = 0 (a ray in
     a face's plane) guarded to inv = 1; mixed dtypes take the numpy code and give numpy's promoted result."""
-    from robustbench3d.sensors.raycast import FaceRows
+    from robustbench3d.sensors.ray_rows import FaceRows
 
     rng = np.random.default_rng(3)
     v = rng.standard_normal((40, 3)).astype(dtype)
@@ -152,7 +152,7 @@ def test_face_test_geometry_equals_the_numpy_table_bit_for_bit(dtype, offsets):
     (shared origin) a face whose plane holds the origin (never hit: infinite floor)."""
     import torch
 
-    import robustbench3d.sensors.raycast as rc
+    import robustbench3d.sensors.ray_faces as rc
 
     rng = np.random.default_rng(6)
     v = rng.standard_normal((30, 3)).astype(dtype)
@@ -262,8 +262,9 @@ def test_cross_rows_equals_np_cross_bit_for_bit(da, db):
 def test_kernels_refuse_faces_out_of_range_instead_of_reading_past_the_vertices():
     """The compiled kernels do not check bounds, so their wrappers do: a face index outside the vertices is a
     ValueError naming the field from FaceRows.of, the test table (PairTable.of) and star_faces."""
-    from robustbench3d.sensors.kernels import star_faces
-    from robustbench3d.sensors.raycast import FaceRows, PairTable
+    from robustbench3d.sensors.pair_search import PairTable
+    from robustbench3d.sensors.ray_kernels import star_faces
+    from robustbench3d.sensors.ray_rows import FaceRows
 
     v = np.eye(3)
     bad = np.array([[0, 1, 3]])

@@ -12,10 +12,12 @@ import torch
 
 from robustbench3d.sensors import lidar_model as lm
 from robustbench3d.sensors import lidar_render as lr
-from robustbench3d.sensors.kernels import cone_cull, cull_runs, nearest_rays, rows_but, sphere_pairs_nearest
 from robustbench3d.sensors.lidar_beams import GENERATOR_FIRING_OFFSETS_DEG, BeamPattern, scan_ring_ids
+from robustbench3d.sensors.lidar_kernels import cone_cull, nearest_rays, sphere_pairs_nearest
+from robustbench3d.sensors.lidar_table_kernels import cull_runs, rows_but
 from robustbench3d.sensors.mesh import icosphere
-from robustbench3d.sensors.raycast import cast_ray_search, cast_rays, search_pairs
+from robustbench3d.sensors.pair_search import search_pairs
+from robustbench3d.sensors.raycast import cast_ray_search, cast_rays
 
 torch.set_num_threads(1)
 
@@ -46,7 +48,7 @@ def _search_inputs(pattern: BeamPattern, meshes: list) -> tuple:
     vt = torch.cat([v for v, _ in mts])
     fa = np.concatenate([f + v_off[k] for k, (_, f) in enumerate(mts)])
     origins, dirs = pattern.ray_geometry(idx)
-    from robustbench3d.sensors.raycast import face_test_geometry
+    from robustbench3d.sensors.ray_faces import face_test_geometry
 
     table = face_test_geometry(vt.numpy(), fa, np.zeros(3), 1e-3, np.array([0.0, 0.0, 1.0]))[3]
     return mts, culls, idx, (vt.numpy(), fa), table, dirs.T.copy(), origins[:, 2].copy()

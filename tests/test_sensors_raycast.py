@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from robustbench3d.sensors.mesh import icosphere
-from robustbench3d.sensors.raycast import PairCaster, back_faces, cast_ray_pair_chunks, cast_ray_pairs, cast_rays
+from robustbench3d.sensors.ray_faces import back_faces
+from robustbench3d.sensors.raycast import PairCaster, cast_ray_pair_chunks, cast_ray_pairs, cast_rays
 
 torch.set_num_threads(1)
 F64 = torch.float64
@@ -278,7 +279,7 @@ def test_hits_reduced_between_chunks_keep_the_nearest_and_the_smallest_face_of_a
     """A long search reduces its hits to each ray's nearest every few chunks (the numpy reference search_pairs_np
     compacts its hit lists; the compiled search_pairs keeps one nearest per ray): the same winners bit for bit,
     also when a face's exact duplicate (equal t, higher index) is tested first."""
-    import robustbench3d.sensors.raycast as rc
+    import robustbench3d.sensors.pair_search as rc
 
     rng = np.random.default_rng(11)
     v, f = _blob()
@@ -888,7 +889,7 @@ def test_face_rows_tuv_and_gradients_against_a_linear_solve_with_autograd(offset
     of each (ray, face) pair from torch.linalg.solve of o + t d = a0 + u e1 + v e2 (float64), and the vertex
     gradients of a random linear loss on t, u, v by autograd through that solve; rays from an origin offset
     along an axis (the LiDAR's lasers) or from one shared origin (the camera)."""
-    from robustbench3d.sensors.raycast import FaceRows, face_slots
+    from robustbench3d.sensors.ray_rows import FaceRows, face_slots
 
     rng = np.random.default_rng(11)
     v, f = _blob(level=1, centre=(5.0, -0.4, 0.6))

@@ -29,15 +29,8 @@ from robustbench3d.sensors.hdl64e import (
     _firing_steps,
     ring_ids_from_azimuth_wrap,
 )
-from robustbench3d.sensors.kernels import (
-    beam_table,
-    cone_cull,
-    cull_runs,
-    near_bins,
-    nearest_rays,
-    sphere_pairs_nearest,
-    sphere_ray_ranges,
-)
+from robustbench3d.sensors.lidar_kernels import cone_cull, nearest_rays, sphere_pairs_nearest, sphere_ray_ranges
+from robustbench3d.sensors.lidar_table_kernels import beam_table, cull_runs, near_bins
 
 #: Per-laser firing offsets of the generator's sensor (used by ``synth.lidar``), degrees in [0, 0.045).
 GENERATOR_FIRING_OFFSETS_DEG = np.random.default_rng(64).uniform(0.0, AZIMUTH_QUANTUM_DEG / 2, 64)
@@ -78,8 +71,8 @@ class BeamPattern:
     @cached_property
     def _table(self) -> tuple[np.ndarray, np.ndarray, float, float]:
         """(azimuth_deg (R,) of :attr:`rays`, :attr:`ring_start`, lowest and highest azimuth (+-inf without rays)),
-        without the rays' geometry or lasers: the firings of ``sensor.ray_azimuths(phases_deg - shift_deg)``
-        turned by ``shift_deg``, in one compiled pass (:func:`robustbench3d.sensors.kernels.beam_table`, the same
+        without the rays' geometry or lasers: the firings of ``sensor.ray_azimuths(phases_deg - shift_deg)`` turned by
+        ``shift_deg``, in one compiled pass (:func:`robustbench3d.sensors.lidar_table_kernels.beam_table`, the same
         values)."""
         s = self.sensor
         phases = (np.asarray(self.phases_deg, dtype=np.float64) - self.shift_deg)[:s.num_lasers]
@@ -96,7 +89,7 @@ class BeamPattern:
     def _banded(self) -> bool:
         """Whether the rays' azimuths lie in [-1, 361) degrees, so that a key ring x _BAND + azimuth of laser k in
         k x _BAND + [-360, 720) sorts between the lower and the higher lasers' rays: the compiled searches then
-        look for keys laser by laser (see :func:`robustbench3d.sensors.kernels.cone_cull`)."""
+        look for keys laser by laser (see :func:`robustbench3d.sensors.lidar_kernels.cone_cull`)."""
         lowest, highest = self._azimuth_range
         return bool(lowest >= -1.0 and highest < 361.0)
 
@@ -140,7 +133,7 @@ class BeamPattern:
                   compiled: bool = True) -> list[np.ndarray]:
         """:meth:`cull` of each sphere (``centers`` (M, 3), ``radii`` (M,)), all lasers of all spheres at once.
         ``compiled=False``: the numpy code (the reference of the compiled
-        :func:`robustbench3d.sensors.kernels.cone_cull`, which gives the same rays)."""
+        :func:`robustbench3d.sensors.lidar_kernels.cone_cull`, which gives the same rays)."""
         s = self.sensor
         c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
         if compiled and self._banded:  # the same arithmetic, sphere by sphere and laser by laser (the numpy code)
@@ -187,7 +180,7 @@ class BeamPattern:
         sphere (:meth:`cull`'s test, without its margin). The tests keep margins (1e-9, 1e-7 deg) far above their
         rounding: a superset of those rays; cheaper than :meth:`cull` for many small spheres on few lasers.
         ``compiled=False``: the numpy code (the reference of the compiled
-        :func:`robustbench3d.sensors.kernels.sphere_ray_ranges`, which gives the same pairs in the same order)."""
+        :func:`robustbench3d.sensors.lidar_kernels.sphere_ray_ranges`, which gives the same pairs in the same order)."""
         s = self.sensor
         c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
         r = np.asarray(radii, dtype=np.float64).reshape(-1)
@@ -237,9 +230,9 @@ class BeamPattern:
 
     def cull_runs(self, culls: Sequence[np.ndarray], idx: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The rays of M culls (each increasing, e.g. :meth:`cull_many`'s) as runs of consecutive rays of one laser,
-        for :meth:`sphere_nearest` (:func:`robustbench3d.sensors.kernels.cull_runs`); ``idx``: the sorted union of
-        the culls, which numbers the rays of the search."""
+        """The rays of M culls (each increasing, e.g. :meth:`cull_many`'s) as runs of consecutive rays of one laser, for
+        :meth:`sphere_nearest` (:func:`robustbench3d.sensors.lidar_table_kernels.cull_runs`); ``idx``: the sorted union
+        of the culls, which numbers the rays of the search."""
         rays = np.concatenate(culls) if len(culls) else np.zeros(0, np.int64)
         return cull_runs(rays, np.array([len(c) for c in culls], np.int64), self.ring_start, idx)
 
@@ -252,7 +245,7 @@ class BeamPattern:
         pairs tested) of the Möller–Trumbore test (per-face ``table`` (18, F) with offsets, directions ``d_cols``
         (3, R) and apex heights ``h`` (R,) of the R rays of ``idx``) on the pairs of :meth:`sphere_rays` (lasers of
         each face's cull) whose ray is in the face's cull, tested as they are found
-        (:func:`robustbench3d.sensors.kernels.sphere_pairs_nearest`)."""
+        (:func:`robustbench3d.sensors.lidar_kernels.sphere_pairs_nearest`)."""
         s = self.sensor
         return sphere_pairs_nearest(centers, radii, mesh, runs, np.radians(s.elevation_deg), s.origin_z,
                                     self._table[0], _BAND, table, d_cols, h, t_min, tol)
@@ -271,8 +264,8 @@ class BeamPattern:
         """(N,) bool, a superset of the points (laser ``ring``, ``azimuth_deg``) whose :meth:`nearest_ray` within
         ``max_deg`` can be one of the rays ``index``: those within about ``max_deg`` of such a ray's azimuth on
         the same laser (bins of ``max_deg`` per laser: the ray's bin and two on either side). The points' bins are
-        looked up by :func:`robustbench3d.sensors.kernels.near_bins` (``compiled=False``: the numpy code, which it
-        follows point by point)."""
+        looked up by :func:`robustbench3d.sensors.lidar_table_kernels.near_bins` (``compiled=False``: the numpy code,
+        which it follows point by point)."""
         nl = self.sensor.num_lasers
         ring = np.asarray(ring, dtype=np.int64)
         bins = int(np.ceil(360.0 / max_deg))
@@ -309,7 +302,7 @@ class BeamPattern:
                     compiled: bool = True) -> np.ndarray:
         """(N,) index of the ray of laser ``ring`` nearest in azimuth to ``azimuth_deg`` (circularly), or -1
         when none lies within ``max_deg`` or the ring is unknown (< 0 or >= 64). ``compiled=False``: the numpy
-        code (the reference of :func:`robustbench3d.sensors.kernels.nearest_rays`, which gives the same rays)."""
+        code (the reference of :func:`robustbench3d.sensors.lidar_kernels.nearest_rays`, which gives the same rays)."""
         ring = np.asarray(ring, dtype=np.int64)
         az = _mod360(azimuth_deg)
         if compiled and self._banded and len(ring) == len(az):

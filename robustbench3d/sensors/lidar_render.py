@@ -33,12 +33,12 @@ import numpy as np
 import torch
 
 from robustbench3d.sensors import lidar_model as lm
-from robustbench3d.sensors.kernels import rows_but
 from robustbench3d.sensors.lidar_beams import BeamPattern, estimate_pattern, ring_ids_of
+from robustbench3d.sensors.lidar_table_kernels import rows_but
 from robustbench3d.sensors.materials import Mat
-from robustbench3d.sensors.mesh import face_normals
+from robustbench3d.sensors.mesh import dot3, face_normals
 from robustbench3d.sensors.pattern_cache import PatternCache
-from robustbench3d.sensors.raycast import PairSearch, cast_ray_pair_chunks, cast_ray_search, dot3
+from robustbench3d.sensors.raycast import PairSearch, cast_ray_pair_chunks, cast_ray_search
 
 #: Albedo of meshes given without colours (linear RGB).
 DEFAULT_ALBEDO = 0.5
@@ -424,9 +424,9 @@ def _sphere_search(pattern: BeamPattern, mts: list[tuple[torch.Tensor, np.ndarra
                    idx: np.ndarray, stacked: tuple[np.ndarray, np.ndarray]) -> PairSearch:
     """The no-grad search of :func:`_trace`'s cast (:data:`~robustbench3d.sensors.raycast.PairSearch`): the pairs of
     :func:`_face_pairs` tested as the compiled kernel finds them
-    (:func:`~robustbench3d.sensors.kernels.sphere_pairs_nearest`: each face's sphere against its mesh's culled rays,
-    laser by laser, as runs of consecutive rays): the same nearest faces, t and pair count as
-    :func:`~robustbench3d.sensors.raycast.search_pairs` of those pairs, without forming them. Arguments as
+    (:func:`~robustbench3d.sensors.lidar_kernels.sphere_pairs_nearest`: each face's sphere against its mesh's culled
+    rays, laser by laser, as runs of consecutive rays): the same nearest faces, t and pair count as
+    :func:`~robustbench3d.sensors.pair_search.search_pairs` of those pairs, without forming them. Arguments as
     :func:`_face_pairs`."""
     centre, radius = _face_spheres(stacked)
     mesh = np.repeat(np.arange(len(mts)), [len(fa) for _, fa in mts])
@@ -589,7 +589,7 @@ def render_lidar(scan: np.ndarray | PreparedScan, meshes: Sequence[MeshInput], *
 def _without_rows(scan: np.ndarray, removed: np.ndarray, added: np.ndarray) -> np.ndarray:
     """(M, 4): the rows of ``scan`` (N, 4) but ``removed`` (increasing, distinct), in order, then ``added``:
     ``np.concatenate([scan[kept], added])``, bit for bit, float32 rows copied as their bytes, run by run between
-    the removed rows (:func:`~robustbench3d.sensors.kernels.rows_but`)."""
+    the removed rows (:func:`~robustbench3d.sensors.lidar_table_kernels.rows_but`)."""
     if scan.dtype != np.float32:
         kept = np.ones(len(scan), dtype=bool)
         kept[removed] = False

@@ -1,4 +1,5 @@
-"""Mesh primitives the sensor models and the attacks share: the icosphere and per-face normals.
+"""Mesh primitives the sensor models and the attacks share: the icosphere, per-face normals and row-wise
+3-vector arithmetic (:func:`cross_rows`, :func:`dot3`) with numpy's bits.
 
 Units: metres; any right-handed frame (the generator uses object-local or velodyne coordinates).
 Winding: a face (a, b, c) is counter-clockwise seen from the side its normal (b - a) x (c - a) points to.
@@ -10,7 +11,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from robustbench3d.sensors.kernels import cross_rows_float
+from robustbench3d.sensors.array_kernels import cross_rows_float
 
 _FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
 
@@ -77,11 +78,17 @@ def icosphere(level: int, radius: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
 
 def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise a x b of (N, 3) arrays: np.cross's components (the same bits), without its per-call overhead
-    (float32 or float64 arrays: compiled, :func:`robustbench3d.sensors.kernels.cross_rows_float`)."""
+    (float32 or float64 arrays: compiled, :func:`robustbench3d.sensors.array_kernels.cross_rows_float`)."""
     if a.dtype in _FLOATS and b.dtype in _FLOATS and a.shape == b.shape and a.ndim == 2 and a.shape[1] == 3:
         return cross_rows_float(a, b)
     return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
                      a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+
+
+def dot3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Dot products over a last axis of 3, summed as ((x0 y0 + x1 y1) + x2 y2): the order numpy's
+    ``(x * y).sum(-1)`` adds them in (the same bits), without the cost of a reduction along a short axis."""
+    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
