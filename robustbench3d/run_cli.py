@@ -71,11 +71,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--attacks", metavar="NAME[,NAME...]",
                         help="registered attacks, or object files NAME.ply (registered under NAME) "
                              "(default: none, the clean control)")
-    from robustbench3d.victims.spec import PROPOSAL_SOURCES, PROTOCOL_LABELS
+    from robustbench3d.victims.spec import describe_sources
 
     parser.add_argument("--proposals", metavar="SRC[,SRC...]",
                         help="2D proposal sources (frustum protocols), any of: "
-                             + "; ".join(f"{s}: {PROTOCOL_LABELS[s]}" for s in PROPOSAL_SOURCES)
+                             + describe_sources()
                              + ". A victim that does not support a source gets a skipped cell (default: detector)")
     parser.add_argument("--out", metavar="DIR",
                         help="output directory (cell files, summary.json, results.csv, seed_table.md); "

@@ -10,12 +10,11 @@ segment length of the similarity sums (1 to beyond 2048 events, and tables of at
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from eval_fixture_generator import load_generator
 
 from robustbench3d.eval.bootstrap import (
     FrameBootstrap,
@@ -27,19 +26,12 @@ from robustbench3d.eval.bootstrap import (
 from robustbench3d.kitti import Labels
 from robustbench3d.kitti.labels import parse_labels
 
-FIXTURES = Path(__file__).parent / "fixtures" / "eval"
 CLASSES = ("Car", "Pedestrian", "Cyclist")
 
 
-def _generator():
-    spec = importlib.util.spec_from_file_location("eval_fixture_generate_bsv", FIXTURES / "generate.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
-GEN = _generator()
+GEN = load_generator()
 SPECS = {
     "ties": GEN.SetSpec(seed=401, frames=30, gt_per_frame=8.0, duplicate=0.3, score_decimals=1, dontcare_3d=0.5,
                         fp_in_dontcare=0.8),

@@ -7,12 +7,11 @@ sets (ties, difficulty boundaries, DontCare, neighbour classes, tiny detections,
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from eval_fixture_generator import load_generator
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -31,18 +30,7 @@ from robustbench3d.eval.table import ObjectTable
 from robustbench3d.kitti import Labels
 from robustbench3d.kitti.labels import parse_labels
 
-FIXTURES = Path(__file__).parent / "fixtures" / "eval"
-
-
-def _generator():
-    spec = importlib.util.spec_from_file_location("eval_fixture_generate_bs", FIXTURES / "generate.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-GEN = _generator()
+GEN = load_generator()
 SPECS = {
     "mixed": GEN.SetSpec(seed=201, frames=40, gt_per_frame=7.0, boundary=0.6, small_other=0.3, duplicate=0.3,
                          score_decimals=1, dontcare_3d=0.5, fp_in_dontcare=0.8),

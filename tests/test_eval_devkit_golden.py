@@ -6,12 +6,11 @@ devkit (see ``fixtures/eval/README.md``); this evaluator never produced them.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
+from eval_fixture_generator import load_generator
 
 from robustbench3d.eval.kitti_eval import evaluate_dirs
 
@@ -21,12 +20,6 @@ TOLERANCE = 1e-3  # AP points; the devkit prints 6 decimals of a float32 sum
 CLASSES = ("Car", "Pedestrian", "Cyclist")
 
 
-def load_generator():
-    spec = importlib.util.spec_from_file_location("eval_fixture_generate", FIXTURES / "generate.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
-    spec.loader.exec_module(module)
-    return module
 
 
 GEN = load_generator()

@@ -8,13 +8,12 @@ on their own in test_eval_iou.py).
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from eval_fixture_generator import load_generator
 
 from robustbench3d.eval.iou import bev_overlap, box3d_overlap, image_overlap
 from robustbench3d.eval.kitti_eval import evaluate_tables
@@ -22,18 +21,11 @@ from robustbench3d.eval.loading import load_dirs
 from robustbench3d.eval.precision import score_thresholds
 from robustbench3d.kitti import Labels, read_labels
 
-FIXTURES = Path(__file__).parent / "fixtures" / "eval"
 MIN_HEIGHT, MAX_OCC, MAX_TRUNC = (40, 25, 25), (0, 1, 2), (0.15, 0.3, 0.5)
 THRESH = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5}
 NEIGHBOUR = {"Car": "Van", "Pedestrian": "Person_sitting"}
 
 
-def load_generator():
-    spec = importlib.util.spec_from_file_location("eval_fixture_generate", FIXTURES / "generate.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 GEN = load_generator()

@@ -42,7 +42,7 @@ def import_script(path: Path) -> ModuleType:
 
 def test_the_research_folder_holds_the_scripts():
     names = {p.name for p in PY_SCRIPTS + SH_SCRIPTS}
-    assert {"compare_runs.py", "frustum_share.py", "paired_vs_control.py", "shape_bound.py", "texture_bound.py",
+    assert {"frustum_share.py", "paired_vs_control.py", "shape_bound.py", "texture_bound.py",
             "train_iou_loss.py", "train_sweep.sh"} <= names
     assert (RESEARCH / "README.md").is_file()
     readme = (RESEARCH / "README.md").read_text(encoding="utf-8")

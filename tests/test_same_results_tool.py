@@ -44,3 +44,25 @@ def test_a_result_a_recorded_setting_or_a_file_that_differs_is_reported(tmp_path
     assert same_results.differences(a, b) == ["cells/c/cell.json/provenance/run/seed: 0 != 1"]
     (b / "extra.txt").write_text("")
     assert same_results.main([str(a), str(b)]) == 1
+
+
+def test_across_executors_also_sets_aside_the_executor_and_torch_loaded(tmp_path: Path) -> None:
+    a = _run(tmp_path / "a", seconds=1.0, out="/x", ap=0.5, dirty=False)
+    b = _run(tmp_path / "b", seconds=1.0, out="/x", ap=0.5, dirty=False)
+    cell = json.loads((a / "cells/c/cell.json").read_text())
+    cell["provenance"]["executor"] = {"name": "ray", "address": "10.0.0.1:6379", "workers": ["n1"]}
+    cell["provenance"]["determinism"] = {"torch_loaded": False, "OMP_NUM_THREADS": "1"}
+    (b / "cells/c/cell.json").write_text(json.dumps(cell))
+    (a / "cells/c/cell.json").write_text(json.dumps({**cell, "provenance": {
+        **cell["provenance"], "executor": {"name": "local", "workers": ["p1"]},
+        "determinism": {"torch_loaded": True, "OMP_NUM_THREADS": "1"}}}))
+    assert sorted(same_results.differences(a, b)) == [
+        "cells/c/cell.json/provenance/determinism/torch_loaded: True != False",
+        "cells/c/cell.json/provenance/executor/address: only in the second",
+        "cells/c/cell.json/provenance/executor/name: local != ray"]
+    assert same_results.differences(a, b, across_executors=True) == []
+    assert same_results.main(["--across-executors", str(a), str(b)]) == 0
+    cell["provenance"]["determinism"]["OMP_NUM_THREADS"] = "2"
+    (b / "cells/c/cell.json").write_text(json.dumps(cell))
+    assert same_results.differences(a, b, across_executors=True) == [
+        "cells/c/cell.json/provenance/determinism/OMP_NUM_THREADS: 1 != 2"]
