@@ -66,7 +66,15 @@ def create_attack(name: str, **params: Any) -> Attack:
         raise AttackSpecError(f"attack {name!r}: {exc}") from None
 
 
+def resolve_attack(reference: str) -> tuple[str, Attack]:
+    """(registered name, the attack instance) of a reference: a registered name or an object file ``.ply``
+    (:meth:`~robustbench3d.registry.Registry.resolve`), as ``run --attacks``, ``attack apply`` and ``show``
+    take it."""
+    name = ATTACKS.resolve(reference)
+    return name, create_attack(name)
+
+
 __all__ = [
     "ATTACKS", "ENTRY_POINT_GROUP", "AttackRequirements", "AttackSpec", "AttackSpecError",
-    "create_attack", "register_attack",
+    "create_attack", "register_attack", "resolve_attack",
 ]

@@ -14,10 +14,8 @@ Rows (median wall time; CPU time beside it because the machine may be shared):
   adds the image-sized copy and gradient); and per car when 8 cars at 10-40 m are rendered together, as the
   attack renders a frame;
 * the camera's candidate (sample, face) pairs against every sample of the image x every face (target <= 1 %);
-* the 2D detector's objectness oracle on crops against the whole 960x288 input
-  (:func:`bench_objectness_crop`): forward + backward per car of the first val frames of the embedded dataset,
-  one car per call as training asks, at the candidate IoU thresholds 0.3 (mean loss) and 0.5 (sum loss), with
-  the crop's mean width; and the adv-texture training step of the shipped settings with and without crops, side
+* the adv-texture training step of the shipped settings with and without the 2D detector's objectness crops
+  (per car, the crop alone: ``bench objectness``, :mod:`robustbench3d.victims.yolo.bench_objectness`), side
   by side on warm caches (:func:`bench_texture_step`; target <= 0.4x); and that step on a fresh scene-depth
   cache, the scenes rebuilt in the step vs warmed before training (:func:`bench_fresh_cache_step`; target <= 0.5x);
 * the attacked cell against the clean one (:func:`bench_attacked_cell`, random-shape, fpointnet-v1-lite, GT and
@@ -209,52 +207,6 @@ def _embedded_val(frames: int) -> tuple[Any, list[str]]:
     return kitti, list(kitti.frame_ids[:frames])
 
 
-def bench_objectness_crop(frames: int = 8, thresholds: tuple[float, ...] = (0.3, 0.5)) -> list[dict[str, float]]:
-    """CPU ms of the shipped ``fpointnet-v1-lite`` objectness oracle, forward + backward (loss = sum of the
-    candidates' objectness and Car logits, gradient w.r.t. the image), per target car of the first ``frames``
-    val frames, one car per call (as training asks), with and without crops, interleaved call by call. Per
-    IoU threshold: calls, mean ms of each, their ratio and the mean width (px of the 960 px input) of the
-    input slice the crop's first layer reads."""
-    from robustbench3d.attacks.base import target_cars
-    from robustbench3d.victims import create_victim
-    from robustbench3d.victims.yolo.detector import candidate_region, head_windows
-    from robustbench3d.victims.yolo.letterbox import image_to_tensor, letterbox_geometry
-
-    victim = create_victim("fpointnet-v1-lite")
-    net, (w_in, h_in) = victim.yolo.net, victim.yolo.cfg.input_size
-    kitti, ids = _embedded_val(frames)
-    cases = []
-    for fid in ids:
-        frame = kitti.frame(fid)
-        image = image_to_tensor(frame.image)
-        cases += [(image, box[None]) for box in target_cars(frame.labels).bbox]
-
-    def call(image: torch.Tensor, box: np.ndarray, thr: float, crop: bool) -> float:
-        x = image.clone().requires_grad_(True)
-        c0 = time.process_time()
-        cands = victim.objectness(x, [box], iou_threshold=thr, crop=crop)
-        torch.autograd.grad(cands.objectness_logit.sum() + cands.class_logit.sum(), x, allow_unused=True)
-        return time.process_time() - c0
-
-    rows: list[dict[str, float]] = []
-    for thr in thresholds if cases else ():
-        _progress(f"objectness crop vs whole input, IoU {thr}: {len(cases)} cars of {frames} frames")
-        call(*cases[0], thr, True), call(*cases[0], thr, False)  # warm-up
-        whole = crop = 0.0
-        widths = []
-        for image, box in cases:
-            whole += call(image, box, thr, False)
-            crop += call(image, box, thr, True)
-            geo = letterbox_geometry((image.shape[-1], image.shape[-2]), (w_in, h_in))
-            windows = head_windows(candidate_region(geo.to_input(box)[0], thr), net, (h_in, w_in))
-            span = net.needed_windows(windows, h_in, w_in)[1] if any(w is not None for w in windows) else None
-            widths.append(0 if span is None else span[1][1] - span[1][0])
-        n = max(len(cases), 1)
-        rows.append({"iou": thr, "calls": float(len(cases)), "whole_ms": 1e3 * whole / n, "crop_ms": 1e3 * crop / n,
-                     "ratio": crop / whole if whole > 0 else float("nan"), "crop_px": float(np.mean(widths))})
-    return rows
-
-
 def bench_texture_step(frames: int = 8, steps: int = 6) -> dict[str, float]:
     """CPU ms of an adv-texture training step (the shipped object's training settings: its manifest entry's
     ``training.config``) on the first ``frames`` val frames of the embedded dataset, whole input vs crops, side
@@ -350,14 +302,9 @@ def bench_fresh_cache_step(frames: int | None = None, steps: int = 4, workers: i
 
 
 def _crop_rows(quick: bool) -> list[dict]:
-    # --quick: a smoke run, within 2 minutes on the shared 2-core VM (the per-car rows on the first frame's cars)
-    frames, per_car = (3, 1) if quick else (8, 8)
+    # --quick: a smoke run, within 2 minutes on the shared 2-core VM
+    frames = 3 if quick else 8
     rows = []
-    for r in bench_objectness_crop(per_car):
-        rows.append({"case": f"2D objectness fwd+bwd per car, crop vs whole 960x288 input, candidate IoU {r['iou']:g}, "
-                             f"{r['calls']:.0f} cars of {per_car} val frames (crop {r['crop_px']:.0f} px wide)",
-                     "whole_ms": round(r["whole_ms"], 1), "crop_ms": round(r["crop_ms"], 1),
-                     "ratio": round(r["ratio"], 3)})
     step = bench_texture_step(frames, 2 if quick else 6)
     rows.append({"case": f"adv-texture training step (shipped settings, {step['batch_cars']:.0f} cars), crop vs "
                          f"whole input, CPU ms, {step['steps']:.0f} steps on warm caches",

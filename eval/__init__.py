@@ -2,7 +2,7 @@
 
 ``evaluate`` (in-memory) and ``evaluate_dirs`` (label/result directories) live in
 :mod:`robustbench3d.eval.kitti_eval`; they are loaded lazily so that the CLI start-up (which
-imports :mod:`robustbench3d.eval.cli`) stays free of numpy.
+imports :mod:`robustbench3d.commands.eval`) stays free of numpy.
 """
 
 from __future__ import annotations

@@ -23,8 +23,8 @@ from contextlib import contextmanager
 import torch
 
 import robustbench3d.victims.yolo.detector as detector
-from robustbench3d.attack_train import add_arguments, run
 from robustbench3d.attacks.losses import IMAGE_LOSSES, SUM_MIN_IOU, register_image_loss
+from robustbench3d.commands.attack_train import add_arguments, run
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.victims.yolo.boxes import box_iou, cxcywh_to_xyxy
 from robustbench3d.victims.yolo.detector import candidates_for_targets

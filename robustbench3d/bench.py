@@ -1,4 +1,4 @@
-"""``robustbench3d bench``: speed and memory benchmarks that print a table.
+"""The speed and memory benchmarks ``robustbench3d bench`` runs (:data:`BENCHMARKS`) and their table.
 
 Targets are checked here, in benchmarks, never as wall-clock asserts in unit tests. Each
 benchmark is a function ``run(quick: bool) -> list[dict]`` returning table rows; rows may carry a
@@ -7,13 +7,10 @@ benchmark is a function ``run(quick: bool) -> list[dict]`` returning table rows;
 
 from __future__ import annotations
 
-import argparse
-import importlib
 import json
 import os
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 
 from robustbench3d.texttable import format_table
@@ -25,6 +22,7 @@ BENCHMARKS: dict[str, str] = {
     "onnx": "robustbench3d.victims.onnx.bench:run",
     "victim": "robustbench3d.victims.bench:run",
     "fpn-train": "robustbench3d.victims.fpointnet.bench_train:run",
+    "objectness": "robustbench3d.victims.yolo.bench_objectness:run",
     "attack": "robustbench3d.attacks.bench:run",
     "lidar": "robustbench3d.sensors.bench:run",
     "bootstrap": "robustbench3d.eval.bench_bootstrap:run",
@@ -88,35 +86,3 @@ def cli_startup(quick: bool) -> list[dict]:
     median = statistics.median(r.seconds for r in runs)
     return [{"case": "robustbench3d --help", "seconds_median": median, "peak_rss_mb": max(r.peak_rss_mb for r in runs),
              "target": "< 0.5 s", "met": median < 0.5}]
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("names", nargs="*", metavar="NAME",
-                        help=f"benchmarks to run (default: all of {', '.join(BENCHMARKS)})")
-    parser.add_argument("--quick", action="store_true", help="smaller inputs, for a smoke run")
-    parser.add_argument("--json", metavar="PATH", help="also write the rows as JSON")
-
-
-def run(args: argparse.Namespace) -> int:
-    from robustbench3d.errors import RobustBenchError
-    from robustbench3d.fileio import check_output_file
-
-    if args.json:
-        check_output_file(args.json, "--json")
-    names = args.names or list(BENCHMARKS)
-    unknown = [n for n in names if n not in BENCHMARKS]
-    if unknown:
-        raise RobustBenchError(f"unknown benchmark {unknown[0]!r}; available: {', '.join(BENCHMARKS)}")
-    all_rows: list[dict] = []
-    for name in names:
-        module, func = BENCHMARKS[name].split(":")
-        t0 = time.perf_counter()
-        rows = getattr(importlib.import_module(module), func)(quick=args.quick)
-        print(f"== {name} ({time.perf_counter() - t0:.1f} s)")
-        print(dict_table(rows))
-        all_rows.extend({"benchmark": name, **r} for r in rows)
-    if args.json:
-        from robustbench3d.fileio import atomic_write_text
-
-        atomic_write_text(args.json, json.dumps(all_rows, indent=2) + "\n")
-    return 0

@@ -1,12 +1,10 @@
-"""``robustbench3d data stats``: LiDAR and label statistics of KITTI-layout datasets, side by side.
+"""LiDAR and label statistics of KITTI-layout datasets, side by side (``robustbench3d data stats``).
 
 Used to check the embedded generator against real KITTI: points per frame, per-ring cone
 elevation and origin height, azimuth step, ground height, and LiDAR points on cars at 10/20/40 m.
 """
 
 from __future__ import annotations
-
-import argparse
 
 #: Distance bins (centre, half width) in m for "points on a car".
 CAR_DISTANCE_BINS: tuple[tuple[float, float], ...] = ((10.0, 2.5), (20.0, 2.5), (40.0, 5.0))
@@ -103,25 +101,3 @@ def format_comparison(stats: list[dict]) -> str:
                         lambda s, k=key: "n/a" if not s["car_points_by_distance"][k]["cars"] else
                         f"{s['car_points_by_distance'][k]['median']:g} ({s['car_points_by_distance'][k]['cars']})"))
     return dict_table(rows)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("roots", nargs="+", metavar="DIR", help="KITTI-layout dataset roots (first = reference)")
-    parser.add_argument("--frames", type=int, default=50, help="frames per dataset (default 50; 0 = all)")
-    parser.add_argument("--json", metavar="PATH", help="also write the statistics as JSON")
-
-
-def run(args: argparse.Namespace) -> int:
-    import json
-
-    from robustbench3d.fileio import check_output_file
-
-    if args.json:
-        check_output_file(args.json, "--json")
-    stats = [dataset_statistics(r, args.frames or None) for r in args.roots]
-    print(format_comparison(stats))
-    if args.json:
-        from robustbench3d.fileio import atomic_write_text
-
-        atomic_write_text(args.json, json.dumps(stats, indent=2) + "\n")
-    return 0

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robustbench3d.attack_apply import apply_dataset
-from robustbench3d.attack_check import check_attacked_dataset
 from robustbench3d.attacks import create_attack
+from robustbench3d.attacks.apply import apply_dataset
 from robustbench3d.attacks.base import target_cars
+from robustbench3d.attacks.check import check_attacked_dataset
 from robustbench3d.cli import main
 from robustbench3d.kitti import KittiDataset, read_split, write_image, write_scan
 from robustbench3d.runner.cell import attack_rng
@@ -174,8 +174,8 @@ def test_exact_occlusion_is_cached_and_equals_the_rebuilt_scene(dataset, cache, 
 
 
 def test_show_attack_draws_clean_and_attacked(dataset, tmp_path):
+    from robustbench3d.draw import OBJECT_POINT_COLOUR
     from robustbench3d.kitti.image import read_image
-    from robustbench3d.show import OBJECT_POINT_COLOUR
 
     png = tmp_path / "f.png"
     assert main(["show", str(dataset), "000000", "--out", str(png), "--attack", "random-shape"]) == 0

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from robustbench3d.attack_list import factory_parameters
 from robustbench3d.cli import main
+from robustbench3d.commands.attack_list import factory_parameters
 
 MANIFEST = Path(__file__).resolve().parents[1] / "attacks" / "objects" / "manifest.json"
 

@@ -310,7 +310,7 @@ def test_cli_defaults_are_the_config_defaults():
     import argparse
     from dataclasses import asdict
 
-    from robustbench3d.attack_train import add_arguments, config_from_args
+    from robustbench3d.commands.attack_train import add_arguments, config_from_args
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)

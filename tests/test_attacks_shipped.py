@@ -68,7 +68,7 @@ def _fresh_registry() -> Registry[AttackSpec]:
 def _train_config(command: str) -> dict[str, Any]:
     """The TrainConfig an ``attack train`` command line builds (``attack_train.config_from_args``, as
     ``attack_train.run`` builds it), as a dict without the fields that do not change the object."""
-    from robustbench3d.attack_train import add_arguments, config_from_args
+    from robustbench3d.commands.attack_train import add_arguments, config_from_args
 
     words = shlex.split(command)
     assert words[:3] == ["robustbench3d", "attack", "train"], command

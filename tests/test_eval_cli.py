@@ -267,7 +267,7 @@ def test_bad_files_fall_back_to_precise_errors(tmp_path: Path) -> None:
 def test_eval_options_by_hand() -> None:
     import argparse
 
-    from robustbench3d.eval.cli import add_arguments
+    from robustbench3d.commands.eval import add_arguments
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
@@ -305,7 +305,7 @@ def test_package_loads_the_evaluator_lazily_by_name() -> None:
 
 
 def test_cli_module_imports_no_numpy() -> None:
-    code = "import sys, robustbench3d.eval.cli; print('numpy' in sys.modules)"
+    code = "import sys, robustbench3d.commands.eval; print('numpy' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
 

@@ -484,7 +484,7 @@ def test_decimated_scan_renumbers_the_object_returns(frame, targets):
 def test_tradeoff_accepts_the_protocols():
     import argparse
 
-    from robustbench3d.tradeoff.cli import add_arguments
+    from robustbench3d.commands.tradeoff import add_arguments
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)

@@ -224,12 +224,14 @@ def _line_of(path: Path, text: str) -> int:
 #: Modules that name the benchmark's target class: each takes it from eval.rules.TARGET_CLASS (or metrics.HEADLINE).
 #: Not checked: KITTI's own type vocabulary (kitti/, synth/, the evaluator's devkit tables in eval/rules.py), the
 #: evaluator's benchmarks and test fixtures (eval/bench*.py, testing.py), sensors/, attacks/ and victims/ (their
-#: TARGET_TYPES), show.py (colours per KITTI type) and run_cli.py (edited elsewhere at this time).
+#: TARGET_TYPES), draw.py (colours per KITTI type) and ``victims train-fpointnet``'s ``--types`` (KITTI types).
 TARGET_CLASS_READERS = (
     "robustbench3d/results.py", "robustbench3d/metrics.py", "robustbench3d/gate.py", "robustbench3d/seed_table.py",
     "robustbench3d/pytest_plugin.py", "robustbench3d/dataset_stats.py", "robustbench3d/api.py",
     "robustbench3d/report", "robustbench3d/runner", "robustbench3d/tradeoff",
-    "eval/matches.py", "eval/kitti_eval.py", "eval/bootstrap.py", "eval/report.py", "eval/cli.py",
+    "eval/matches.py", "eval/kitti_eval.py", "eval/bootstrap.py", "eval/report.py",
+    *(f"robustbench3d/commands/{p.name}" for p in sorted((ROOT / "robustbench3d/commands").glob("*.py"))
+      if p.name != "victims_train_fpointnet.py"),
 )
 
 
@@ -249,7 +251,8 @@ def test_the_target_class_is_written_once():
 #: The modules that read summary cells (runner/effect.py, which writes ``attack_effect`` and ``metrics_ci``, aside).
 CELL_READERS = (
     "robustbench3d/gate.py", "robustbench3d/seed_table.py", "robustbench3d/pytest_plugin.py", "robustbench3d/report",
-    "robustbench3d/runner/flags.py", "robustbench3d/runner/collect.py", "robustbench3d/runner/grid.py",
+    "robustbench3d/commands/victims_pack.py", "robustbench3d/runner/flags.py", "robustbench3d/runner/collect.py",
+    "robustbench3d/runner/grid.py",
     "robustbench3d/runner/outcome.py", "robustbench3d/runner/table.py",
 )
 #: A cell's nested records, read through CellResult's accessors.

@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 
 from robustbench3d.cli import main
+from robustbench3d.commands.run import frames_line
 from robustbench3d.datasets import EMBEDDED
 from robustbench3d.errors import RobustBenchError
-from robustbench3d.run_cli import frames_line
 from robustbench3d.runner.config import DEFAULT_VAL_FRAMES, default_max_frames
 from robustbench3d.synth.writer import in_val
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 
 from robustbench3d.cli import main
+from robustbench3d.draw import CLASS_COLOURS, render
 from robustbench3d.geometry import box_corners
 from robustbench3d.kitti import KittiDataset, read_image
-from robustbench3d.show import CLASS_COLOURS, render
 
 
 def test_render_draws_car_box_at_its_projection(kitti_samples: Path) -> None:

@@ -16,8 +16,8 @@ import pytest
 import trimesh
 from cli_checks import fails_cleanly
 
-from robustbench3d.attack_apply import apply_dataset
 from robustbench3d.attacks import create_attack
+from robustbench3d.attacks.apply import apply_dataset
 from robustbench3d.attacks.object import RoofObject, random_shape
 from robustbench3d.attacks.objectfile import read_object_file, save_object
 from robustbench3d.attacks.shipped import shipped_objects

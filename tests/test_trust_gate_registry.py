@@ -177,7 +177,7 @@ def no_parity_work(monkeypatch):
     def forbidden(*args, **kwargs):
         raise AssertionError("parity started work before checking its arguments")
 
-    monkeypatch.setattr("robustbench3d.victims.onnx.export_command.create_cascade", forbidden)
+    monkeypatch.setattr("robustbench3d.commands.victims_export_onnx.create_cascade", forbidden)
     monkeypatch.setattr("robustbench3d.datasets.resolve_dataset", forbidden)
     monkeypatch.setattr("robustbench3d.datasets.load_ground_truth", forbidden)
 
@@ -337,7 +337,7 @@ def test_onnx_victim_arguments_are_checked_before_reading_the_directory(tmp_path
     (["--batch-seg", "257"], "--batch-seg: 257 is out of range (an integer in [1, 256])"),
 ])
 def test_export_onnx_numeric_options_are_checked_up_front(tmp_path, capsys, monkeypatch, argv, message):
-    monkeypatch.setattr("robustbench3d.victims.onnx.export_command.create_cascade",
+    monkeypatch.setattr("robustbench3d.commands.victims_export_onnx.create_cascade",
                         lambda *a, **k: pytest.fail("victim built"))
     out = tmp_path / "out"
     assert main(["export-onnx", "fpointnet-v1-lite", "--out", str(out), "--exporter", "legacy", *argv]) == 2

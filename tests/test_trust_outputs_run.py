@@ -307,7 +307,7 @@ def test_numeric_options_outside_their_range_are_refused_up_front(tmp_path, caps
 
 
 def test_the_range_boundaries_are_accepted():
-    from robustbench3d.run_cli import check_bootstrap, check_range
+    from robustbench3d.commands.run import check_bootstrap, check_range
     from robustbench3d.runner import RunConfig
 
     for value in (1, 1_000_000):

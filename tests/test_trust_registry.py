@@ -227,7 +227,7 @@ def test_user_registry_file_is_read_on_first_lookup_not_at_import(cache):
     registry.parent.mkdir(parents=True)
     registry.write_text("{not json")
     code = ("import warnings; warnings.simplefilter('error'); "
-            "import robustbench3d.victims.onnx.registration, robustbench3d.victims.onnx.add_command; "
+            "import robustbench3d.victims.onnx.registration, robustbench3d.commands.victims_add_onnx; "
             "print('imported', flush=True); from robustbench3d.victims import VICTIMS; VICTIMS.names()")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           env={"PATH": "", "ROBUSTBENCH3D_CACHE": str(cache), "ROBUSTBENCH3D_NO_PLUGINS": "1"})

@@ -49,7 +49,7 @@ def test_pack_sets_inference_options_of_the_detector(tmp_path: Path) -> None:
     for bad, why in (("anchors=[]", "KEY one of"), ("flip_tta=1", "takes a bool"), ("nms_threshold=x", "not JSON"),
                      ("max_detections=2.5", "takes a int")):
         with pytest.raises(RobustBenchError, match=why):
-            from robustbench3d.victims import pack_command
+            from robustbench3d.commands import victims_pack as pack_command
 
             pack_command.run(pack_command_args([*base, "--out", str(tmp_path / "x.pt"), "--yolo-option", bad]))
     assert not (tmp_path / "x.pt").exists()
@@ -99,7 +99,7 @@ def test_pack_writes_a_manifest_entry_checked_against_the_run(tmp_path: Path, ca
     assert "aos" not in record["accuracy"]["cells"]["detector"]
     _summary(tmp_path / "other.json", "0" * 64)
     with pytest.raises(RobustBenchError, match="did not run with the packed weights"):
-        from robustbench3d.victims import pack_command
+        from robustbench3d.commands import victims_pack as pack_command
 
         pack_command.run(pack_command_args([*args, "--summary", str(tmp_path / "other.json")]))
 
@@ -107,7 +107,7 @@ def test_pack_writes_a_manifest_entry_checked_against_the_run(tmp_path: Path, ca
 def pack_command_args(argv: list[str]):
     import argparse
 
-    from robustbench3d.victims import pack_command
+    from robustbench3d.commands import victims_pack as pack_command
 
     parser = argparse.ArgumentParser()
     pack_command.add_arguments(parser)

@@ -1,4 +1,4 @@
-"""Arguments shared by ``robustbench3d train yolo|fpointnet`` (standard library only)."""
+"""Arguments shared by ``robustbench3d victims train-yolo|train-fpointnet`` (standard library only)."""
 
 from __future__ import annotations
 

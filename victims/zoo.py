@@ -93,7 +93,7 @@ def _cascade(name: str, fpn_config: str, weights: str | Path | None, yolo_weight
         f"victim {name!r} has no shipped weights"
         + (f" ({', '.join(others)} has)" if others else "")
         + ": pass weights=FILE (FPointNetCascade.save), yolo_weights= and fpointnet_weights= "
-        "(outputs of `robustbench3d train yolo|fpointnet`), or allow_untrained=True")
+        "(outputs of `robustbench3d victims train-yolo|train-fpointnet`), or allow_untrained=True")
 
 
 @register_victim("fpointnet-v1", capabilities=CASCADE_CAPABILITIES, weights_sha256=shipped_sha256("fpointnet-v1"),

@@ -1,5 +1,5 @@
 """``robustbench3d report``: the leaderboard of one or more runs as ``leaderboard.html`` (self-contained) and
-``leaderboard.md``, with figures, the transfer matrix and scene figures (see :mod:`robustbench3d.report.cli`).
+``leaderboard.md``, with figures, the transfer matrix and scene figures (see :mod:`robustbench3d.report.build`).
 
 Modules: :mod:`.data` (runs read back, comparable sections, tables, the transfer matrix, cells merged or left
 out), :mod:`.table1` (the seed paper's Table 1 beside the measured rows), :mod:`.view` (columns and formats

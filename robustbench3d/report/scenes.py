@@ -1,8 +1,8 @@
 """Scene figures in the manner of the seed paper's Fig. 3: one frame clean (left) and attacked (right), each
-as ``robustbench3d show`` draws it (:func:`robustbench3d.show.render`: the camera image with projected 3D boxes
+as ``robustbench3d show`` draws it (:func:`robustbench3d.draw.render`: the camera image with projected 3D boxes
 above a bird's-eye view of the scan) — ground truth in its class colours, the cell's detections in red —
 and in the attacked bird's-eye view the object's LiDAR returns in yellow. The attacked frame is rebuilt
-exactly as the cell attacked it (:func:`robustbench3d.show.attacked_frame`: same attack, seed and placement);
+exactly as the cell attacked it (:func:`robustbench3d.attacks.apply.attacked_frame`: same attack, seed and placement);
 the detections are the clean and attacked cells' KITTI result files ``RUN/cells/<cell>/data/<frame>.txt``,
 drawn from the score threshold the attack success rate uses (the F1-optimal one on the clean cell).
 
@@ -118,9 +118,10 @@ def scene(source: SceneSource, rc: RunCell, frame: str | None = None) -> Scene:
     """The scene figure of attacked cell ``rc`` on ``frame`` (default: its worst frame)."""
     import numpy as np
 
-    from robustbench3d.attack_apply import resolve_attack
+    from robustbench3d.attacks import resolve_attack
+    from robustbench3d.attacks.apply import attacked_frame
+    from robustbench3d.draw import render
     from robustbench3d.report.figures import _pyplot, png_bytes
-    from robustbench3d.show import attacked_frame, render
 
     cell = CellResult(rc.cell)
     effect = cell.effect or {}

@@ -38,7 +38,7 @@ from robustbench3d.victims.base import victim_inputs
 from robustbench3d.victims.spec import OBJECT_PROPOSAL_SOURCES
 
 # ATTACK_STREAM and attack_rng (the attack generators) belong to the attack contract (attacks.base), shared with
-# attack train's held-out curve; imported above for this module and its users (grid, attack_apply, show).
+# attack train's held-out curve; imported above for this module and its users (grid, the trade-off study).
 PARTIAL = "data.partial"
 DATA = "data"
 #: Per-shard completion records of a cell computed in frame shards (:mod:`robustbench3d.runner.shards`).

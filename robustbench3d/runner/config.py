@@ -100,7 +100,7 @@ class RunConfig:
             object.__setattr__(self, "data", Path(self.data))
 
     def _check_numbers(self) -> None:
-        """The numeric settings in the ranges of ``run``'s options (:mod:`robustbench3d.run_cli`)."""
+        """The numeric settings in the ranges of ``run``'s options (:mod:`robustbench3d.commands.run`)."""
         from robustbench3d.ranges import (
             BATCH_RANGE,
             FRAMES_RANGE,

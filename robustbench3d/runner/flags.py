@@ -260,7 +260,7 @@ def onnx_divergence(cells: Sequence[Mapping[str, Any]],
             out[i] = [flag(ONNX_TORCH_DIVERGENCE,
                            f"AP differs from its torch twin {source['victim']!r} by up to {deltas[worst]:.4f} points "
                            f"({'/'.join(worst)}: {a[worst]:.4f} vs {b[worst]:.4f}), beyond parity's ap_atol {atol}; "
-                           f"see `robustbench3d parity {source['victim']} --onnx DIR`")]
+                           f"see `robustbench3d victims parity {source['victim']} --onnx DIR`")]
     return out
 
 

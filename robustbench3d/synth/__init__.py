@@ -1,6 +1,6 @@
 """Embedded default dataset: procedural driving scenes written in the KITTI layout.
 
-Entry points (imported lazily, so that ``robustbench3d.synth.cli`` stays light):
+Entry points (imported lazily, so that ``robustbench3d.commands.data_synth`` stays light):
 
 * :func:`robustbench3d.synth.frame.generate_frame` -- one frame (image, scan, calib, labels and the
   scene behind them) as a pure function of (seed, frame index);

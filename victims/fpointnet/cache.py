@@ -1,4 +1,4 @@
-"""Portable cache of an F-PN training frustum set (``robustbench3d train fpointnet --cache FILE``).
+"""Portable cache of an F-PN training frustum set (``robustbench3d victims train-fpointnet --cache FILE``).
 
 A :class:`~robustbench3d.victims.fpointnet.data.FrustumSet` holds every frustum's points, and the
 5 perturbed copies of each train box overlap almost entirely, so it is large (the embedded train

@@ -7,7 +7,7 @@ is the numpy code the torch victim runs too (:mod:`robustbench3d.victims.fpointn
 
 * :mod:`.export` — torch -> ONNX, one graph per stage, byte-deterministic (needs torch).
 * :mod:`.options` — :class:`~.options.ExportOptions`: exporter, opset and graph batches with their defaults
-  and ranges (standard library only; shared by ``export-onnx`` and the exporter).
+  and ranges (standard library only; shared by ``victims export-onnx`` and the exporter).
 * :mod:`.runtime` — :class:`~.runtime.OnnxCascade`, the victim (onnxruntime + numpy only).
 * :mod:`.registration` — ``victims add-onnx`` (a registry file in the cache) and directories given
   directly to ``run --victims`` (standard library only).

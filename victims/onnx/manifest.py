@@ -242,7 +242,7 @@ def read_manifest(directory: str | Path) -> Manifest:
         text = read_user_text(path)
     except FileNotFoundError:
         raise DataFormatError(path, "manifest not found; an ONNX victim directory is written by "
-                                    "`robustbench3d export-onnx`") from None
+                                    "`robustbench3d victims export-onnx`") from None
     return parse_manifest(text, path)
 
 

@@ -1,8 +1,8 @@
 """How an F-PN cascade is exported (:class:`ExportOptions`): the exporter, the opset and the 2D and segmentation
 graphs' fixed batches, with their defaults and ranges.
 
-Standard library only: ``export-onnx --help`` shows them without torch, and both the command
-(:mod:`robustbench3d.victims.onnx.export_command`) and the exporter (:mod:`robustbench3d.victims.onnx.export`)
+Standard library only: ``victims export-onnx --help`` shows them without torch, and both the command
+(:mod:`robustbench3d.commands.victims_export_onnx`) and the exporter (:mod:`robustbench3d.victims.onnx.export`)
 take them from here.
 """
 

@@ -120,7 +120,7 @@ def directory_reference(reference: str) -> str | None:
     directory = Path(reference).expanduser().resolve()
     if not (directory / MANIFEST_FILE).is_file():
         raise DataFormatError(directory / MANIFEST_FILE, "not an ONNX victim directory (no manifest.json); "
-                                                         "write one with `robustbench3d export-onnx`")
+                                                         "write one with `robustbench3d victims export-onnx`")
     name = name_for_directory(directory, "register it with `robustbench3d victims add-onnx DIR --name NAME`")
     return VICTIMS.register_reference(
         name, victim_spec(directory), origin=ORIGIN_DIRECTORY,

@@ -98,7 +98,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _victim_kwargs(items: list[str] | None) -> dict[str, Any]:
-    from robustbench3d.run_cli import parse_factory_args
+    from robustbench3d.registry import parse_factory_args
 
     return parse_factory_args([f"victim:{i}" for i in items or []], "--victim-arg").get("victim", {})
 

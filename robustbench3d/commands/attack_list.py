@@ -13,9 +13,11 @@ import argparse
 import inspect
 from typing import Any
 
-# the options of ``victims list``, and its way of printing the listing
-from robustbench3d.victims.list_command import add_arguments as add_arguments
-from robustbench3d.victims.list_command import print_listing
+from robustbench3d.listing import add_listing_arguments, print_listing
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_listing_arguments(parser)  # the options of ``victims list``
 
 
 def factory_parameters(factory: Any) -> list[str]:

@@ -1,4 +1,4 @@
-"""``robustbench3d parity VICTIM [--onnx DIR] [--data DIR] [--max-frames N]``: torch vs onnxruntime.
+"""``robustbench3d victims parity VICTIM [--onnx DIR] [--data DIR] [--max-frames N]``: torch vs onnxruntime.
 
 Without ``--onnx`` the victim is exported to a temporary directory first (``--exporter``). The
 ONNX victim runs with the torch victim's seed and gather mode. Exit status 0 when every level
@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from robustbench3d.victims.onnx.export_command import add_victim_arguments
+from robustbench3d.victims.onnx.torch_source import add_victim_arguments
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from robustbench3d.kitti.dataset import Frame
     from robustbench3d.registry import parse_kwargs
     from robustbench3d.victims.onnx import require
-    from robustbench3d.victims.onnx.export_command import check_int_option, create_cascade
+    from robustbench3d.victims.onnx.torch_source import check_int_option, create_cascade
     from robustbench3d.victims.zoo import SEED_RANGE
 
     if args.json:

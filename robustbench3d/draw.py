@@ -1,20 +1,14 @@
-"""``robustbench3d show``: a frame as a picture, for users and for checking generated data.
+"""Drawing a frame (:func:`render`): the picture ``robustbench3d show`` writes and the report's scene figures use.
 
 Top: the camera-2 image with each labelled object's 3D box projected (near-plane clipped) and
 DontCare regions outlined. Bottom: a bird's-eye view of the scan in the velodyne frame (x forward
-= up in the picture, y left = left), points coloured by height, with the boxes' footprints.
+= up in the picture, y left = left), points coloured by height, with the boxes' footprints; highlighted
+points (an attack object's LiDAR returns) in yellow, enlarged to 3 x 3 px.
 
-With ``--attack OBJECT`` (a registered attack or an object file) the frame is drawn clean (left) and
-attacked (right), as ``attack apply`` attacks it (same seed and placement): in the attacked bird's-eye
-view the object's LiDAR returns are drawn in yellow (no class or height colour), enlarged to 3 x 3 px.
-
-``--out`` is never replaced without ``--force``. ``--bev-range`` is in [:data:`BEV_RANGE_M`] m and ``--seed``
-in [0, 2**32 - 1] (as ``run --seed``), both checked before the frame is read.
+numpy imported inside the functions (``robustbench3d show --help`` stays fast).
 """
 
 from __future__ import annotations
-
-import argparse
 
 CLASS_COLOURS: dict[str, tuple[int, int, int]] = {
     "Car": (0, 255, 0), "Van": (255, 200, 0), "Truck": (255, 120, 0), "Pedestrian": (255, 0, 255),
@@ -27,21 +21,6 @@ CLASS_COLOURS: dict[str, tuple[int, int, int]] = {
 #: shorter ranges make ever taller pictures) to 200 m (beyond the HDL-64E's 120 m reach; a 1e9 m range would
 #: draw 1e8 range rings).
 BEV_RANGE_M = (5.0, 200.0)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("root", help="dataset root in KITTI layout (holds training/)")
-    parser.add_argument("frame", help="frame id, e.g. 000001")
-    parser.add_argument("--out", required=True, help="PNG file to write (an existing file only with --force)")
-    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
-    parser.add_argument("--pred", help="optional result directory; its detections are drawn in red")
-    parser.add_argument("--bev-range", type=float, default=70.0,
-                        help=f"forward range of the BEV panel, m, in [{BEV_RANGE_M[0]:g}, {BEV_RANGE_M[1]:g}] "
-                             "(default 70)")
-    parser.add_argument("--attack", metavar="OBJECT",
-                        help="also draw the frame attacked by OBJECT (registered attack or NAME.ply), side by side")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="attack seed, as in `run`/`attack apply`, in [0, 2**32 - 1] (default 0)")
 
 
 def bev_range_problem(bev_range: float) -> str | None:
@@ -144,63 +123,3 @@ def _clip_segment(a, b, near: float):
     t = (near - za) / (zb - za)
     cut = a + t * (b - a)
     return (cut, b) if za < near else (a, cut)
-
-
-def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from robustbench3d.attack_apply import resolve_attack
-    from robustbench3d.attacks.spec import check_seed
-    from robustbench3d.errors import RobustBenchError
-    from robustbench3d.fileio import check_output_file, replacing_note
-    from robustbench3d.kitti import KittiDataset, read_labels
-    from robustbench3d.kitti.image import write_image
-
-    check_output_file(args.out, "--out", force=args.force)
-    problem = bev_range_problem(args.bev_range)
-    if problem is not None:
-        raise RobustBenchError(f"--bev-range {args.bev_range}: {problem}")
-    check_seed(args.seed)
-    attack = resolve_attack(args.attack)[1] if args.attack else None
-    ds = KittiDataset(args.root, split=None)
-    frame = ds.frame(args.frame)
-    dets = None
-    if args.pred:
-        from pathlib import Path
-
-        path = Path(args.pred) / f"{args.frame}.txt"
-        dets = read_labels(path, scored=True) if path.exists() else None
-    picture = render(frame, dets, args.bev_range)
-    if attack is not None:
-        picture = np.concatenate([picture, _attacked_picture(ds, frame, attack, args.seed, dets,
-                                                             args.bev_range)], axis=1)
-    note = replacing_note(args.out)
-    if note:
-        print(note)
-    write_image(args.out, picture)
-    print(args.out)
-    return 0
-
-
-def attacked_frame(ds, frame, reference, seed: int):
-    """(attacked frame, (K, 4) object LiDAR returns) of ``frame`` as ``attack apply`` makes it; ``reference``
-    is a registered attack name, an object file ``NAME.ply`` or an attack instance."""
-    import numpy as np
-
-    from robustbench3d.attack_apply import resolve_attack
-    from robustbench3d.attacks.base import target_cars
-    from robustbench3d.kitti.velodyne import scan_rows
-    from robustbench3d.runner.cell import attack_rng
-
-    attack = resolve_attack(reference)[1] if isinstance(reference, str) else reference
-    attack.bind_dataset(ds)
-    targets = target_cars(frame.labels)
-    if len(targets) == 0:
-        return frame, np.zeros((0, 4), np.float32)
-    attacked = attack.apply(frame, targets, attack_rng(seed, frame.frame_id))
-    return attacked, attacked.scan[~np.isin(scan_rows(attacked.scan), scan_rows(frame.scan))]
-
-
-def _attacked_picture(ds, frame, reference, seed: int, dets, bev_range: float):
-    attacked, added = attacked_frame(ds, frame, reference, seed)
-    return render(attacked, dets, bev_range, highlight=added)

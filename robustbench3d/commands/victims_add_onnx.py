@@ -13,7 +13,7 @@ import argparse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("directory", metavar="DIR", help="ONNX victim directory (written by export-onnx)")
+    parser.add_argument("directory", metavar="DIR", help="ONNX victim directory (written by `victims export-onnx`)")
     parser.add_argument("--name", help="victim name: lowercase letters, digits, '.', '_', '-' (default: the folder's "
                                        "name folded to ASCII, accents dropped)")
     parser.add_argument("--replace", action="store_true", help="re-point an existing ONNX victim name to DIR")

@@ -1,4 +1,4 @@
-"""``robustbench3d train yolo``: train the 2D detector (mini-YOLO by default) on a KITTI-layout
+"""``robustbench3d victims train-yolo``: train the 2D detector (mini-YOLO by default) on a KITTI-layout
 dataset. Writes OUT/last.pt (resumable), OUT/model.pt and OUT/log.jsonl."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``robustbench3d attack check``: an independent geometric check of an attacked dataset (``attack apply``).
+"""An independent geometric check of an attacked dataset (``attack apply``); ``robustbench3d attack check`` runs it.
 
 For every frame of the attacked split, against the clean dataset it was made from (the manifest's root,
 or ``--clean``), using only the files on disk, the placed meshes (``training/objects/NNNNNN.ply``),
@@ -33,7 +33,6 @@ vertices and faces, finite positions). ``--max-frames`` is an integer in [1, 100
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -316,22 +315,3 @@ def _manifest_dataset(attacked: Path) -> tuple[Path, str]:
             raise DataFormatError(path, f"expected a non-empty string, got {dataset.get(key)!r}",
                                   field=f"dataset.{key}")
     return Path(dataset["root"]), dataset["split"]
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("attacked", metavar="ATTACKED_DIR", help="output directory of `attack apply`")
-    parser.add_argument("--clean", metavar="DIR", help="the clean dataset (default: the manifest's dataset root)")
-    parser.add_argument("--split", help="split to check (default: the manifest's)")
-    parser.add_argument("--max-frames", type=int, metavar="N",
-                        help="only the first N frames of the split (1 to 1000000)")
-
-
-def run(args: argparse.Namespace) -> int:
-    r = check_attacked_dataset(args.attacked, args.clean, args.split, args.max_frames)
-    print(f"{r.frames} frames ({r.frames_with_objects} with objects): {r.added} points added "
-          f"(max distance to the meshes {r.max_added_distance_m:.2e} m), {r.removed} removed, {r.kept} kept, "
-          f"{r.changed_pixels} pixels changed; silhouette edge cases: {r.edge_removed} removed, {r.edge_kept} kept")
-    for line in r.violations:
-        print(f"FAIL {line}")
-    print("PASS" if r.ok else f"FAIL: {len(r.violations)} violation(s)")
-    return 0 if r.ok else 1

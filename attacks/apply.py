@@ -1,4 +1,5 @@
-"""``robustbench3d attack apply``: an attacked copy of a dataset split in KITTI layout, for any detector.
+"""An attacked copy of a dataset split in KITTI layout, for any detector (``robustbench3d attack apply``), and
+one attacked frame as that copy holds it (:func:`attacked_frame`, drawn by ``show --attack`` and the report).
 
     OUT/training/velodyne/NNNNNN.bin   attacked scan (object returns added, occluded points removed)
     OUT/training/image_2/NNNNNN.png    attacked image 2 (objects composited)
@@ -24,39 +25,17 @@ Standard library only at module level.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 from typing import Any
+
+from robustbench3d.attacks import resolve_attack
 
 MANIFEST = "attack_manifest.json"
 DONE = ".done"
 OBJECTS = "objects"
 COPIED = ("calib", "label_2")
 TOOL = "robustbench3d attack apply"
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("object", metavar="OBJECT", help="a registered attack name, or an object file NAME.ply")
-    parser.add_argument("--data", metavar="DIR",
-                        help="KITTI-layout dataset root (default: the embedded dataset, generated if missing)")
-    parser.add_argument("--split", default="val", help="split name, ImageSets/<split>.txt (default: val)")
-    parser.add_argument("--out", required=True, metavar="DIR", help="output directory (resumes an interrupted run)")
-    parser.add_argument("--seed", type=int, default=0, metavar="S",
-                        help="run seed: the per-frame attack randomness, as in `run --seed`, in [0, 2**32 - 1] "
-                             "(default 0)")
-    parser.add_argument("--max-frames", type=int, metavar="N",
-                        help="only the first N frames of the split (1 to 1000000)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
-
-
-def resolve_attack(reference: str) -> tuple[str, Any]:
-    """(registered name, the attack instance) of a reference: a registered name or an object file ``.ply``
-    (:meth:`~robustbench3d.registry.Registry.resolve`)."""
-    from robustbench3d.attacks import ATTACKS, create_attack
-
-    name = ATTACKS.resolve(reference)
-    return name, create_attack(name)
 
 
 def placed_meshes(attack: Any, targets: Any, rng: Any) -> list[tuple[Any, Any, Any]]:
@@ -86,7 +65,7 @@ def mesh_ply_bytes(meshes: list[tuple[Any, Any, Any]], calib: Any) -> bytes:
 
 def _manifest(name: str, attack: Any, seed: int, identity: dict[str, Any], frames: list[str]) -> dict[str, Any]:
     from robustbench3d import __version__
-    from robustbench3d.runner.cell import ATTACK_STREAM
+    from robustbench3d.attacks.base import ATTACK_STREAM
 
     return {"tool": TOOL, "package_version": __version__, "attack": name,
             "object": attack.describe(), "object_sha256": getattr(attack, "sha256", None), "seed": seed,
@@ -138,11 +117,10 @@ def apply_frame(attack: Any, kitti: Any, frame_id: str, seed: int, out: Path) ->
     """Attack one frame and write its files (marker last); returns the number of objects placed."""
     import shutil
 
-    from robustbench3d.attacks.base import target_cars
+    from robustbench3d.attacks.base import attack_rng, target_cars
     from robustbench3d.fileio import atomic_write_bytes, atomic_write_text
     from robustbench3d.kitti.image import write_image
     from robustbench3d.kitti.velodyne import write_scan
-    from robustbench3d.runner.cell import attack_rng
 
     train = out / "training"
     for sub in ("velodyne", "image_2", *COPIED, OBJECTS, DONE):
@@ -207,10 +185,18 @@ def apply_dataset(reference: str, data: str | Path | None, split: str, out: str 
     return counts
 
 
-def run(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    counts = apply_dataset(args.object, args.data, args.split, out, args.seed, args.max_frames,
-                           progress=not args.no_progress)
-    print(f"{out}: {counts['written']} frame(s) attacked ({counts['objects']} objects placed), "
-          f"{counts['kept']} already complete")
-    return 0
+def attacked_frame(ds, frame, reference, seed: int):
+    """(attacked frame, (K, 4) object LiDAR returns) of ``frame`` as ``attack apply`` makes it; ``reference``
+    is a registered attack name, an object file ``NAME.ply`` or an attack instance."""
+    import numpy as np
+
+    from robustbench3d.attacks.base import attack_rng, target_cars
+    from robustbench3d.kitti.velodyne import scan_rows
+
+    attack = resolve_attack(reference)[1] if isinstance(reference, str) else reference
+    attack.bind_dataset(ds)
+    targets = target_cars(frame.labels)
+    if len(targets) == 0:
+        return frame, np.zeros((0, 4), np.float32)
+    attacked = attack.apply(frame, targets, attack_rng(seed, frame.frame_id))
+    return attacked, attacked.scan[~np.isin(scan_rows(attacked.scan), scan_rows(frame.scan))]

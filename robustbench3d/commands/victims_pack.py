@@ -21,9 +21,10 @@ from typing import Any
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--yolo", required=True, metavar="FILE",
-                        help="model.pt of `robustbench3d train yolo` (or a cascade weights file: its YOLO)")
+                        help="model.pt of `robustbench3d victims train-yolo` (or a cascade weights file: its YOLO)")
     parser.add_argument("--fpointnet", required=True, metavar="FILE",
-                        help="model.pt of `robustbench3d train fpointnet` (or a cascade weights file: its F-PN)")
+                        help="model.pt of `robustbench3d victims train-fpointnet` (or a cascade weights file: its "
+                             "F-PN)")
     parser.add_argument("--out", required=True, metavar="FILE", help="cascade weights file to write")
     parser.add_argument("--yolo-shared", action="store_true",
                         help="refer to the --yolo file (in --out's directory) for the 2D-stage weights instead of "
@@ -128,20 +129,23 @@ def _accuracy(summary_file: Path, victim_name: str, weights_sha: str) -> dict[st
     import json
 
     from robustbench3d.errors import RobustBenchError
+    from robustbench3d.eval.rules import TARGET_CLASS
+    from robustbench3d.results import CellResult
 
-    cells = json.loads(summary_file.read_text(encoding="utf-8"))
     out: dict[str, Any] = {"summary": str(summary_file), "cells": {}}
-    for cell in cells:
-        if cell["victim"] != victim_name or cell["attack"] != "none" or cell["status"] != "ok":
+    for cell in map(CellResult, json.loads(summary_file.read_text(encoding="utf-8"))):
+        if cell.victim != victim_name or cell.attack != "none" or not cell.ok:
             continue
-        victim = cell["provenance"]["config"]["victim"]
+        victim = cell.config["victim"]
         hashes = set(victim.get("weight_files", {}).values()) | {victim.get("weights_sha256")}
         if weights_sha not in hashes:
-            raise RobustBenchError(f"{summary_file}: cell {cell['victim']}+{cell['proposals']} did not run with "
+            raise RobustBenchError(f"{summary_file}: cell {cell.victim}+{cell.proposals} did not run with "
                                    f"the packed weights (sha256 {weights_sha})")
-        car = cell["metrics"]["Car"]
-        out["cells"][cell["proposals"]] = {m: car[m] for m in ("2d", "bev", "3d") if m in car}
-        out["dataset"] = cell["dataset"]
+        result = cell.result
+        assert result is not None  # an ok cell has metrics
+        out["cells"][cell.proposals] = {m: result.data[TARGET_CLASS][m] for m in ("2d", "bev", "3d")
+                                        if m in result.metrics(TARGET_CLASS)}
+        out["dataset"] = dict(cell.dataset)
     return out
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from robustbench3d.errors import DataFormatError, RobustBenchError
+from robustbench3d.eval.rules import TARGET_CLASS
 from robustbench3d.logs import add_verbosity_arguments, cli_logging, verbosity
 from robustbench3d.ranges import (
     BATCH_RANGE,
@@ -154,7 +155,7 @@ RUN_KEYS = ("victims", "attacks", "proposals", "out", "data", "split", "max_fram
 #: The values of the keys neither the run file nor the command line gives (``run``'s option defaults;
 #: ``max_frames``: :func:`~robustbench3d.runner.config.default_max_frames`).
 DEFAULTS: dict[str, Any] = {"attacks": ["none"], "proposals": ["detector"], "data": None, "split": "val",
-                            "seed": 0, "batch_size": 4, "victim_args": {}, "attack_args": {}, "classes": ["Car"],
+                            "seed": 0, "batch_size": 4, "victim_args": {}, "attack_args": {}, "classes": [TARGET_CLASS],
                             "bootstrap": 1000}
 #: How a run file spells ``max_frames = None`` (every frame of the split): TOML has no null.
 ALL_FRAMES = "all"

@@ -1,4 +1,4 @@
-"""``robustbench3d train fpointnet``: train Frustum-PointNet v1 on GT-box frustums of a
+"""``robustbench3d victims train-fpointnet``: train Frustum-PointNet v1 on GT-box frustums of a
 KITTI-layout dataset. Writes OUT/last.pt (resumable), OUT/model.pt and OUT/log.jsonl."""
 
 from __future__ import annotations

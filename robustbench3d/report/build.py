@@ -1,4 +1,4 @@
-"""``robustbench3d report RUN_DIR [RUN_DIR ...] --out DIR``: a leaderboard a person reads.
+"""The leaderboard a person reads, made in memory (``robustbench3d report RUN_DIR [RUN_DIR ...] --out DIR``).
 
 Writes ``DIR/leaderboard.html`` (one self-contained file: per section the seed paper's Table 1 beside the
 measured rows, a sortable table with an R40/R11 toggle that fits a 1280 px wide page, the cells merged or
@@ -17,9 +17,7 @@ Standard library only at module level.
 
 from __future__ import annotations
 
-import argparse
 import re
-from pathlib import Path
 from typing import Any
 
 HTML_FILE = "leaderboard.html"
@@ -29,25 +27,6 @@ FIGURES = "figures"
 #: attacks), each takes seconds to render and adds about 1 MB to the self-contained HTML page; past 20 the
 #: page gets too heavy to open comfortably (``robustbench3d show`` draws any cell and frame instead).
 SCENES_RANGE = (0, 20)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("runs", nargs="*", metavar="RUN_DIR", help="output directories of `robustbench3d run`")
-    parser.add_argument("--tradeoff", action="append", default=[], metavar="DIR",
-                        help="output directory of `robustbench3d tradeoff`: its Pareto table and figure become a "
-                             "section (repeatable)")
-    parser.add_argument("--out", required=True, metavar="DIR", help="directory to write the report into")
-    parser.add_argument("--strict", action="store_true",
-                        help="refuse runs that are not comparable instead of separating them into sections")
-    parser.add_argument("--scenes", type=int, default=3, metavar="N",
-                        help="scene figures per section: the N attacked cells with the largest relative drop, one "
-                             f"per attack, each on its worst frame ({SCENES_RANGE[0]}..{SCENES_RANGE[1]}; default 3; "
-                             "0: none)")
-    parser.add_argument("--force", action="store_true",
-                        help="write into a non-empty --out directory that holds no earlier report, replacing the "
-                             "files of the same names (each named in one line); an earlier report is replaced "
-                             "without it")
-    parser.add_argument("--title", default="robustbench3d leaderboard", help="page title")
 
 
 def check_scenes(scenes: int) -> None:
@@ -123,7 +102,7 @@ def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = pri
     return views, notes
 
 
-def _contents(views: list[Any], trades: list[Any], args: argparse.Namespace, notes: list[str]) -> dict[str, bytes]:
+def contents(views: list[Any], trades: list[Any], runs: list[str], title: str, notes: list[str]) -> dict[str, bytes]:
     """Every file of the report (relative path -> bytes), made in memory before anything is written."""
     from robustbench3d.report.mdpage import markdown
     from robustbench3d.report.page import html_page, image
@@ -142,28 +121,6 @@ def _contents(views: list[Any], trades: list[Any], args: argparse.Namespace, not
                      "front dashed); frames evaluated against the interval width (right).", trade.title)
         html_trades.append(tradeoff_model(trade, k, image(fig)))
         md_extra.append(tradeoff_markdown(trade, FIGURES))
-    runs = [str(Path(r)) for r in [*args.runs, *args.tradeoff]]
-    out[MD_FILE] = markdown(views, args.title, runs, notes, FIGURES, md_extra).encode("utf-8")
-    out[HTML_FILE] = html_page(views, args.title, runs, notes, html_trades).encode("utf-8")
+    out[MD_FILE] = markdown(views, title, runs, notes, FIGURES, md_extra).encode("utf-8")
+    out[HTML_FILE] = html_page(views, title, runs, notes, html_trades).encode("utf-8")
     return out
-
-
-def run(args: argparse.Namespace) -> int:
-    from robustbench3d.errors import RobustBenchError
-    from robustbench3d.report.outdir import check_out_dir, plan_writes, write_report
-    from robustbench3d.report.tradeoff_view import TradeoffView
-
-    check_scenes(args.scenes)
-    if not args.runs and not args.tradeoff:
-        raise RobustBenchError("give at least one RUN_DIR or --tradeoff DIR")
-    out = check_out_dir(args.out, args.force)
-    trades = [TradeoffView.read(p) for p in args.tradeoff]  # bad files fail before any work
-    views, notes = build(args.runs, args.scenes, args.strict) if args.runs else ([], [])
-    contents = _contents(views, trades, args, notes)
-    for line in plan_writes(out, list(contents)):
-        print(f"report: {line}")
-    write_report(out, contents)
-    for note in notes:
-        print(f"report: {note}")
-    print(f"report: {out.path / HTML_FILE}, {out.path / MD_FILE} ({len(views)} section(s))")
-    return 0
