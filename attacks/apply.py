@@ -6,8 +6,9 @@ one attacked frame as that copy holds it (:func:`attacked_frame`, drawn by ``sho
     OUT/training/calib/NNNNNN.txt      copied unchanged (bytes)
     OUT/training/label_2/NNNNNN.txt    copied unchanged (bytes)
     OUT/training/objects/NNNNNN.ply    the frame's placed objects, velodyne frame (m), per-vertex RGB,
-                                       float32 positions; object k is vertices [k V, (k + 1) V) (V = 162)
-                                       and faces [k F, (k + 1) F); none for a frame without cars
+                                       float32 positions; object k is vertices [k V, (k + 1) V) and faces
+                                       [k F, (k + 1) F) (V, F: the object family's, 162 and 320 for the
+                                       default one); none for a frame without cars
     OUT/training/.done/NNNNNN.json     written last: the frame is complete (object count, vertices per object)
     OUT/ImageSets/<split>.txt          the split file (copied unchanged; the first N frames with --max-frames)
     OUT/attack_manifest.json           provenance: attack, object description and sha256, seed, dataset identity

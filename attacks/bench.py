@@ -13,6 +13,10 @@ Rows (median wall time; CPU time beside it because the machine may be shared):
   the whole image (:func:`~robustbench3d.sensors.camera_render.render_camera_torch`, loss = sum of the image:
   adds the image-sized copy and gradient); and per car when 8 cars at 10-40 m are rendered together, as the
   attack renders a frame;
+* the camera render per car of a level-4 object family (2562 vertices, 5120 faces) against the default level 2
+  (:func:`bench_camera_levels`: the same 8 cars at 10-40 m, the same placement, interleaved, CPU time), forward
+  + backward (training) and forward alone (:func:`~robustbench3d.sensors.camera_render.render_camera`, the
+  attacked cell's image); target level 4 <= 2x level 2 (issue #36);
 * the camera's candidate (sample, face) pairs against every sample of the image x every face (target <= 1 %);
 * the adv-texture training step of the shipped settings with and without the 2D detector's objectness crops
   (per car, the crop alone: ``bench objectness``, :mod:`robustbench3d.victims.yolo.bench_objectness`), side
@@ -46,6 +50,8 @@ TARGET_EXTRA_MB = 200
 #: A universal adv-object training (the shipped schedule) on the two cores: wall minutes and peak memory.
 TARGET_TRAIN_MIN = 30.0
 TARGET_TRAIN_GB = 4.0
+#: Camera render CPU time per car of a level-4 object family / the default level 2 (issue #36).
+TARGET_LEVEL_RATIO = 2.0
 #: adv-texture training step CPU time with crops / without (issue #33).
 TARGET_CROP_STEP_RATIO = 0.4
 #: adv-texture training step CPU time on a fresh scene-depth cache after the warm-up / rebuilding in the step
@@ -170,6 +176,65 @@ def bench_camera_frame(n_cars: int = 8, dtype: torch.dtype = torch.float32, repe
 
     wall, cpu = _time(fwd_bwd, repeats)
     return {"median_ms": wall / n_cars, "cpu_ms": cpu / n_cars, "cars": float(n_cars)}
+
+
+def _family_cars(level: int, n_cars: int, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(rect vertices, faces, random colours) of ``n_cars`` undeformed objects of family (``level``, r 0.40 m)
+    spread over camera 2's view at 10 to 40 m (:func:`bench_camera_frame`'s placement)."""
+    from robustbench3d.attacks.object import Family, template_faces, template_vertices
+
+    family = Family(level, RADIUS)
+    v, f = template_vertices(family), template_faces(family).copy()
+    return [(v + np.array([(k % 4 - 1.5) * 0.12 * z, 0.2, z]), f, rng.random((len(v), 3)))
+            for k, z in enumerate(np.linspace(10.0, 40.0, n_cars))]
+
+
+def bench_camera_levels(levels: tuple[int, int] = (2, 4), n_cars: int = 8, repeats: int = 15,
+                        backward: bool = True) -> dict[str, float]:
+    """CPU ms per car of one camera render of ``n_cars`` objects of each of two families (icosphere ``levels``,
+    r 0.40 m, random colours) at the same cars (:func:`_family_cars`), interleaved (each level timed ``repeats``
+    times, alternating which goes first, after one warm-up call each): with ``backward`` the crop render forward
+    + backward in float32 (loss = sum of the rendered pixels, as training renders), else the forward
+    :func:`~robustbench3d.sensors.camera_render.render_camera` of a uint8 photo (as an attacked cell renders)."""
+    from robustbench3d.sensors.camera_render import render_camera, render_camera_crop_torch
+    from robustbench3d.synth.calibs import DAY_0926
+
+    calib = DAY_0926.calib
+    w, h = DAY_0926.image_size
+    rng = np.random.default_rng(2)
+    photo = torch.tensor(rng.random((h, w, 3)), dtype=torch.float32)
+    photo8 = (rng.random((h, w, 3)) * 255).astype(np.uint8)
+    cars = {level: _family_cars(level, n_cars, rng) for level in levels}
+
+    def render(level: int) -> None:
+        if not backward:
+            render_camera(photo8, calib, cars[level])
+            return
+        meshes = [(torch.tensor(v, dtype=torch.float32, requires_grad=True), f,
+                   torch.tensor(c, dtype=torch.float32, requires_grad=True)) for v, f, c in cars[level]]
+        render_camera_crop_torch(photo, calib, meshes).values.sum().backward()
+
+    cpu = {level: 0.0 for level in levels}
+    for level in levels:
+        render(level)
+    for i in range(repeats):
+        for level in levels if i % 2 == 0 else levels[::-1]:
+            c0 = time.process_time()
+            render(level)
+            cpu[level] += time.process_time() - c0
+    a, b = (1e3 * cpu[level] / (repeats * n_cars) for level in levels)
+    return {"low_ms": a, "high_ms": b, "ratio": b / a, "cars": float(n_cars)}
+
+
+def _level_rows(repeats: int) -> list[dict]:
+    rows = []
+    for backward, what in ((True, "crop fwd+bwd, float32"), (False, "render_camera forward")):
+        r = bench_camera_levels(repeats=repeats, backward=backward)
+        rows.append({"case": f"camera {what}, CPU ms per car, 8 cars at 10-40 m: object family level 4 (2562 "
+                             "vertices) vs level 2 (162), r 0.40 m", "level2_ms": round(r["low_ms"], 3),
+                     "level4_ms": round(r["high_ms"], 3), "ratio": round(r["ratio"], 2),
+                     "target": f"<= {TARGET_LEVEL_RATIO:g}x", "met": r["ratio"] <= TARGET_LEVEL_RATIO})
+    return rows
 
 
 def _camera_rows(repeats: int) -> list[dict]:
@@ -454,7 +519,8 @@ def run(quick: bool) -> list[dict]:
     try:
         repeats = 20 if quick else 100
         _progress(f"LiDAR and camera renders, medians of {repeats} calls")
-        return (_lidar_rows(repeats) + _camera_rows(repeats) + _crop_rows(quick) + _cell_rows(quick)
+        return (_lidar_rows(repeats) + _camera_rows(repeats) + _level_rows(max(repeats // 5, 4)) + _crop_rows(quick)
+                + _cell_rows(quick)
                 + _train_rows(quick))
     finally:
         torch.set_num_threads(threads)

@@ -62,7 +62,32 @@ class CheckReport:
 
 
 def surface_distance(points: Any, triangles: Any, chunk: int = 128) -> Any:
-    """(K,) distance of each point to the nearest of the (F, 3, 3) triangles (brute force, trimesh)."""
+    """(K,) distance of each point to the nearest of the (F, 3, 3) triangles: trimesh's point-triangle distance
+    to each triangle that can be the nearest. That prefilter is exact: a triangle's centroid lies on it, so the
+    nearest centroid's distance ``u`` bounds the answer from above, and a triangle whose centroid is farther than
+    ``u`` plus its own radius about the centroid cannot be nearer (so a level-4 object's 5120 faces cost about
+    what a level-2 object's 320 do)."""
+    import numpy as np
+    from trimesh.triangles import closest_point
+
+    tri = np.asarray(triangles, dtype=np.float64)
+    centre = tri.mean(axis=1)
+    reach = np.linalg.norm(tri - centre[:, None], axis=2).max(axis=1)
+    out = np.empty(len(points))
+    for s in range(0, len(points), chunk):
+        p = np.asarray(points[s:s + chunk], dtype=np.float64)
+        d = np.linalg.norm(p[:, None] - centre[None], axis=2)
+        near = d - reach <= d.min(axis=1, keepdims=True) * (1 + 1e-9) + 1e-12
+        pi, fi = np.nonzero(near)
+        dist = np.linalg.norm(closest_point(tri[fi], p[pi]) - p[pi], axis=1)
+        best = np.full(len(p), np.inf)
+        np.minimum.at(best, pi, dist)
+        out[s:s + chunk] = best
+    return out
+
+
+def surface_distance_brute(points: Any, triangles: Any, chunk: int = 128) -> Any:
+    """:func:`surface_distance` by brute force (every point against every triangle): its reference."""
     import numpy as np
     from trimesh.triangles import closest_point
 

@@ -2,13 +2,15 @@
 
 Object frame (metres): centre at the origin, axes those of the car it sits on (the KITTI box's local
 frame, :func:`robustbench3d.geometry.box_corners`): x along the car's length (its heading), y down,
-z along its width. The template is the level-2 icosphere of radius :data:`RADIUS` (162 vertices,
-320 faces, :func:`robustbench3d.sensors.mesh.icosphere`); an object is that template displaced per
-vertex, with a per-vertex RGB colour in [0, 1].
+z along its width. The template is an icosphere (:func:`robustbench3d.sensors.mesh.icosphere`) of a
+:class:`Family`: its subdivision level (:data:`LEVELS`: 2, 3 or 4, i.e. 162, 642 or 2562 vertex colours)
+and radius (:data:`RADIUS_RANGE`, m); the default family (:data:`DEFAULT_FAMILY`, ``l2-r0.40``) is the
+level-2 icosphere of radius :data:`RADIUS` (162 vertices, 320 faces). An object is its family's template
+displaced per vertex, with a per-vertex RGB colour in [0, 1].
 
 Box constraint: every vertex stays inside the axis-aligned box ``|v| <= bounds`` (default the
-initial sphere's bounding box, +-0.4 m; each half extent in [1 mm, 1 m], :data:`MAX_BOUND_M`). Two
-implementations:
+initial sphere's bounding box, +-radius: +-0.4 m for the default family; each half extent in [1 mm, 1 m],
+:data:`MAX_BOUND_M`). Two implementations:
 
 * tanh reparametrisation (:func:`tanh_vertices`, :meth:`RoofObject.torch_vertices`), used by the
   optimisation and by :func:`random_shape`: ``v = b * tanh(atanh((1 - eps) * v0 / b) + delta)``,
@@ -24,7 +26,8 @@ same way, so the undeformed sphere has displacement exactly 0.
 
 from __future__ import annotations
 
-from functools import lru_cache
+from dataclasses import dataclass
+from functools import cache
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -34,12 +37,22 @@ from robustbench3d.sensors.mesh import icosphere
 if TYPE_CHECKING:
     import torch
 
+#: The default family's template: the level-2 icosphere of radius 0.40 m (162 vertices, 320 faces).
 RADIUS = 0.40
 LEVEL = 2
 N_VERTICES = 162
 N_FACES = 320
 #: Half extents (m) of the default box: the bounding box of the initial sphere.
 BOUNDS = (RADIUS, RADIUS, RADIUS)
+#: The icosphere levels an object family may have: 162, 642 or 2562 vertices, each with its own colour (the
+#: colour freedom of the dose-response sweep, issue #36). Level 5 (10242 vertices) would put ~20 vertices in a
+#: pixel of a car at 10 m and take ~4x level 4's render time for nothing the sensors resolve.
+LEVELS = (2, 3, 4)
+#: The radius range of an object family (m), whole centimetres (the family's name records the radius to the
+#: centimetre). It stays a roof object: a KITTI car's roof is about 1.3 m by 1.8 m, so a sphere of radius 0.6 m
+#: (1.2 m across) still fits on it at the +-5 cm EOT jitter; below 0.2 m a sphere is a few LiDAR returns at
+#: 20 m and no longer a dose worth measuring. Its box is +-radius (within MAX_BOUND_M).
+RADIUS_RANGE = (0.2, 0.6)
 #: The range of each half extent of a box (m). At most 1 m: the object fits in a 2 m cube, about the size
 #: of a KITTI car's roof (a car is ~1.6 m wide and its roof ~1.3 m by ~1.8 m), so anything larger is no
 #: longer a roof object (and a 1e6 m box takes minutes and gigabytes to render, a 3e38 m one nothing at
@@ -49,6 +62,78 @@ MIN_BOUND_M, MAX_BOUND_M = 1e-3, 1.0
 TANH_EPS = 1e-3
 #: The benign sphere's colour (8-bit mid grey).
 NEUTRAL_GREY = 128 / 255
+
+
+def check_family(level: object, radius: object) -> tuple[int, float]:
+    """(level, radius rounded to the centimetre) of an object family; ValueError ``field 'level': ...`` or
+    ``field 'radius': ...`` naming the range otherwise (level one of :data:`LEVELS`, radius in
+    :data:`RADIUS_RANGE` m in whole centimetres)."""
+    if isinstance(level, (bool, np.bool_)) or not isinstance(level, (int, np.integer)) or int(level) not in LEVELS:
+        raise ValueError(f"field 'level': expected an icosphere level in {{{', '.join(map(str, LEVELS))}}} "
+                         f"({', '.join(str(_n_vertices(k)) for k in LEVELS)} vertex colours), got {level!r}")
+    lo, hi = RADIUS_RANGE
+    ok = (isinstance(radius, (int, float, np.integer, np.floating)) and not isinstance(radius, (bool, np.bool_))
+          and bool(np.isfinite(radius)) and lo - 1e-9 <= float(radius) <= hi + 1e-9
+          and abs(float(radius) * 100 - round(float(radius) * 100)) <= 1e-6)
+    if not ok:
+        raise ValueError(f"field 'radius': expected a radius in [{lo:g}, {hi:g}] m in whole centimetres (a roof "
+                         f"object on a KITTI car roof, ~1.3 x 1.8 m), got {radius!r}")
+    return int(level), round(float(radius), 2)
+
+
+def _n_vertices(level: int) -> int:
+    return 10 * 4 ** level + 2
+
+
+@dataclass(frozen=True)
+class Family:
+    """An object family: the icosphere template of subdivision ``level`` (:data:`LEVELS`) and ``radius`` (m,
+    :data:`RADIUS_RANGE`, rounded to the centimetre); checked on construction (:func:`check_family`)."""
+
+    level: int = LEVEL
+    radius: float = RADIUS
+
+    def __post_init__(self) -> None:
+        level, radius = check_family(self.level, self.radius)
+        object.__setattr__(self, "level", level)
+        object.__setattr__(self, "radius", radius)
+
+    def check(self) -> Family:
+        """This family, checked (:func:`check_family`; construction already checks it)."""
+        check_family(self.level, self.radius)
+        return self
+
+    @property
+    def name(self) -> str:
+        """``l<level>-r<radius, 2 decimals>``, e.g. ``l2-r0.40`` for the default family."""
+        return f"l{self.level}-r{self.radius:.2f}"
+
+    @property
+    def bounds(self) -> tuple[float, float, float]:
+        """Half extents (m) of the family's box: the bounding box of its sphere, +-radius."""
+        return (self.radius, self.radius, self.radius)
+
+    @property
+    def n_vertices(self) -> int:
+        """10 * 4^level + 2."""
+        return _n_vertices(self.level)
+
+    @property
+    def n_faces(self) -> int:
+        """20 * 4^level."""
+        return 20 * 4 ** self.level
+
+    @property
+    def is_default(self) -> bool:
+        return self == DEFAULT_FAMILY
+
+    def record(self) -> dict[str, object]:
+        """The object file's ``template`` record of this family."""
+        return {"kind": "icosphere", "level": self.level, "radius": self.radius, "vertices": self.n_vertices,
+                "faces": self.n_faces}
+
+
+DEFAULT_FAMILY = Family()
 
 
 def to_file_precision(vertices: np.ndarray) -> np.ndarray:
@@ -66,22 +151,24 @@ def colors_to_file_precision(colors: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(colors, dtype=np.float64) * 255.0) / 255.0
 
 
-@lru_cache(maxsize=1)
-def _template() -> tuple[np.ndarray, np.ndarray]:
-    v, f = icosphere(LEVEL, RADIUS)
+@cache
+def _template(family: Family) -> tuple[np.ndarray, np.ndarray]:
+    v, f = icosphere(family.level, family.radius)
     v = to_file_precision(v)
     v.flags.writeable = f.flags.writeable = False
     return v, f
 
 
-def template_vertices() -> np.ndarray:
-    """(162, 3) read-only template vertices (icosphere(2, 0.40) at file precision), m."""
-    return _template()[0]
+def template_vertices(family: Family = DEFAULT_FAMILY) -> np.ndarray:
+    """(V, 3) read-only template vertices of ``family`` (icosphere(level, radius) at file precision), m;
+    (162, 3) of icosphere(2, 0.40) for the default family."""
+    return _template(family)[0]
 
 
-def template_faces() -> np.ndarray:
-    """(320, 3) read-only int64 template faces (counter-clockwise seen from outside)."""
-    return _template()[1]
+def template_faces(family: Family = DEFAULT_FAMILY) -> np.ndarray:
+    """(F, 3) read-only int64 template faces of ``family`` (counter-clockwise seen from outside; (320, 3) for
+    the default family)."""
+    return _template(family)[1]
 
 
 def check_bounds(bounds: object) -> np.ndarray:
@@ -98,13 +185,13 @@ def check_bounds(bounds: object) -> np.ndarray:
 
 
 def object_problems(vertices: np.ndarray, colors: np.ndarray, bounds: np.ndarray,
-                    tolerance: float = 0.0) -> list[tuple[str, str]]:
+                    tolerance: float = 0.0, n_vertices: int = N_VERTICES) -> list[tuple[str, str]]:
     """What is wrong with an object's arrays, as (field, problem) pairs (empty if nothing); vertices
-    may leave the box by ``tolerance`` m."""
+    may leave the box by ``tolerance`` m; ``n_vertices``: the family's vertex count."""
     problems: list[tuple[str, str]] = []
     for name, arr in (("vertices", vertices), ("colors", colors)):
-        if arr.shape != (N_VERTICES, 3):
-            problems.append((name, f"expected shape ({N_VERTICES}, 3), got {arr.shape}"))
+        if arr.shape != (n_vertices, 3):
+            problems.append((name, f"expected shape ({n_vertices}, 3), got {arr.shape}"))
         elif not np.all(np.isfinite(arr)):
             bad = int(np.argwhere(~np.isfinite(arr))[0, 0])
             problems.append((name, f"non-finite value (NaN or inf) at vertex {bad}"))
@@ -124,51 +211,62 @@ def object_problems(vertices: np.ndarray, colors: np.ndarray, bounds: np.ndarray
 
 
 class RoofObject:
-    """One universal roof object (object frame, see the module doc).
+    """One universal roof object (object frame, see the module doc) of a :class:`Family` (default
+    :data:`DEFAULT_FAMILY`).
 
-    Build it from a displacement of the template (``RoofObject(displacement, colors)``) or from
-    vertex positions (:meth:`from_vertices`). Vertices outside the box or colours outside [0, 1]
-    raise ValueError (project first with :func:`clamp_to_box`, or use :func:`tanh_vertices`).
-    The arrays are stored read-only at file precision (see the module doc).
+    Build it from a displacement of its family's template (``RoofObject(displacement, colors)``) or from
+    vertex positions (:meth:`from_vertices`); ``bounds`` default to the family's (+-radius). Vertices outside
+    the box or colours outside [0, 1] raise ValueError (project first with :func:`clamp_to_box`, or use
+    :func:`tanh_vertices`). The arrays are stored read-only at file precision (see the module doc).
     """
 
-    __slots__ = ("_bounds", "_colors", "_vertices")
+    __slots__ = ("_bounds", "_colors", "_family", "_vertices")
 
     def __init__(self, displacement: np.ndarray | None = None, colors: np.ndarray | None = None,
-                 bounds: object = BOUNDS) -> None:
-        d = np.zeros((N_VERTICES, 3)) if displacement is None else np.asarray(displacement, dtype=np.float64)
-        if d.shape != (N_VERTICES, 3):
-            raise ValueError(f"RoofObject: field 'displacement': expected shape ({N_VERTICES}, 3), got {d.shape}")
-        self._init(template_vertices() + d, colors, bounds)
+                 bounds: object = None, *, family: Family = DEFAULT_FAMILY) -> None:
+        n = family.n_vertices
+        d = np.zeros((n, 3)) if displacement is None else np.asarray(displacement, dtype=np.float64)
+        if d.shape != (n, 3):
+            raise ValueError(f"RoofObject: field 'displacement': expected shape ({n}, 3), got {d.shape}")
+        self._init(template_vertices(family) + d, colors, bounds, family)
 
     @classmethod
     def from_vertices(cls, vertices: np.ndarray, colors: np.ndarray | None = None,
-                      bounds: object = BOUNDS) -> RoofObject:
-        """The object whose (162, 3) object-frame vertices are ``vertices`` (m)."""
+                      bounds: object = None, *, family: Family = DEFAULT_FAMILY) -> RoofObject:
+        """The object of ``family`` whose (V, 3) object-frame vertices are ``vertices`` (m)."""
         obj = cls.__new__(cls)
-        obj._init(np.asarray(vertices, dtype=np.float64), colors, bounds)
+        obj._init(np.asarray(vertices, dtype=np.float64), colors, bounds, family)
         return obj
 
-    def _init(self, vertices: np.ndarray, colors: np.ndarray | None, bounds: object) -> None:
-        b = check_bounds(bounds)
-        c = np.full((N_VERTICES, 3), NEUTRAL_GREY) if colors is None else np.asarray(colors, dtype=np.float64)
-        problems = object_problems(vertices, c, b)
+    def _init(self, vertices: np.ndarray, colors: np.ndarray | None, bounds: object, family: Family) -> None:
+        if not isinstance(family, Family):
+            raise ValueError(f"RoofObject: field 'family': expected a Family, got {family!r}")
+        b = check_bounds(family.bounds if bounds is None else bounds)
+        n = family.n_vertices
+        c = np.full((n, 3), NEUTRAL_GREY) if colors is None else np.asarray(colors, dtype=np.float64)
+        problems = object_problems(vertices, c, b, n_vertices=n)
         if problems:
             field, problem = problems[0]
             raise ValueError(f"RoofObject: field '{field}': {problem}")
         self._vertices = to_file_precision(vertices)
         self._colors = colors_to_file_precision(c)
         self._bounds = b
+        self._family = family
         for arr in (self._vertices, self._colors, self._bounds):
             arr.flags.writeable = False
 
     @property
+    def family(self) -> Family:
+        """The object's family (its template's level and radius)."""
+        return self._family
+
+    @property
     def template(self) -> np.ndarray:
-        return template_vertices()
+        return template_vertices(self._family)
 
     @property
     def faces(self) -> np.ndarray:
-        return template_faces()
+        return template_faces(self._family)
 
     @property
     def bounds(self) -> np.ndarray:
@@ -177,21 +275,21 @@ class RoofObject:
 
     @property
     def colors(self) -> np.ndarray:
-        """(162, 3) RGB in [0, 1] (multiples of 1/255)."""
+        """(V, 3) RGB in [0, 1] (multiples of 1/255)."""
         return self._colors
 
     @property
     def displacement(self) -> np.ndarray:
-        """(162, 3) vertex offsets from the template, m."""
-        return self._vertices - template_vertices()
+        """(V, 3) vertex offsets from the template, m."""
+        return self._vertices - template_vertices(self._family)
 
     def vertices(self) -> np.ndarray:
-        """(162, 3) float64 object-frame vertices (a fresh array), inside the box."""
+        """(V, 3) float64 object-frame vertices (a fresh array), inside the box."""
         return self._vertices.copy()
 
     def torch_vertices(self, delta: torch.Tensor | None = None, eps: float = TANH_EPS) -> torch.Tensor:
         """The tanh parametrisation started at this object: ``b * tanh(atanh((1 - eps) v / b) + delta)``
-        (float64, differentiable in ``delta`` (162, 3); ``delta=None`` is zeros). Always inside the box."""
+        (float64, differentiable in ``delta`` (V, 3); ``delta=None`` is zeros). Always inside the box."""
         import torch
 
         base = torch.from_numpy(np.arctanh((1.0 - eps) * self._vertices / self._bounds))
@@ -201,24 +299,26 @@ class RoofObject:
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, RoofObject):
             return NotImplemented
-        return (np.array_equal(self._vertices, other._vertices) and np.array_equal(self._colors, other._colors)
-                and np.array_equal(self._bounds, other._bounds))
+        return (self._family == other._family and np.array_equal(self._vertices, other._vertices)
+                and np.array_equal(self._colors, other._colors) and np.array_equal(self._bounds, other._bounds))
 
     __hash__ = None  # type: ignore[assignment]  # mutable-looking arrays: not hashable
 
     def __repr__(self) -> str:
-        return (f"RoofObject(max |displacement| {float(np.abs(self.displacement).max()):.4f} m, "
+        family = "" if self._family.is_default else f"family {self._family.name}, "
+        return (f"RoofObject({family}max |displacement| {float(np.abs(self.displacement).max()):.4f} m, "
                 f"bounds {tuple(self._bounds.tolist())})")
 
 
-def tanh_vertices(delta: torch.Tensor, start: np.ndarray | None = None, bounds: object = BOUNDS,
-                  eps: float = TANH_EPS) -> torch.Tensor:
+def tanh_vertices(delta: torch.Tensor, start: np.ndarray | None = None, bounds: object = None,
+                  eps: float = TANH_EPS, *, family: Family = DEFAULT_FAMILY) -> torch.Tensor:
     """Box-constrained vertices ``b * tanh(atanh((1 - eps) * v0 / b) + delta)`` (torch, dtype of
-    ``delta``); ``start`` ``v0`` defaults to the template. Inside ``|v| <= b`` for every finite delta."""
+    ``delta``); ``start`` ``v0`` defaults to ``family``'s template, ``bounds`` to its box. Inside ``|v| <= b``
+    for every finite delta."""
     import torch
 
-    b = check_bounds(bounds)
-    v0 = template_vertices() if start is None else np.asarray(start, dtype=np.float64)
+    b = check_bounds(family.bounds if bounds is None else bounds)
+    v0 = template_vertices(family) if start is None else np.asarray(start, dtype=np.float64)
     base = torch.tensor(np.arctanh((1.0 - eps) * v0 / b), dtype=delta.dtype)
     return torch.tensor(b, dtype=delta.dtype) * torch.tanh(base + delta)
 
@@ -256,18 +356,38 @@ def uniform_laplacian(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     return lap
 
 
-@lru_cache(maxsize=1)
-def _template_laplacian() -> np.ndarray:
-    lap = uniform_laplacian(template_faces(), N_VERTICES)
+@cache
+def _level_laplacian(level: int) -> np.ndarray:
+    """The read-only uniform Laplacian of the icosphere template of ``level`` (the faces of a level are the
+    same at every radius)."""
+    lap = uniform_laplacian(template_faces(Family(level, RADIUS)), _n_vertices(level))
     lap.flags.writeable = False
     return lap
 
 
+def _template_laplacian(n_vertices: int) -> np.ndarray:
+    """The template Laplacian of the family level with ``n_vertices`` vertices; ValueError for another count."""
+    for level in LEVELS:
+        if _n_vertices(level) == n_vertices:
+            return _level_laplacian(level)
+    raise ValueError(f"laplacian_smoothness: field 'vertices': {n_vertices} vertices are no template's "
+                     f"({', '.join(str(_n_vertices(k)) for k in LEVELS)}); pass the faces")
+
+
+@cache
+def _torch_laplacian(n_vertices: int, dtype: torch.dtype) -> torch.Tensor:
+    """:func:`_template_laplacian` as a torch tensor of ``dtype`` (kept: level 4's is 52 MB in float64)."""
+    import torch
+
+    return torch.tensor(_template_laplacian(n_vertices), dtype=dtype)
+
+
 def laplacian_smoothness(vertices: np.ndarray, faces: np.ndarray | None = None) -> float:
     """Mean over vertices of ``|mean of the 1-ring neighbours - vertex|`` (PyTorch3D's uniform
-    ``mesh_laplacian_smoothing``), m; ``faces`` default to the template's."""
+    ``mesh_laplacian_smoothing``), m; ``faces`` default to the template's of the vertices' family level
+    (told by their count)."""
     v = np.asarray(vertices, dtype=np.float64)
-    lap = _template_laplacian() if faces is None else uniform_laplacian(faces, len(v))
+    lap = _template_laplacian(len(v)) if faces is None else uniform_laplacian(faces, len(v))
     return float(np.linalg.norm(lap @ v, axis=1).mean())
 
 
@@ -276,8 +396,10 @@ def laplacian_smoothness_torch(vertices: torch.Tensor, faces: np.ndarray | None 
     Laplacian is a constant). A vertex at exactly its neighbours' mean contributes gradient 0."""
     import torch
 
-    lap_np = _template_laplacian() if faces is None else uniform_laplacian(faces, vertices.shape[0])
-    r = torch.tensor(lap_np, dtype=vertices.dtype) @ vertices
+    n = vertices.shape[0]
+    lap = _torch_laplacian(n, vertices.dtype) if faces is None else torch.tensor(uniform_laplacian(faces, n),
+                                                                                 dtype=vertices.dtype)
+    r = lap @ vertices
     sq = (r * r).sum(dim=1)
     nonzero = sq > 0
     norm = torch.where(nonzero, torch.sqrt(torch.where(nonzero, sq, torch.ones_like(sq))), torch.zeros_like(sq))
@@ -286,9 +408,9 @@ def laplacian_smoothness_torch(vertices: torch.Tensor, faces: np.ndarray | None 
 
 # ---- the controls' objects -------------------------------------------------------------------
 
-def benign_sphere() -> RoofObject:
-    """The undeformed sphere in neutral grey."""
-    return RoofObject()
+def benign_sphere(family: Family = DEFAULT_FAMILY) -> RoofObject:
+    """The undeformed sphere of ``family`` in neutral grey."""
+    return RoofObject(family=family)
 
 
 def _low_order_basis(directions: np.ndarray) -> np.ndarray:
@@ -297,8 +419,8 @@ def _low_order_basis(directions: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z, x * y, y * z, z * x, x * x - y * y, 3 * z * z - 1], axis=1)
 
 
-def random_shape(seed: int, amplitude: float = 0.3) -> RoofObject:
-    """A seeded random smooth deformation inside the default box, with random colours.
+def random_shape(seed: int, amplitude: float = 0.3, family: Family = DEFAULT_FAMILY) -> RoofObject:
+    """A seeded random smooth deformation of ``family``'s template inside its box, with random colours.
 
     The deformation is the tanh parametrisation with ``delta`` a random combination of the 8
     degree-1 and degree-2 spherical-harmonic-like polynomials of each template vertex's direction
@@ -311,9 +433,9 @@ def random_shape(seed: int, amplitude: float = 0.3) -> RoofObject:
         raise ValueError(f"random_shape: field 'seed': must be an integer >= 0, got {seed!r}")
     rng = np.random.default_rng(int(seed))
     coeffs = rng.normal(0.0, amplitude, size=(8, 3))
-    colors = rng.random((N_VERTICES, 3))
-    v0 = template_vertices()
+    colors = rng.random((family.n_vertices, 3))
+    v0 = template_vertices(family)
     delta = _low_order_basis(v0 / np.linalg.norm(v0, axis=1, keepdims=True)) @ coeffs
     with torch.no_grad():
-        vertices = tanh_vertices(torch.from_numpy(delta)).numpy()
-    return RoofObject.from_vertices(vertices, colors)
+        vertices = tanh_vertices(torch.from_numpy(delta), family=family).numpy()
+    return RoofObject.from_vertices(vertices, colors, family=family)

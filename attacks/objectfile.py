@@ -2,8 +2,8 @@
 
 ``NAME.ply`` is a standard binary PLY written by trimesh (``process=False``, so the vertex and face
 order is the template's): float32 vertex positions in the object frame (m), uchar RGBA colours (alpha
-255, ignored on reading), the template's 320 faces. Reading also accepts float colour properties (in
-[0, 1]) and float64 positions (both are then rounded to the object's precision).
+255, ignored on reading), the template's faces (320 for the default family). Reading also accepts float
+colour properties (in [0, 1]) and float64 positions (both are then rounded to the object's precision).
 
 ``NAME.json`` (the sidecar, same stem) records the format (:data:`FORMAT`), the PLY's sha256, the
 template (icosphere level and radius), the object frame, the placement rule, the box bounds and how
@@ -14,8 +14,12 @@ else is refused with one line naming the sidecar and the field; other keys are i
 ``format``         exactly :data:`FORMAT`
 ``ply``            the PLY's file name when written: a string ending in ``.ply`` (a renamed pair keeps it)
 ``ply_sha256``     64 lower-case hex digits, equal to the PLY's sha256
-``template``       ``{"kind": "icosphere", "level": 2, "radius": 0.4, "vertices": 162, "faces": 320}``
-                   (``kind``, ``vertices`` and ``faces`` may be absent)
+``template``       the object's family (:class:`~robustbench3d.attacks.object.Family`), e.g. the default
+                   ``{"kind": "icosphere", "level": 2, "radius": 0.4, "vertices": 162, "faces": 320}``:
+                   ``level`` one of 2, 3, 4, ``radius`` in [0.2, 0.6] m in whole centimetres
+                   (:data:`~robustbench3d.attacks.object.LEVELS`, ``RADIUS_RANGE``); ``kind`` "icosphere",
+                   ``vertices`` and ``faces`` the level's counts (10 * 4^level + 2, 20 * 4^level); those three
+                   may be absent
 ``frame``          optional; a string (the description of the object frame)
 ``placement``      ``{"rule": "roof-centre", ...}``; its ``description``, if any, a string
 ``bounds``         three numbers, each half extent in [0.001, 1] m (:data:`~robustbench3d.attacks.object.MAX_BOUND_M`:
@@ -24,9 +28,9 @@ else is refused with one line naming the sidecar and the field; other keys are i
 ``made_by``        optional; a JSON object
 =================  ==========================================================================================
 
-The PLY itself: at most :data:`MAX_FILE_BYTES` (so is the sidecar), exactly 162 finite vertices inside
-the bounds (within :data:`BOUNDS_TOLERANCE_M`), the template's 320 faces in template order, colours in
-[0, 1].
+The PLY itself: at most :data:`MAX_FILE_BYTES` (so is the sidecar), exactly the family's number of finite
+vertices (162 for the default family) inside the bounds (within :data:`BOUNDS_TOLERANCE_M`), the family
+template's faces in template order, colours in [0, 1].
 
 :class:`~robustbench3d.attacks.object.RoofObject` keeps its arrays at exactly this precision, so
 ``load_object(save_object(path, obj))`` equals ``obj`` bit for bit. Both files are written
@@ -47,10 +51,8 @@ from typing import Any
 import numpy as np
 
 from robustbench3d.attacks.object import (
-    LEVEL,
-    N_FACES,
-    N_VERTICES,
-    RADIUS,
+    DEFAULT_FAMILY,
+    Family,
     RoofObject,
     check_bounds,
     object_problems,
@@ -70,10 +72,11 @@ FORMAT = "robustbench3d.roof_object/1"
 #: Vertices may leave the box by this much in a file (m) and are clamped onto it: float32 rounds a
 #: coordinate of exactly 0.4 m (a sphere written by another tool) to 0.4 + 6e-9.
 BOUNDS_TOLERANCE_M = 1e-6
-#: The largest PLY or sidecar accepted (bytes): the binary PLY of a 162-vertex object is 7 KB, an ASCII one
-#: with float colours under 40 KB, a sidecar with its training record a few KB.
+#: The largest PLY or sidecar accepted (bytes): the binary PLY of a 162-vertex object is 7 KB, of a 2562-vertex
+#: (level-4) one 108 KB, an ASCII one with float colours under 40 KB (162 vertices) or 600 KB (2562), a sidecar
+#: with its training record a few KB.
 MAX_FILE_BYTES = 1 << 20
-_TEMPLATE = {"kind": "icosphere", "level": LEVEL, "radius": RADIUS, "vertices": N_VERTICES, "faces": N_FACES}
+_TEMPLATE = DEFAULT_FAMILY.record()
 OBJECT_FRAME = ("object frame: centre at the origin; x along the car's length (heading), y down, z along its "
                 "width (the KITTI box's local frame); metres")
 PLACEMENT_DESCRIPTION = ("resting on the roof centre (label location - (0, h, 0), rect frame), yawed with the "
@@ -110,7 +113,7 @@ def ply_bytes(obj: RoofObject) -> bytes:
     """The PLY file content of ``obj`` (binary, float32 positions, uchar RGBA): the bytes of trimesh's export
     (``Trimesh(vertices, faces, vertex_colors=RGBA, process=False).export(file_type="ply", encoding="binary")``),
     written without importing trimesh (and the scipy, networkx and Embree modules it loads, ~60 MB)."""
-    vertices = np.zeros(N_VERTICES, dtype=[("vertex", "<f4", (3,)), ("rgba", "<u1", (4,))])
+    vertices = np.zeros(len(obj.colors), dtype=[("vertex", "<f4", (3,)), ("rgba", "<u1", (4,))])
     vertices["vertex"] = obj.vertices()
     vertices["rgba"][:, :3] = np.round(obj.colors * 255.0).astype(np.uint8)
     vertices["rgba"][:, 3] = 255
@@ -126,13 +129,14 @@ def object_sha256(obj: RoofObject) -> str:
     return hashlib.sha256(ply_bytes(obj)).hexdigest()
 
 
-def sidecar_dict(ply_name: str, sha256: str, bounds: np.ndarray, made_by: Mapping[str, Any] | None) -> dict[str, Any]:
-    """The sidecar of the PLY file ``ply_name`` with content hash ``sha256``."""
+def sidecar_dict(ply_name: str, sha256: str, bounds: np.ndarray, made_by: Mapping[str, Any] | None,
+                 family: Family = DEFAULT_FAMILY) -> dict[str, Any]:
+    """The sidecar of the PLY file ``ply_name`` with content hash ``sha256`` of an object of ``family``."""
     return {
         "format": FORMAT,
         "ply": ply_name,
         "ply_sha256": sha256,
-        "template": {"kind": "icosphere", "level": LEVEL, "radius": RADIUS, "vertices": N_VERTICES, "faces": N_FACES},
+        "template": family.record(),
         "frame": OBJECT_FRAME,
         "placement": {"rule": PLACEMENT_RULE, "description": PLACEMENT_DESCRIPTION},
         "bounds": [float(b) for b in bounds],
@@ -141,12 +145,14 @@ def sidecar_dict(ply_name: str, sha256: str, bounds: np.ndarray, made_by: Mappin
     }
 
 
-def write_sidecar(ply_path: str | Path, bounds: object, made_by: Mapping[str, Any] | None = None) -> Path:
-    """Write the sidecar of an existing PLY file (its sha256 computed from the file); returns its path."""
+def write_sidecar(ply_path: str | Path, bounds: object, made_by: Mapping[str, Any] | None = None,
+                  family: Family = DEFAULT_FAMILY) -> Path:
+    """Write the sidecar of an existing PLY file of an object of ``family`` (its sha256 computed from the file);
+    returns its path."""
     ply_path = Path(ply_path)
     sha = hashlib.sha256(ply_path.read_bytes()).hexdigest()
     side = sidecar_path(ply_path)
-    data = sidecar_dict(ply_path.name, sha, check_bounds(bounds), made_by)
+    data = sidecar_dict(ply_path.name, sha, check_bounds(bounds), made_by, family)
     atomic_write_text(side, json.dumps(data, indent=2, sort_keys=True) + "\n")
     return side
 
@@ -161,7 +167,7 @@ def save_object(path: str | Path, obj: RoofObject, made_by: Mapping[str, Any] | 
         raise ValueError(f"{path}: an object file must end in .ply")
     json.dumps(dict(made_by or {}))  # refuse a non-serialisable description before writing anything
     atomic_write_bytes(path, ply_bytes(obj))
-    write_sidecar(path, obj.bounds, made_by)
+    write_sidecar(path, obj.bounds, made_by, obj.family)
     return path
 
 
@@ -196,10 +202,9 @@ def _sidecar_problems(data: dict[str, Any]) -> list[tuple[str, str]]:
     sha = data.get("ply_sha256")
     if not isinstance(sha, str) or len(sha) != 64 or any(c not in "0123456789abcdef" for c in sha):
         problems.append(("ply_sha256", "expected the PLY's sha256 (64 lower-case hex digits)"))
-    template = data.get("template")
-    if (not isinstance(template, dict) or {"level", "radius"} - set(template)
-            or any(template[k] != v or isinstance(template[k], bool) for k, v in _TEMPLATE.items() if k in template)):
-        problems.append(("template", f"expected {_TEMPLATE} (the icosphere template), got {template!r}"))
+    problem = _template_problem(data.get("template"))
+    if problem:
+        problems.append(("template", problem))
     placement = data.get("placement")
     if (not isinstance(placement, dict) or placement.get("rule") != PLACEMENT_RULE
             or not isinstance(placement.get("description", ""), str)):
@@ -220,13 +225,41 @@ def _sidecar_problems(data: dict[str, Any]) -> list[tuple[str, str]]:
     return problems
 
 
+def template_family(template: object) -> Family:
+    """The :class:`~robustbench3d.attacks.object.Family` of a sidecar's ``template`` record (the module doc's
+    table); ValueError naming what is wrong otherwise."""
+    problem = _template_problem(template)
+    if problem:
+        raise ValueError(f"field 'template': {problem}")
+    assert isinstance(template, dict)
+    return Family(template["level"], template["radius"])
+
+
+def _template_problem(template: object) -> str | None:
+    """What is wrong with a ``template`` record (None: nothing)."""
+    want = (f"expected an icosphere family like {_TEMPLATE} (level in {{2, 3, 4}}, radius in [0.2, 0.6] m in "
+            f"whole centimetres, vertices and faces the level's counts), got {template!r}")
+    if not isinstance(template, dict) or {"level", "radius"} - set(template):
+        return want
+    if isinstance(template["radius"], bool) or not isinstance(template["radius"], (int, float)):
+        return want
+    try:
+        family = Family(template["level"], template["radius"])
+    except ValueError as exc:
+        return f"{exc}; {want}"
+    if any(k in template and (template[k] != v or isinstance(template[k], bool))
+           for k, v in family.record().items() if k not in ("level", "radius")):
+        return want
+    return None
+
+
 def _check_size(path: Path, missing: str) -> None:
     """Refuse a file larger than :data:`MAX_FILE_BYTES` before reading it (a missing one: ``missing``)."""
     with data_file_errors(path, missing):
         size = path.stat().st_size
     if size > MAX_FILE_BYTES:
         raise DataFormatError(path, f"{size} bytes; an object file or sidecar is at most {MAX_FILE_BYTES} bytes "
-                                    f"(a 162-vertex object is about 7 KB)")
+                                    f"(a 162-vertex object is about 7 KB, a 2562-vertex one about 108 KB)")
 
 
 def ply_mesh(path: Path, raw: bytes) -> Any:
@@ -282,18 +315,20 @@ def read_object_file(path: str | Path) -> ObjectFile:
         raise DataFormatError(path, f"sha256 {sha} does not match {sidecar['ply_sha256']} recorded in its sidecar "
                                     f"{sidecar_path(path).name} (the PLY or the sidecar was changed)")
     vertices, faces, colors = _parse_ply(path, raw)
-    if vertices.shape != (N_VERTICES, 3):
-        raise DataFormatError(path, f"expected {N_VERTICES} vertices (icosphere level {LEVEL}), got {len(vertices)}",
-                              field="vertices")
-    if not np.array_equal(faces, template_faces()):
-        raise DataFormatError(path, f"faces are not the template's ({N_FACES} faces of icosphere level {LEVEL} in "
-                                    f"template order); got {len(faces)} faces", field="faces")
+    family = template_family(sidecar["template"])
+    n, level = family.n_vertices, family.level
+    if vertices.shape != (n, 3):
+        raise DataFormatError(path, f"expected {n} vertices (icosphere level {level}, the sidecar's template), got "
+                                    f"{len(vertices)}", field="vertices")
+    if not np.array_equal(faces, template_faces(family)):
+        raise DataFormatError(path, f"faces are not the template's ({family.n_faces} faces of icosphere level {level} "
+                                    f"in template order); got {len(faces)} faces", field="faces")
     bounds = np.asarray(sidecar["bounds"], dtype=np.float64)
-    problems = object_problems(vertices, colors, bounds, tolerance=BOUNDS_TOLERANCE_M)
+    problems = object_problems(vertices, colors, bounds, tolerance=BOUNDS_TOLERANCE_M, n_vertices=n)
     if problems:
         field, problem = problems[0]
         raise DataFormatError(path, problem, field=field)
-    obj = RoofObject.from_vertices(np.clip(vertices, -bounds, bounds), colors, bounds)
+    obj = RoofObject.from_vertices(np.clip(vertices, -bounds, bounds), colors, bounds, family=family)
     return ObjectFile(path=path, obj=obj, sha256=sha, sidecar=sidecar)
 
 

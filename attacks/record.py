@@ -33,6 +33,7 @@ import numpy as np
 from robustbench3d.kitti.velodyne import row_indices
 
 if TYPE_CHECKING:
+    from robustbench3d.attacks.object import Family
     from robustbench3d.attacks.placement import Pose
     from robustbench3d.kitti.calib import Calibration
     from robustbench3d.kitti.dataset import Frame
@@ -181,23 +182,26 @@ def _same_object(a: Labels, i: int, b: Labels, k: int) -> bool:
             and float(a.rotation_y[i]) == float(b.rotation_y[k]))
 
 
-def nominal_poses(targets: Labels) -> list[Pose]:
-    """The pose of the default object (the undeformed template) on each target car at the roof-centre
-    placement without jitter (:func:`~robustbench3d.attacks.placement.place_on_roof`)."""
-    from robustbench3d.attacks.object import template_vertices
+def nominal_poses(targets: Labels, family: Family | None = None) -> list[Pose]:
+    """The pose of the undeformed template of ``family`` (default: the default family's) on each target car at
+    the roof-centre placement without jitter (:func:`~robustbench3d.attacks.placement.place_on_roof`)."""
+    from robustbench3d.attacks.object import DEFAULT_FAMILY, template_vertices
     from robustbench3d.attacks.placement import cars_of, place_on_roof
 
-    return [place_on_roof(template_vertices(), car)[1] for car in cars_of(targets)]
+    v0 = template_vertices(family or DEFAULT_FAMILY)
+    return [place_on_roof(v0, car)[1] for car in cars_of(targets)]
 
 
-def nominal_record(frame: Frame, targets: Labels) -> ObjectRecord:
-    """The record of the default object (bounds :data:`~robustbench3d.attacks.object.BOUNDS`, +-0.40 m) on each
-    of ``targets`` (rect) of ``frame`` at the roof-centre placement without jitter, with no returns (module doc)."""
-    from robustbench3d.attacks.object import BOUNDS
+def nominal_record(frame: Frame, targets: Labels, family: Family | None = None) -> ObjectRecord:
+    """The record of the undeformed object of ``family`` (default: the default family, bounds
+    :data:`~robustbench3d.attacks.object.BOUNDS`, +-0.40 m) on each of ``targets`` (rect) of ``frame`` at the
+    roof-centre placement without jitter, with no returns (module doc)."""
+    from robustbench3d.attacks.object import DEFAULT_FAMILY
 
     if len(targets) == 0:
         return ObjectRecord.empty()
-    boxes = placed_object_boxes(BOUNDS, nominal_poses(targets), frame.calib, frame.image_size)
+    fam = family or DEFAULT_FAMILY
+    boxes = placed_object_boxes(fam.bounds, nominal_poses(targets, fam), frame.calib, frame.image_size)
     return ObjectRecord(boxes, tuple(np.zeros(0, dtype=np.int64) for _ in range(len(targets))),
                         target_rows(frame.labels, targets))
 

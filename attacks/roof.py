@@ -172,7 +172,8 @@ class RoofObjectAttack(Attack):
         return self.occlusion == "scan" and self._dataset is not None
 
     def place(self, targets: Labels, rng: np.random.Generator) -> list[tuple[np.ndarray, Pose]]:
-        """(rect vertices (162, 3), pose) of the object on each target car, in label order."""
+        """(rect vertices (V, 3), pose) of the object on each target car, in label order (V: the object family's
+        vertex count, 162 for the default family)."""
         placed = []
         for car in cars_of(targets):
             jitter = sample_jitter(rng, self.position_jitter_m, self.yaw_jitter_rad) if self.eot else None
@@ -233,11 +234,14 @@ class RoofObjectAttack(Attack):
 
     def describe(self) -> dict[str, Any]:
         """Object, placement and sensor settings; the jitter ranges appear with EOT on or when not the defaults,
-        ``cull`` only when off (so the defaults describe the attack as they did before these settings existed)."""
+        ``cull`` only when off, the object's family (its template record) only when not the default one (so the
+        defaults describe the attack as they did before these settings existed)."""
         jitter = {"position_jitter_m": self.position_jitter_m, "yaw_jitter_rad": self.yaw_jitter_rad}
+        family = self.obj.family
         return {
             "object": {"ply_sha256": self.sha256, "made_by": self.identity,
-                       "bounds": [float(b) for b in self.obj.bounds]},
+                       "bounds": [float(b) for b in self.obj.bounds],
+                       **({} if family.is_default else {"template": {"name": family.name, **family.record()}})},
             "placement": {"rule": PLACEMENT_RULE, "eot": self.eot,
                           **(jitter if self.eot or (self.position_jitter_m, self.yaw_jitter_rad)
                              != (POSITION_JITTER_M, YAW_JITTER_RAD) else {})},

@@ -13,6 +13,10 @@ evaluated with :meth:`UniversalTrainer.heldout_losses` and the victim's ``detect
 * ``adv-texture``: image loss; colours optimised on the undeformed sphere;
 * ``adv-object``: LiDAR loss + ``lambda_img`` x image loss + Laplacian; both optimised.
 
+The object is of the config's family (:attr:`~robustbench3d.attacks.train_config.TrainConfig.family`: icosphere
+level and radius, default the level-2 sphere of radius 0.40 m): V = 162, 642 or 2562 vertices, each displaced
+and coloured, inside the family's box +-radius.
+
 A step takes ``batch_cars`` cars: the split's cars (every target car of every frame, frame order, then
 label order) are visited in a random permutation per epoch, ``numpy.random.default_rng([seed, epoch,
 0xBA7C])``. Each car's frame is attacked as a benchmark cell does (:mod:`~robustbench3d.attacks.roof`):
@@ -126,15 +130,17 @@ def _proposal_index(boxes: np.ndarray, targets: Labels, target_boxes: np.ndarray
 
 
 def _object_proposals(frame: Frame, attacked: Frame, targets: Labels, rows: np.ndarray, poses: list[Any], res: Any,
-                      source: str) -> Any:
+                      source: str, bounds: Any = None) -> Any:
     """The ``gt-object`` / ``gt-append`` proposals of an attacked training frame, as the runner builds them for
-    a cell: the :class:`~robustbench3d.attacks.record.ObjectRecord` of the placed bounds boxes (each car's union
-    partner) and of the render's returns (``res``, a ``LidarRenderResult``: each car's appended rows)."""
+    a cell: the :class:`~robustbench3d.attacks.record.ObjectRecord` of the placed bounds boxes (``bounds``: the
+    object's half extents, m, default the default family's; each car's union partner) and of the render's returns
+    (``res``, a ``LidarRenderResult``: each car's appended rows)."""
     from robustbench3d.attacks.object import BOUNDS
     from robustbench3d.attacks.record import ObjectRecord, added_rows, placed_object_boxes
     from robustbench3d.victims.base import object_proposals
 
-    record = ObjectRecord(placed_object_boxes(BOUNDS, poses, attacked.calib, attacked.image_size),
+    box = BOUNDS if bounds is None else bounds
+    record = ObjectRecord(placed_object_boxes(box, poses, attacked.calib, attacked.image_size),
                           added_rows(len(frame.scan), len(res.removed_index), res.object_index, len(targets)), rows)
     return object_proposals(attacked, frame.labels, record, source)
 
@@ -296,9 +302,11 @@ class UniversalTrainer:
             raise TrainingError(f"the training data ({len(frame_ids)} frame(s) of split {kitti.split!r} under "
                                 f"{kitti.root}) has no target cars (label type Car): nothing to attack")
         m = config.kind
-        self.delta = torch.zeros(162, 3, dtype=torch.float64, requires_grad=m.shape)
+        self.family = config.family
+        n = self.family.n_vertices
+        self.delta = torch.zeros(n, 3, dtype=torch.float64, requires_grad=m.shape)
         grey = math.log(NEUTRAL_GREY / (1.0 - NEUTRAL_GREY))
-        self.colour_logit = torch.full((162, 3), grey, dtype=torch.float64, requires_grad=m.colour)
+        self.colour_logit = torch.full((n, 3), grey, dtype=torch.float64, requires_grad=m.colour)
         groups = ([{"params": [self.delta], "lr": config.lr_shape}] if m.shape else []) + \
                  ([{"params": [self.colour_logit], "lr": config.lr_color}] if m.colour else [])
         self.params = [g["params"][0] for g in groups]
@@ -307,8 +315,9 @@ class UniversalTrainer:
         self.history: list[dict[str, float]] = []
         self.zero_run = 0
         self.elapsed_s = 0.0
-        self._faces = template_faces().copy()
-        self._depth = RoofObjectAttack(benign_sphere(), occlusion=config.occlusion, supersample=config.supersample)
+        self._faces = template_faces(self.family).copy()
+        self._depth = RoofObjectAttack(benign_sphere(self.family), occlusion=config.occlusion,
+                                       supersample=config.supersample)
         self._depth.bind_dataset(kitti)
         self._clean: dict[str, np.ndarray] = {}
         first = np.random.default_rng([config.seed, 0, BATCH_STREAM]).permutation(len(self.cars))[:CLEAN_SAMPLE]
@@ -320,7 +329,7 @@ class UniversalTrainer:
 
     # ---- the object ---------------------------------------------------------------------------
     def vertices(self) -> torch.Tensor:
-        """(162, 3) float64 object-frame vertices: the template when the shape is fixed, else the tanh
+        """(V, 3) float64 object-frame vertices: the template when the shape is fixed, else the tanh
         parametrisation (differentiable in ``delta``; at ``delta = 0`` the template scaled by 0.999, the
         parametrisation's eps, as template vertices lie on the box faces)."""
         return self._vertices_at(self.delta)
@@ -328,11 +337,11 @@ class UniversalTrainer:
     def _vertices_at(self, delta: torch.Tensor) -> torch.Tensor:
         """:meth:`vertices` at displacement parameters ``delta``."""
         if not self.config.kind.shape:
-            return torch.from_numpy(template_vertices().copy())
-        return tanh_vertices(delta)
+            return torch.from_numpy(template_vertices(self.family).copy())
+        return tanh_vertices(delta, family=self.family)
 
     def colours(self) -> torch.Tensor:
-        """(162, 3) float64 colours in (0, 1)."""
+        """(V, 3) float64 colours in (0, 1)."""
         return torch.sigmoid(self.colour_logit)
 
     def current_object(self) -> RoofObject:
@@ -342,7 +351,8 @@ class UniversalTrainer:
     def object_at(self, delta: torch.Tensor, colour_logit: torch.Tensor) -> RoofObject:
         """The object at parameters ``delta`` and ``colour_logit`` (e.g. a kept best state), at file precision."""
         with torch.no_grad():
-            return RoofObject.from_vertices(self._vertices_at(delta).numpy(), torch.sigmoid(colour_logit).numpy())
+            return RoofObject.from_vertices(self._vertices_at(delta).numpy(), torch.sigmoid(colour_logit).numpy(),
+                                            family=self.family)
 
     # ---- randomness ---------------------------------------------------------------------------
     def batch(self, step: int) -> list[tuple[int, int]]:
@@ -549,7 +559,8 @@ class UniversalTrainer:
                 scored = props
             elif cfg.lidar_boxes in OBJECT_LIDAR_BOXES:
                 rows = target_rows(frame.labels, targets)
-                scored = _object_proposals(frame, attacked, targets, rows, poses, res, cfg.lidar_boxes)
+                scored = _object_proposals(frame, attacked, targets, rows, poses, res, cfg.lidar_boxes,
+                                           self.family.bounds)
                 enumerate_ = getattr(self.victim, "proposals", None)
                 props = enumerate_([attacked], [scored])[0] if callable(enumerate_) else scored.of_types(("Car",))
                 index = _proposal_index(props.boxes, targets, scored.boxes[rows])
@@ -628,14 +639,15 @@ class UniversalTrainer:
 
     def _clean_proposals(self, frame: Frame, targets: Labels) -> Any:
         """The clean frame's GT-box proposals under ``lidar_boxes``: ``gt`` and ``gt-append`` (no object, no
-        returns) the GT boxes, ``gt-object`` the union with the nominal object's box, as the clean cell gets."""
+        returns) the GT boxes, ``gt-object`` the union with the nominal object's box of the trained family (for
+        the default family what the clean cell gets)."""
         from robustbench3d.victims.base import gt_proposals, object_proposals
 
         if self.config.lidar_boxes != "gt-object":
             return gt_proposals(frame.labels)
         from robustbench3d.attacks.record import nominal_record
 
-        return object_proposals(frame, frame.labels, nominal_record(frame, targets), "gt-object")
+        return object_proposals(frame, frame.labels, nominal_record(frame, targets, self.family), "gt-object")
 
     def _clean_value(self, frame: Frame, targets: Labels, branch: str) -> np.ndarray:
         """Per target of ``frame``: clean BEV IoU (``lidar``) or best candidate score (``image``), cached."""

@@ -9,6 +9,7 @@ from typing import Any
 
 from robustbench3d.attacks.base import target_cars
 from robustbench3d.attacks.losses import IMAGE_LOSSES, IOU_FLOOR
+from robustbench3d.attacks.object import LEVEL, RADIUS, Family
 from robustbench3d.attacks.roof import SETTING_MAX
 from robustbench3d.attacks.spec import MAX_SEED
 from robustbench3d.errors import RobustBenchError
@@ -44,8 +45,13 @@ EVAL_SHARE = 0.2
 #: (a sidecar's ``made_by.config``) without one of them means that value. Objects trained before the held-out
 #: curve were trained on every frame of their split with no evaluation (``eval_every`` 0); the other settings
 #: of the curve have no effect then and read as their defaults.
+#: A record without the object family (``level``, ``radius``; recorded only when not the default family,
+#: :meth:`TrainConfig.record`) means the default family.
 RECORD_DEFAULTS = {"image_loss": "mean", "eval_every": 0, "eval_frames": EVAL_FRAMES,
-                   "plateau_window": PLATEAU_WINDOW, "plateau_tol": PLATEAU_TOL}
+                   "plateau_window": PLATEAU_WINDOW, "plateau_tol": PLATEAU_TOL, "level": LEVEL, "radius": RADIUS}
+#: The config fields of the object family (:class:`~robustbench3d.attacks.object.Family`): recorded only when not
+#: the default family, so a default run's sidecar and checkpoint are those of a run before families existed.
+FAMILY_FIELDS = ("level", "radius")
 #: The per-step counts kept in the history beside the losses.
 COUNTS = ("cars", "detected", "clean_cars", "detected_clean")
 DROP_WINDOW = 50
@@ -66,7 +72,8 @@ CLEAN_SAMPLE = 64
 #: (an evaluation costs about a second per frame on one core; 10000 frames are hours per evaluation, and a
 #: KITTI-sized train split has 3712 frames), plateau_window in [1, 1000000] steps (as steps), plateau_tol a
 #: relative improvement in [0, 1] (0: never stop on a plateau, as the best loss never rises; 1: stop at the
-#: first check that the loss did not fall to 0).
+#: first check that the loss did not fall to 0). The object family's level and radius: those of
+#: robustbench3d.attacks.object.Family (LEVELS: 2, 3, 4; RADIUS_RANGE: [0.2, 0.6] m in whole centimetres).
 INT_RANGES = {"steps": (1, 1_000_000), "batch_cars": (1, 1024), "checkpoint_every": (1, 1_000_000),
               "zero_grad_patience": (1, 10_000), "supersample": (1, SETTING_MAX["supersample"]),
               "seed": (0, MAX_SEED), "eval_every": (0, 1_000_000), "eval_frames": (1, 10_000),
@@ -159,6 +166,8 @@ class TrainConfig:
     eval_frames: int = EVAL_FRAMES
     plateau_window: int = PLATEAU_WINDOW
     plateau_tol: float = PLATEAU_TOL
+    level: int = LEVEL
+    radius: float = RADIUS
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -167,6 +176,12 @@ class TrainConfig:
             _check_int(name, getattr(self, name))
         for name in FLOAT_RANGES:
             _check_float(name, getattr(self, name))
+        try:
+            family = Family(self.level, self.radius)
+        except ValueError as exc:
+            name, _, problem = str(exc).removeprefix("field '").partition("': ")
+            raise TrainingError(f"{_field(name)}: {problem}") from None
+        object.__setattr__(self, "radius", family.radius)
         bad = sorted(set(self.eot) - set(EOT_CHOICES))
         if bad:
             raise TrainingError(f"{_field('eot')}: unknown {', '.join(bad)} (choose from {', '.join(EOT_CHOICES)})")
@@ -186,6 +201,27 @@ class TrainConfig:
     @property
     def kind(self) -> Mode:
         return MODES[self.mode]
+
+    @property
+    def family(self) -> Family:
+        """The trained object's family (its template's level and radius)."""
+        return Family(self.level, self.radius)
+
+    @property
+    def name(self) -> str:
+        """The mode, followed by the family's name when not the default one: ``adv-texture``,
+        ``adv-texture-l4-r0.40``."""
+        family = self.family
+        return self.mode if family.is_default else f"{self.mode}-{family.name}"
+
+    def record(self) -> dict[str, Any]:
+        """The configuration as a sidecar records it (``made_by.config``): every field, ``eot`` a list, the
+        family's fields (:data:`FAMILY_FIELDS`) only when not the default family."""
+        d = {**asdict(self), "eot": list(self.eot)}
+        if self.family.is_default:
+            for name in FAMILY_FIELDS:
+                d.pop(name)
+        return d
 
     def weights(self) -> dict[str, float]:
         """Weight of each loss term in this mode (absent terms are not used)."""
@@ -207,10 +243,9 @@ class TrainConfig:
         """What a resumed run must share with the checkpoint: everything but the step budget, the checkpoint
         interval and the plateau stop's settings (:data:`RESUMABLE`); without evaluation ``eval_frames``
         reads 0 (no frame is held out)."""
-        d = asdict(self)
+        d = self.record()
         for name in RESUMABLE:
             d.pop(name)
-        d["eot"] = list(self.eot)
         if self.eval_every == 0:
             d["eval_frames"] = 0
         return d

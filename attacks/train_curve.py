@@ -51,12 +51,13 @@ from typing import Any
 from robustbench3d.attacks.train_config import TrainConfig
 from robustbench3d.kitti.dataset import KittiDataset
 from robustbench3d.kitti.labels import Labels
+from robustbench3d.metrics import HEADLINE
 
 CSV_COLUMNS: tuple[str, ...] = ("step", "train_loss", "heldout_loss", "heldout_lidar", "heldout_image",
                                 "heldout_laplacian", "clean_ap", "attacked_ap", "relative_drop", "asr", "best")
 CRITERION = "lowest held-out loss"
-#: The AP of the curve: class, metric, recall sampling, difficulty.
-AP_OF = ("Car", "bev", "R40", "moderate")
+#: The AP of the curve (class, metric, recall sampling, difficulty): the headline AP every summary reads.
+AP_OF = HEADLINE
 
 
 def curve_paths(out: str | Path) -> tuple[Path, Path]:

@@ -23,7 +23,6 @@ import hashlib
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -209,7 +208,7 @@ def train_universal(victim: Any, victim_info: dict[str, Any], kitti: KittiDatase
     trainer.ckpt = ckpt
     if resume and ckpt.is_file():
         trainer.load_checkpoint(ckpt, identity)
-        notes += check_resumed(out, {"config": {**asdict(config), "eot": list(config.eot)}, "victim": victim_info,
+        notes += check_resumed(out, {"config": config.record(), "victim": victim_info,
                                      "training_data": data_identity or {}}, force,
                                trainer.run_state.get("rows", []) if heldout is not None else None, trainer.step)
     for line in notes:
@@ -273,7 +272,7 @@ class _Run:
         state.setdefault("best", None)
         state.setdefault("eval_s", 0.0)
         self.stop: str | None = None
-        self.title = f"{config.mode} against {identity['victim'].get('name', '?')}"
+        self.title = f"{config.name} against {identity['victim'].get('name', '?')}"
 
     @property
     def rows(self) -> list[dict[str, Any]]:
@@ -287,7 +286,7 @@ class _Run:
                 self._evaluate_regular()
             if self.rows and self.rows[-1]["step"] == trainer.step:  # a resumed run that stopped here stops again
                 self.stop = plateau(self.rows, config.plateau_window, config.plateau_tol)
-        bar = _progress(config.steps, min(trainer.step, config.steps), progress, config.mode)
+        bar = _progress(config.steps, min(trainer.step, config.steps), progress, config.name)
         try:
             while self.stop is None and trainer.step < config.steps:
                 t0 = time.perf_counter()
@@ -387,7 +386,7 @@ def _made_by(out: Path, trainer: UniversalTrainer, config: TrainConfig, victim_i
     return {
         "attack": config.mode, "tool": "robustbench3d attack train", "package_version": __version__,
         "victim": victim_info, "training_data": data_identity,
-        "config": {**asdict(config), "eot": list(config.eot)},
+        "config": config.record(),
         "seed": config.seed, "steps": trainer.step, "cars": len(trainer.cars),
         "object_step": object_step, "stopped": stopped, "curve": curve,
         "parametrisation": {"shape": "tanh box: v = b tanh(atanh(0.999 v0 / b) + delta)" if config.kind.shape

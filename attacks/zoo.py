@@ -12,7 +12,9 @@ Registered here:
 * the controls (:mod:`robustbench3d.attacks.controls`): ``none`` (:class:`~robustbench3d.attacks.controls.NoAttack`,
   frames unchanged), ``benign-sphere`` (the undeformed grey sphere) and ``random-shape`` (a seeded random smooth
   deformation with random colours, param ``seed`` in [0, 2**32 - 1]) on every target car
-  (:class:`~robustbench3d.attacks.roof.RoofObjectAttack`);
+  (:class:`~robustbench3d.attacks.roof.RoofObjectAttack`); both take the object family's params ``level`` (2, 3
+  or 4) and ``radius`` (m, [0.2, 0.6]; :class:`~robustbench3d.attacks.object.Family`), default 2 and 0.40 (the
+  default family), so a sweep places the control of each size: ``--attacks benign-sphere:radius=0.6``;
 * ``object-file`` (param ``path``): any object file (:mod:`robustbench3d.attacks.objectfile`). A reference ending
   in ``.ply`` (``run --attacks F.ply``, ``attack apply F.ply``) names such a file directly:
   :func:`object_file_reference` is the registry's path resolver
@@ -39,6 +41,7 @@ from robustbench3d.errors import RobustBenchError
 from robustbench3d.registry import sanitise_name
 
 if TYPE_CHECKING:
+    from robustbench3d.attacks.object import Family
     from robustbench3d.attacks.roof import RoofObjectAttack
 
 #: Origin of an object file registered from a reference (listed by ``attack list``, recorded in provenance).
@@ -48,30 +51,50 @@ register_attack("none", requirements=AttackRequirements(),
                 summary="control: no object placed, frames unchanged (clean AP)")(NoAttack)
 
 
-@register_attack("benign-sphere", summary="control: the undeformed grey sphere (r 0.40 m) on every target car's roof")
+def _family(level: Any, radius: Any) -> tuple[Family, dict[str, Any]]:
+    """The object family of a control's ``level`` and ``radius`` params (:class:`AttackSpecError` naming the field
+    and its range otherwise) and what its identity records of it: nothing for the default family (so the default
+    controls describe themselves as before families existed), else level, radius and the family's name."""
+    from robustbench3d.attacks.object import Family
+
+    try:
+        family = Family(level, radius)
+    except ValueError as exc:
+        raise AttackSpecError(str(exc)) from None
+    return family, ({} if family.is_default else {"level": family.level, "radius": family.radius,
+                                                  "family": family.name})
+
+
+@register_attack("benign-sphere", summary="control: the undeformed grey sphere (r 0.40 m; params level, radius) on "
+                                          "every target car's roof")
 @roof_settings
-def benign_sphere_attack(**settings: Any) -> RoofObjectAttack:
-    """:func:`~robustbench3d.attacks.object.benign_sphere` on every target car (EOT jitter if ``eot``)."""
+def benign_sphere_attack(level: int = 2, radius: float = 0.40, **settings: Any) -> RoofObjectAttack:
+    """:func:`~robustbench3d.attacks.object.benign_sphere` of the family (``level``, ``radius``) on every target
+    car (EOT jitter if ``eot``)."""
     from robustbench3d.attacks.object import benign_sphere
     from robustbench3d.attacks.roof import RoofObjectAttack
 
-    return RoofObjectAttack(benign_sphere(), identity={"attack": "benign-sphere"}, **settings)
+    family, record = _family(level, radius)
+    return RoofObjectAttack(benign_sphere(family), identity={"attack": "benign-sphere", **record}, **settings)
 
 
-@register_attack("random-shape", summary="control: a seeded random smooth shape with random colours (param seed)")
+@register_attack("random-shape", summary="control: a seeded random smooth shape with random colours (params seed, "
+                                         "level, radius)")
 @roof_settings
-def random_shape_attack(seed: int = 0, **settings: Any) -> RoofObjectAttack:
-    """:func:`~robustbench3d.attacks.object.random_shape` of ``seed`` on every target car."""
+def random_shape_attack(seed: int = 0, level: int = 2, radius: float = 0.40, **settings: Any) -> RoofObjectAttack:
+    """:func:`~robustbench3d.attacks.object.random_shape` of ``seed`` and the family (``level``, ``radius``) on
+    every target car."""
     from robustbench3d.attacks.object import random_shape
     from robustbench3d.attacks.roof import RoofObjectAttack
 
     if not isinstance(seed, bool) and isinstance(seed, int) and seed > MAX_SEED:  # the rest: random_shape's check
         raise AttackSpecError(f"field 'seed': expected an integer in [0, 2**32 - 1], got {seed!r}")
+    family, record = _family(level, radius)
     try:
-        obj = random_shape(seed)
+        obj = random_shape(seed, family=family)
     except ValueError as exc:
         raise AttackSpecError(str(exc)) from None
-    return RoofObjectAttack(obj, identity={"attack": "random-shape", "seed": seed}, **settings)
+    return RoofObjectAttack(obj, identity={"attack": "random-shape", "seed": seed, **record}, **settings)
 
 
 @register_attack("object-file", summary="the object in a PLY object file (param path) on every target car")

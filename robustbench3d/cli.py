@@ -37,6 +37,7 @@ COMMANDS: dict[str, str] = {
     "victims export-onnx": "export an F-PN cascade victim as per-stage ONNX",
     "victims parity": "torch vs onnxruntime parity: tensors, boxes, AP",
     "tradeoff": "speed/accuracy trade of the harness's settings: Pareto table",
+    "sweep": "dose-response sweep: objects of each size and colour freedom, trained and scored",
     "bench": "run speed/memory benchmarks and print a table",
     "check": "regression gate: compare a run's AP and AP drops with a baseline",
 }

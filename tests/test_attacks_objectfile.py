@@ -178,7 +178,7 @@ def test_malformed_sidecars(tmp_path):
     _fails(path, "byte-order mark", named=side)
     for key, value, pattern in (("format", "robustbench3d.roof_object/0", "field 'format'"),
                                 ("bounds", [0.4, 0.4], "field 'bounds'"),
-                                ("template", {"level": 3, "radius": 0.4}, "field 'template'"),
+                                ("template", {"level": 5, "radius": 0.4}, "field 'template'"),
                                 ("placement", {"rule": "bonnet"}, "field 'placement'"),
                                 ("ply_sha256", "abc", "field 'ply_sha256'")):
         data = json.loads(good)

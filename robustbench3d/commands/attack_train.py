@@ -1,12 +1,14 @@
 """``robustbench3d attack train``: optimise a universal roof object against a white-box victim.
 
     robustbench3d attack train adv-shape|adv-texture|adv-object --victim V --out OBJ.ply
+        [--level 2|3|4] [--radius R]
         [--data DIR] [--split train] [--steps N] [--batch-cars B] [--seed S] [--eot jitter,range-noise,dropout]
         [--eval-every K] [--eval-frames N] [--plateau-window W] [--plateau-tol T] [--resume] [--force]
         [--workers W]
 
 Writes the object file ``OBJ.ply`` and its sidecar (losses and weights, victim, training data, config,
-seed, steps, wall time, the held-out curve's summary and why training stopped); ``OBJ.train.pt`` beside it is
+seed, steps, wall time, the held-out curve's summary and why training stopped; the object's family, ``--level``
+and ``--radius``, in its template record); ``OBJ.train.pt`` beside it is
 the checkpoint ``--resume`` continues from. Every ``K`` steps the object is evaluated on the last ``N`` frames
 of the split, which are never trained on: ``OBJ.curve.csv`` and ``OBJ.curve.png`` hold the training and
 held-out losses, the held-out relative drop and ASR; ``OBJ.ply`` is the state of lowest held-out loss, and
@@ -47,6 +49,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, metavar="N",
                         help="only the first N frames of the split (1 to 1000000)")
     parser.add_argument("--out", required=True, metavar="OBJ.ply", help="the object file to write")
+    parser.add_argument("--level", type=int, default=2, metavar="L",
+                        help="object family: icosphere level 2, 3 or 4 (162, 642 or 2562 vertices, each with its own "
+                             "colour; default 2)")
+    parser.add_argument("--radius", type=float, default=0.40, metavar="R",
+                        help="object family: sphere radius in m, 0.2 to 0.6 in whole centimetres (it stays within a "
+                             "car roof; the box constraint is +-R; default 0.40)")
     parser.add_argument("--steps", type=int, default=300, metavar="N", help="optimisation steps (default 300)")
     parser.add_argument("--batch-cars", type=int, default=8, metavar="B", help="cars per step (default 8)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the batches and EOT (default 0)")
@@ -126,7 +134,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
                        lambda_box=args.lambda_box, image_loss=args.image_loss,
                        checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                        eval_frames=args.eval_frames, plateau_window=args.plateau_window,
-                       plateau_tol=args.plateau_tol)
+                       plateau_tol=args.plateau_tol, level=args.level, radius=args.radius)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -160,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
                               workers=workers)
     last = made_by["losses"]["last_step"] or {}
     drop = made_by["drop_estimate"]
-    print(f"{out}: {args.mode} after {made_by['steps']} steps on {made_by['cars']} cars "
+    print(f"{out}: {config.name} after {made_by['steps']} steps on {made_by['cars']} cars "
           f"({made_by['wall_time_s']:.1f} s); last step: "
           + ", ".join(f"{k} {v:.4g}" for k, v in last.items() if k in ("lidar", "image", "laplacian", "total"))
           + (f"; running drop estimate {drop:.0%}" if drop is not None else ""))

@@ -21,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tradeoff", action="append", default=[], metavar="DIR",
                         help="output directory of `robustbench3d tradeoff`: its Pareto table and figure become a "
                              "section (repeatable)")
+    parser.add_argument("--sweep", action="append", default=[], metavar="DIR",
+                        help="output directory of `robustbench3d sweep`: its dose-response figure and table become a "
+                             "section (repeatable)")
     parser.add_argument("--out", required=True, metavar="DIR", help="directory to write the report into")
     parser.add_argument("--strict", action="store_true",
                         help="refuse runs that are not comparable instead of separating them into sections")
@@ -39,16 +42,18 @@ def run(args: argparse.Namespace) -> int:
     from robustbench3d.errors import RobustBenchError
     from robustbench3d.report.build import HTML_FILE, MD_FILE, build, check_scenes, contents
     from robustbench3d.report.outdir import check_out_dir, plan_writes, write_report
+    from robustbench3d.report.sweep_view import SweepView
     from robustbench3d.report.tradeoff_view import TradeoffView
 
     check_scenes(args.scenes)
-    if not args.runs and not args.tradeoff:
-        raise RobustBenchError("give at least one RUN_DIR or --tradeoff DIR")
+    if not args.runs and not args.tradeoff and not args.sweep:
+        raise RobustBenchError("give at least one RUN_DIR, --tradeoff DIR or --sweep DIR")
     out = check_out_dir(args.out, args.force)
     trades = [TradeoffView.read(p) for p in args.tradeoff]  # bad files fail before any work
+    sweeps = [SweepView.read(p) for p in args.sweep]
     views, notes = build(args.runs, args.scenes, args.strict) if args.runs else ([], [])
-    runs = [str(Path(r)) for r in [*args.runs, *args.tradeoff]]
-    files = contents(views, trades, runs, args.title, notes)
+    runs = [str(Path(r)) for r in [*args.runs, *args.tradeoff, *args.sweep]]
+    files = contents(views, trades, runs, args.title, notes, sweeps)
     for line in plan_writes(out, list(files)):
         print(f"report: {line}")
     write_report(out, files)

@@ -18,6 +18,7 @@ Standard library only at module level.
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from typing import Any
 
 HTML_FILE = "leaderboard.html"
@@ -102,10 +103,13 @@ def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = pri
     return views, notes
 
 
-def contents(views: list[Any], trades: list[Any], runs: list[str], title: str, notes: list[str]) -> dict[str, bytes]:
-    """Every file of the report (relative path -> bytes), made in memory before anything is written."""
+def contents(views: list[Any], trades: list[Any], runs: list[str], title: str, notes: list[str],
+             sweeps: Sequence[Any] = ()) -> dict[str, bytes]:
+    """Every file of the report (relative path -> bytes), made in memory before anything is written; ``sweeps``:
+    dose–response sweeps (:class:`~robustbench3d.report.sweep_view.SweepView`)."""
     from robustbench3d.report.mdpage import markdown
     from robustbench3d.report.page import html_page, image
+    from robustbench3d.report.sweep_view import sweep_markdown, sweep_model
     from robustbench3d.report.tradeoff_view import tradeoff_markdown, tradeoff_model
     from robustbench3d.report.view import Figure
 
@@ -121,6 +125,15 @@ def contents(views: list[Any], trades: list[Any], runs: list[str], title: str, n
                      "front dashed); frames evaluated against the interval width (right).", trade.title)
         html_trades.append(tradeoff_model(trade, k, image(fig)))
         md_extra.append(tradeoff_markdown(trade, FIGURES))
+    html_sweeps = []
+    for k, sweep in enumerate(sweeps):
+        out[f"{FIGURES}/{sweep.figure_name}"] = sweep.png
+        fig = Figure(sweep.figure_name, sweep.png, "Relative moderate BEV drop and attack success rate against the "
+                     "object's radius (one line per icosphere level) and against its colour freedom (vertex colours "
+                     "at the seed's radius), 95 % bootstrap interval bars; ringed: the seed's object (level 2, r 0.40 "
+                     "m); dashed grey: the benign grey sphere of each radius.", sweep.title)
+        html_sweeps.append(sweep_model(sweep, k, image(fig)))
+        md_extra.append(sweep_markdown(sweep, FIGURES))
     out[MD_FILE] = markdown(views, title, runs, notes, FIGURES, md_extra).encode("utf-8")
-    out[HTML_FILE] = html_page(views, title, runs, notes, html_trades).encode("utf-8")
+    out[HTML_FILE] = html_page(views, title, runs, notes, html_trades, html_sweeps).encode("utf-8")
     return out

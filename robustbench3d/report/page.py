@@ -122,13 +122,15 @@ def _section(view: SectionView, k: int) -> dict[str, Any]:
 
 
 def html_page(views: Sequence[SectionView], title: str, runs: Sequence[str], notes: Sequence[str],
-              trades: Sequence[dict[str, Any]] = ()) -> str:
+              trades: Sequence[dict[str, Any]] = (), sweeps: Sequence[dict[str, Any]] = ()) -> str:
     """The whole self-contained page; ``trades``: speed/accuracy sections
-    (:func:`robustbench3d.report.tradeoff_view.tradeoff_model`)."""
+    (:func:`robustbench3d.report.tradeoff_view.tradeoff_model`); ``sweeps``: dose–response sections
+    (:func:`robustbench3d.report.sweep_view.sweep_model`)."""
     sections = [_section(view, k) for k, view in enumerate(views)]
     used = {g for s in sections for g in s["groups"]}
     return environment().get_template(TEMPLATE).render(
         title=title, runs=", ".join(runs), notes=list(notes), sections=sections, trades=list(trades),
+        sweeps=list(sweeps),
         groups=[(g, label) for g, label in GROUPS if g in used])
 
 

@@ -21,8 +21,9 @@ suspicious), recomputed whenever the summary is written and printed by ``run``. 
   ``source`` in the ONNX manifest, with the weights hash recorded there; same attack, proposals and
   dataset, both in the summary) by more than :class:`~robustbench3d.victims.onnx.parity.Tolerances`'
   ``ap_atol`` on some AP value.
-* ``object-out-of-bounds``: a roof object's vertices leave the initial sphere's bounding box (+-0.40 m,
-  :data:`~robustbench3d.attacks.object.BOUNDS`) by more than the object file's rounding tolerance.
+* ``object-out-of-bounds``: a roof object's vertices leave its family's initial sphere's bounding box (+-radius:
+  +-0.40 m for the default family, :data:`~robustbench3d.attacks.object.BOUNDS`;
+  :attr:`~robustbench3d.attacks.object.Family.bounds`) by more than the object file's rounding tolerance.
 * ``partial-split``: the cell was evaluated on fewer frames than its split has (``--max-frames``).
 """
 
@@ -93,22 +94,24 @@ def attack_raises_ap(cell: Mapping[str, Any], tol: float = RAISE_TOL_AP) -> list
                                    "help the victim; check the attack, the clean cell and the frame count")]
 
 
-def object_out_of_bounds(vertices: Any, tolerance_m: float | None = None) -> list[Flag]:
-    """``object-out-of-bounds`` for (162, 3) object-frame vertices (m) outside the initial sphere's box."""
+def object_out_of_bounds(vertices: Any, tolerance_m: float | None = None, bounds: Any = None) -> list[Flag]:
+    """``object-out-of-bounds`` for (V, 3) object-frame vertices (m) outside the initial sphere's box ``bounds``
+    (half extents, m; default :data:`~robustbench3d.attacks.object.BOUNDS`, the default family's +-0.40 m)."""
     import numpy as np
 
     from robustbench3d.attacks.object import BOUNDS
     from robustbench3d.attacks.objectfile import BOUNDS_TOLERANCE_M
 
     tol = BOUNDS_TOLERANCE_M if tolerance_m is None else tolerance_m
+    box = np.asarray(BOUNDS if bounds is None else bounds, dtype=np.float64)
     v = np.asarray(vertices, dtype=np.float64)
-    excess = np.max(np.abs(v) - np.asarray(BOUNDS, dtype=np.float64), axis=1)
+    excess = np.max(np.abs(v) - box, axis=1)
     outside = excess > tol
     if not outside.any():
         return []
     k = int(np.argmax(excess))
     return [flag(OBJECT_OUT_OF_BOUNDS, f"{int(outside.sum())} of {len(v)} vertices leave the initial sphere's "
-                                       f"bounding box +-{BOUNDS[0]:.2f} m (farthest: vertex {k} at "
+                                       f"bounding box +-{float(box[0]):.2f} m (farthest: vertex {k} at "
                                        f"{tuple(round(float(x), 4) for x in v[k])}, {float(excess[k]):.4f} m "
                                        "outside): the object is larger than the attack's size constraint")]
 
@@ -124,8 +127,10 @@ def _numbers(record: Any, where: str) -> Iterable[tuple[str, Any]]:
         yield where, record
 
 
-def training_gradients(made_by: Mapping[str, Any], vertices: Any = None, colors: Any = None) -> list[Flag]:
-    """``training-gradients`` from an object's ``made_by`` record and, where given, its arrays (module doc).
+def training_gradients(made_by: Mapping[str, Any], vertices: Any = None, colors: Any = None,
+                       family: Any = None) -> list[Flag]:
+    """``training-gradients`` from an object's ``made_by`` record and, where given, its arrays (module doc) of
+    the object :class:`~robustbench3d.attacks.object.Family` ``family`` (default: the default family).
 
     Objects that were not trained (no ``losses`` record: controls, hand-made files) get no flag.
     """
@@ -147,14 +152,15 @@ def training_gradients(made_by: Mapping[str, Any], vertices: Any = None, colors:
     param = made_by.get("parametrisation") or {}
     import numpy as np
 
-    from robustbench3d.attacks.object import NEUTRAL_GREY, colors_to_file_precision, template_vertices
+    from robustbench3d.attacks.object import DEFAULT_FAMILY, NEUTRAL_GREY, colors_to_file_precision, template_vertices
 
     if colors is not None and "sigmoid" in str(param.get("colour", "")):
         grey = colors_to_file_precision(np.full((1, 3), NEUTRAL_GREY))
         if np.array_equal(np.asarray(colors, dtype=np.float64), np.broadcast_to(grey, np.shape(colors))):
             out.append("the trained colours are all still the initial neutral grey: every colour gradient was 0")
     shape_trained = vertices is not None and "tanh" in str(param.get("shape", ""))
-    if shape_trained and np.array_equal(np.asarray(vertices, dtype=np.float64), template_vertices()):
+    if shape_trained and np.array_equal(np.asarray(vertices, dtype=np.float64),
+                                        template_vertices(family or DEFAULT_FAMILY)):
         out.append("the trained vertices are still the undeformed sphere's: every shape gradient was 0")
     return [flag(TRAINING_GRADIENTS, "; ".join(out))] if out else []
 
@@ -167,7 +173,8 @@ def attack_flags(attack: Attack) -> list[Flag]:
     if not isinstance(obj, RoofObject):
         return []
     identity = getattr(attack, "identity", None) or {}
-    return object_out_of_bounds(obj.vertices()) + training_gradients(identity, obj.vertices(), obj.colors)
+    return (object_out_of_bounds(obj.vertices(), bounds=obj.family.bounds)
+            + training_gradients(identity, obj.vertices(), obj.colors, obj.family))
 
 
 def determinism(victim: Any, proposals: str, kitti: KittiDataset, frame_id: str, gt: Labels,
