@@ -1,10 +1,12 @@
-"""Shared fixtures. Real KITTI samples are read from ``../shared/kitti_samples`` (beside the
-repository) or from ``$ROBUSTBENCH3D_KITTI_SAMPLES``; tests needing them skip with a message when
-they are absent. They are never copied into this repository (CC BY-NC-SA data)."""
+"""Shared fixtures, and ``tests/helpers`` on ``sys.path``: the helper modules are imported by their basename
+(``from cell_builders import hand_provenance``) from every area folder. Real KITTI samples are read from
+``../shared/kitti_samples`` (beside the repository) or from ``$ROBUSTBENCH3D_KITTI_SAMPLES``; tests needing
+them skip with a message when they are absent. They are never copied into this repository (CC BY-NC-SA data)."""
 
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +15,9 @@ import pytest
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 REPO = Path(__file__).resolve().parents[1]
+HELPERS = Path(__file__).resolve().parent / "helpers"
+if str(HELPERS) not in sys.path:
+    sys.path.insert(0, str(HELPERS))
 
 
 def _samples_dir() -> Path:

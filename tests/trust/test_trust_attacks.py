@@ -28,7 +28,7 @@ from robustbench3d.errors import DataFormatError
 from robustbench3d.sensors.mesh import icosphere
 from robustbench3d.testing import synth_dataset
 
-OBJECTS = Path(__file__).resolve().parents[1] / "attacks" / "objects"
+OBJECTS = Path(__file__).resolve().parents[2] / "attacks" / "objects"
 
 
 @pytest.fixture(scope="module")

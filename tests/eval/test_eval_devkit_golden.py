@@ -14,7 +14,7 @@ from eval_fixture_generator import load_generator
 
 from robustbench3d.eval.kitti_eval import evaluate_dirs
 
-FIXTURES = Path(__file__).parent / "fixtures" / "eval"
+FIXTURES = Path(__file__).parents[1] / "fixtures" / "eval"
 GOLDEN = json.loads((FIXTURES / "devkit_golden.json").read_text())
 TOLERANCE = 1e-3  # AP points; the devkit prints 6 decimals of a float32 sum
 CLASSES = ("Car", "Pedestrian", "Cyclist")

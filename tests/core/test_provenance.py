@@ -15,7 +15,7 @@ from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_
 from robustbench3d.errors import DataFormatError
 from robustbench3d.provenance import SplitDigest, git_info, library_versions, weight_files
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 LABELS = {
     "000003": "Car 0.00 0 -1.58 559.52 190.40 611.52 239.22 1.52 1.64 3.80 -0.89 2.12 24.24 -1.62\n",
     "000007": "",  # a frame without objects

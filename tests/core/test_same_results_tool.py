@@ -7,7 +7,7 @@ import importlib.util
 import json
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location("same_results", REPO / "tools" / "same_results.py")
 assert _spec is not None and _spec.loader is not None
 same_results = importlib.util.module_from_spec(_spec)

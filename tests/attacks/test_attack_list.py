@@ -8,7 +8,7 @@ from pathlib import Path
 from robustbench3d.attack_list import factory_parameters
 from robustbench3d.cli import main
 
-MANIFEST = Path(__file__).resolve().parents[1] / "attacks" / "objects" / "manifest.json"
+MANIFEST = Path(__file__).resolve().parents[2] / "attacks" / "objects" / "manifest.json"
 
 
 def test_factory_parameters_by_hand():

@@ -11,7 +11,7 @@ from robustbench3d.results import CSV_COLUMNS
 from robustbench3d.testing import synth_dataset
 from robustbench3d.victims.spec import VictimSpec
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+README = Path(__file__).resolve().parents[2] / "README.md"
 
 
 def section_code(heading: str, lang: str = "python") -> str:

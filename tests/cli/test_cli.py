@@ -8,7 +8,7 @@ from pathlib import Path
 
 from robustbench3d.cli import main
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 HEAVY = ("torch", "onnxruntime", "onnx", "numpy", "PIL", "trimesh", "embreex", "scipy")
 
 

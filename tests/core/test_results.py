@@ -26,7 +26,7 @@ from robustbench3d.results import (
     write_validated,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SHA = "ab" * 32
 
 

@@ -3,13 +3,12 @@ checked against the full evaluator on literally resampled frame lists; schema, t
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from cell_builders import hand_cell
+from eval_fixture_generator import load_generator
 
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.eval.bootstrap import resample_weights
@@ -23,11 +22,7 @@ from robustbench3d.runner.table import summary_table
 from robustbench3d.seed_table import seed_table_text
 
 SHA = "a" * 64
-_spec = importlib.util.spec_from_file_location("eval_fixture_generate_rb", Path(__file__).parent / "fixtures" / "eval"
-                                               / "generate.py")
-GEN = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = GEN
-_spec.loader.exec_module(GEN)
+GEN = load_generator()
 
 
 def _cell(attack: str, metrics: dict, fingerprint: str) -> dict:

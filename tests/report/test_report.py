@@ -21,7 +21,7 @@ from robustbench3d.report import data as rdata
 from robustbench3d.report.page import SectionView, html_page, markdown
 from robustbench3d.testing import synth_dataset
 
-ARTIFACTS = Path(__file__).resolve().parent.parent / ".pytest-artifacts"
+ARTIFACTS = Path(__file__).resolve().parents[2] / ".pytest-artifacts"
 needs_plugin = pytest.mark.skipif(
     importlib.util.find_spec("rb3d_lidar_cluster") is None,
     reason="example plugin not installed: pip install -c constraints.txt -e examples/lidar_cluster_victim",

@@ -23,7 +23,7 @@ from cell_builders import hand_provenance
 from robustbench3d.cli import main
 from robustbench3d.results import validate_summary
 
-ARTIFACTS = Path(__file__).resolve().parent.parent / ".pytest-artifacts"
+ARTIFACTS = Path(__file__).resolve().parents[2] / ".pytest-artifacts"
 DIFFS = ("easy", "moderate", "hard")
 RECALLS = ("R40", "R11")
 ATTACKS = ("none", "benign-sphere", "random-shape", "adv-shape", "adv-texture", "adv-object")

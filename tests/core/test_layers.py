@@ -23,7 +23,7 @@ except ModuleNotFoundError:  # Python 3.10: the dev extra installs tomli
     import tomli as tomllib
 pytest.importorskip("importlinter", reason="import-linter is in the dev extra")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location("lint_imports", REPO / "tools" / "lint_imports.py")
 assert _spec is not None and _spec.loader is not None
 lint_imports = importlib.util.module_from_spec(_spec)

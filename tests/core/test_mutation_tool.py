@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location("mutation_tool", REPO / "tools" / "mutation.py")
 assert _spec is not None and _spec.loader is not None
 mutation = importlib.util.module_from_spec(_spec)

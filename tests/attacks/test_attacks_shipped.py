@@ -41,7 +41,7 @@ from robustbench3d.attacks.shipped import (
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.registry import Registry
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 MODES = ("adv-shape", "adv-texture", "adv-object")
 
 pytestmark = pytest.mark.usefixtures("cache")  # a fresh cache per test (conftest)

@@ -369,7 +369,7 @@ def test_templates_are_package_data_and_jinja2_tabulate_dependencies():
         import tomli as tomllib
     from fnmatch import fnmatch
 
-    repo = Path(__file__).resolve().parent.parent
+    repo = Path(__file__).resolve().parents[2]
     data = tomllib.loads((repo / "pyproject.toml").read_text(encoding="utf-8"))
     globs = data["tool"]["setuptools"]["package-data"]["robustbench3d.report"]
     templates = repo / "robustbench3d" / "report" / "templates"

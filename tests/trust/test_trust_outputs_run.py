@@ -26,7 +26,7 @@ from robustbench3d.cli import main
 from robustbench3d.kitti import write_split
 from robustbench3d.testing import synth_dataset, write_kitti_frame
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 needs_plugin = pytest.mark.skipif(
     importlib.util.find_spec("rb3d_lidar_cluster") is None,
     reason="example plugin not installed: pip install -c constraints.txt -e examples/lidar_cluster_victim",

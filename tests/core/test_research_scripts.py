@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-RESEARCH = Path(__file__).resolve().parents[1] / "research"
+RESEARCH = Path(__file__).resolve().parents[2] / "research"
 PY_SCRIPTS = sorted(RESEARCH.glob("*.py"))
 SH_SCRIPTS = sorted(RESEARCH.glob("*.sh"))
 

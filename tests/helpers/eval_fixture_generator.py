@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
-GENERATE = Path(__file__).parent / "fixtures" / "eval" / "generate.py"
+GENERATE = Path(__file__).parents[1] / "fixtures" / "eval" / "generate.py"
 MODULE = "eval_fixture_generate"
 
 

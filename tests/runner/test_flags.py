@@ -41,7 +41,7 @@ from robustbench3d.testing import write_kitti_frame
 from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
 
-OBJECTS = Path(__file__).resolve().parents[1] / "attacks" / "objects"
+OBJECTS = Path(__file__).resolve().parents[2] / "attacks" / "objects"
 SHA = "ab" * 32
 
 

@@ -28,7 +28,7 @@ from robustbench3d.metrics import (
 )
 from robustbench3d.results import AP_COLUMNS, CSV_COLUMNS, APResult, CellResult, long_csv_text, long_rows
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: Read as a plain file, not through robustbench3d.results.load_schema.
 SCHEMA_FILE = Path(robustbench3d.__file__).parent / "schemas" / "summary.schema.json"
 SHA = "cd" * 32

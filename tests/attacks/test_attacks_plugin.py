@@ -30,7 +30,7 @@ try:
 except ModuleNotFoundError:  # Python 3.10: the dev extra installs tomli
     import tomli as tomllib
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "lidar_dropout_attack"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "lidar_dropout_attack"
 INSTALL = "pip install -c constraints.txt -e examples/lidar_dropout_attack"
 installed = pytest.mark.skipif(importlib.util.find_spec("rb3d_lidar_dropout") is None,
                                reason=f"example attack plugin not installed: {INSTALL}")

@@ -29,7 +29,7 @@ from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.onnx.registration import user_registry_file
 from robustbench3d.victims.shipped import weights_dir
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 BOM = "file starts with a UTF-8 byte-order mark; save it without BOM"
 LABEL = "Car 0.00 0 -1.58 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59\n"
 

@@ -31,7 +31,7 @@ from robustbench3d.synth.frame import generate_frame
 from robustbench3d.synth.writer import frame_complete, frame_id, in_val, write_frame
 
 VICTIM = "fpointnet-v1-lite"
-REFERENCE = Path(__file__).resolve().parent / "fixtures" / "shipped_accuracy.json"
+REFERENCE = Path(__file__).resolve().parents[1] / "fixtures" / "shipped_accuracy.json"
 #: Per case: frames 0..N-1 considered (only their val frames, about half, are generated), proposal
 #: sources, and the run seeds the spread is measured over.
 CASES: dict[str, tuple[int, tuple[str, ...], tuple[int, ...]]] = {
