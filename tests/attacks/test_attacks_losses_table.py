@@ -1,6 +1,6 @@
 """The trainer looks its image loss up in ``attacks.losses.IMAGE_LOSSES`` by name: a registered loss is what it
 computes, on the candidate set the loss declares, and ``mean`` and ``sum`` are the hand values on the victim's
-candidates (the table itself: ``tests/test_attacks_losses.py``)."""
+candidates (the table itself: ``tests/attacks/test_attacks_losses.py``)."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 
 The reference is the per-resample loop (``_Curve.samples`` / ``FrameBootstrap._resampled_per_resample``,
 the accumulation as it was before the vectorisation), whose APs the evaluator on literal resampled frame
-lists checks (tests/test_eval_bootstrap.py). Equality here is exact: ``tobytes`` of the float64 arrays
+lists checks (tests/eval/test_eval_bootstrap.py). Equality here is exact: ``tobytes`` of the float64 arrays
 (so -0.0 differs from 0.0), on the evaluator's stress sets, hand-made frames (a class without
 detections, a frame without GT, frames drawn zero times) and event tables made up to reach every
 segment length of the similarity sums (1 to beyond 2048 events, and tables of at most three events).

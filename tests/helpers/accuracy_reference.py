@@ -1,10 +1,10 @@
 """Reference accuracy of the shipped cascade on the first frames of the embedded dataset.
 
-Used by ``tests/test_shipped_accuracy.py``; run as a script it (re)measures the references the
+Used by ``tests/victims/test_shipped_accuracy.py``; run as a script it (re)measures the references the
 tests compare with and writes ``tests/fixtures/shipped_accuracy.json``::
 
-    OMP_NUM_THREADS=1 python tests/accuracy_reference.py fast  # frames 0..35 (19 val), GT proposals, 10 seeds (~1 min)
-    OMP_NUM_THREADS=1 python tests/accuracy_reference.py slow  # frames 0..159 (85 val), both sources, 5 seeds (~10 min)
+    OMP_NUM_THREADS=1 python tests/helpers/accuracy_reference.py fast  # frames 0..35 (19 val), GT, 10 seeds (~1 min)
+    OMP_NUM_THREADS=1 python tests/helpers/accuracy_reference.py slow  # frames 0..159 (85 val), both, 5 seeds (~10 min)
 
 Frames 0..N-1 are generated with the embedded dataset's parameters (frame i and its split are pure
 functions of (seed, i), so their val frames are val frames of the embedded dataset, never trained
@@ -105,7 +105,7 @@ def main(argv: list[str]) -> int:
     doc.update({"victim": VICTIM, "weights_sha256": weights.sha256, "k_sigma": K_SIGMA})
     for case in cases:
         with tempfile.TemporaryDirectory() as tmp:
-            doc[case] = {"command": f"OMP_NUM_THREADS=1 python tests/accuracy_reference.py {case}",
+            doc[case] = {"command": f"OMP_NUM_THREADS=1 python tests/helpers/accuracy_reference.py {case}",
                          **record(case, Path(tmp))}
     REFERENCE.parent.mkdir(parents=True, exist_ok=True)
     REFERENCE.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")

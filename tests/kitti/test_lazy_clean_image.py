@@ -53,7 +53,7 @@ def test_lazy_frame_has_the_eager_frame_and_decodes_once_on_first_read(kitti, mo
     frame = kitti.lazy_frame("000000", eager.labels)
     assert isinstance(frame, FileImageFrame) and calls == []
     # a victim reaches nothing but the frame's data through it: the decoder holds the file's bytes (no
-    # path; tests/test_trust_integrity.py walks everything reachable), the other fields hold no string but the id
+    # path; tests/trust/test_trust_integrity.py walks everything reachable), the other fields hold no string but the id
     assert isinstance(frame.make_image, EncodedImage)
     assert frame.make_image.data == kitti.path("image", "000000").read_bytes()
     assert not any(isinstance(v, str | Path) for v in vars(frame.make_image).values())

@@ -184,7 +184,7 @@ def test_the_same_cells_twice_count_once_and_conflicting_twins_are_refused(tiny_
     twin = _copy_run(tiny_run, tmp_path / "twin", lambda c: None)
     secs = rdata.sections(rdata.read_runs([tiny_run, twin]))
     assert len(secs) == 1 and [c.run for c in secs[0].cells] == [tiny_run] * 6
-    # each twin is recorded, the kept cell and the one left out (tests/test_report_table1.py: the notes)
+    # each twin is recorded, the kept cell and the one left out (tests/report/test_report_table1.py: the notes)
     assert [(m.kept.run, m.dropped.run, m.kept.index, m.dropped.index, m.same_results) for m in secs[0].merged] \
         == [(tiny_run, twin, i, i, True) for i in range(6)]
 
@@ -224,7 +224,7 @@ def test_flags_and_confidence_intervals_are_shown_when_present(tiny_run, tmp_pat
     assert 'data-t40="[1.25, 17.50]" data-t11="[2.00, 3.00]"' in page
     assert 'data-t40="[-0.50, 4.00]" data-t11="–"' in page
     md = markdown(views, "t", [str(run)], [], "figures")
-    # the message's <by> as entities: shown as written, never a tag (tests/test_report_trust.py renders it)
+    # the message's <by> as entities: shown as written, never a tag (tests/report/test_report_trust.py renders it)
     assert "attack-raises-ap: AP rose &lt;by&gt; 2 points" in md and "[1.25, 17.50]" in md and "[-0.50, 4.00]" in md
 
 

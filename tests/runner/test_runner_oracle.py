@@ -1,6 +1,6 @@
 """A test-only oracle victim (ground-truth boxes as detections) through the whole runner path
 must score AP 100, as the evaluator does for GT against GT. The harness never hands a victim
-labels (see tests/test_trust_integrity.py), so the oracle is given the label directory by the
+labels (see tests/trust/test_trust_integrity.py), so the oracle is given the label directory by the
 test, openly, as a factory argument."""
 
 from __future__ import annotations

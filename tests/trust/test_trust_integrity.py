@@ -468,7 +468,7 @@ def test_summary_lists_every_comparable_finished_cell_of_the_directory(dataset, 
     assert {r["proposals"] for r in rows} == {"detector", "gt"} and len(rows) == 2 * 4 * 2 * 3
 
     # another seed is another experiment: the earlier gt cell stays on disk but is left out, and said so
-    # (the detector cell of seed 0 is replaced: --force, see tests/test_trust_outputs_run.py)
+    # (the detector cell of seed 0 is replaced: --force, see tests/trust/test_trust_outputs_run.py)
     assert main(["run", "--victims", SNOOP, "--proposals", "detector", "--seed", "1", "--data", str(dataset),
                  "--out", str(out), "--no-progress", "--force"]) == 0
     captured = capsys.readouterr()

@@ -4,7 +4,7 @@ The first frames of the embedded dataset are regenerated (only their val frames:
 split are pure functions of (seed, i), so these are val frames of the embedded dataset, never
 trained on) and ``fpointnet-v1-lite`` is scored on them at run seed 0. Its 3D and BEV AP (R40,
 moderate and hard) must lie within ``K_SIGMA`` standard deviations of the references that
-``tests/accuracy_reference.py`` measured on the same frames over several run seeds (the seed draws
+``tests/helpers/accuracy_reference.py`` measured on the same frames over several run seeds (the seed draws
 the frustum resampling and object-point gather: the spread a legitimate change of the random
 streams may move the AP by). Two-sided: a gain is as suspicious as a loss. The default run checks
 the 19 val frames among frames 0..35 with GT proposals (10 seeds measured); the slow gate the 85
