@@ -24,7 +24,6 @@ from robustbench3d.attacks.train_run import checkpoint_path, data_identity, trai
 from robustbench3d.cli import main
 from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
 from robustbench3d.testing import synth_dataset
-from robustbench3d.victims import create_victim
 from robustbench3d.victims.cascade import FPointNetCascade
 
 FAST = {"batch_cars": 4, "occlusion": "none", "supersample": 1}
@@ -47,8 +46,8 @@ def split(dataset) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def victim() -> FPointNetCascade:
-    return create_victim("fpointnet-v1-lite")
+def victim(lite_victim) -> FPointNetCascade:
+    return lite_victim  # the session's shared one (conftest): read only
 
 
 def train(victim, dataset, out: Path, max_frames: int | None = None, log=None, **kw):

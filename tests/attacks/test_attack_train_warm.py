@@ -47,10 +47,8 @@ def dataset(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def victim():
-    from robustbench3d.victims import create_victim
-
-    return create_victim("fpointnet-v1-lite")
+def victim(lite_victim):
+    return lite_victim  # the session's shared one (conftest): read only
 
 
 def _files(cache: Path) -> dict[str, bytes]:

@@ -45,20 +45,17 @@ def test_train_config_takes_a_registered_name(table):
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def data(shared_split):
     from robustbench3d.datasets import load_ground_truth, resolve_dataset
-    from robustbench3d.testing import synth_dataset
 
-    root = synth_dataset(tmp_path_factory.mktemp("synth"), 4, seed=0, val_fraction=0.5)
+    root = shared_split(4, seed=0, val_fraction=0.5)
     resolved = resolve_dataset(root, "train", progress=False)
     return resolved, load_ground_truth(resolved)
 
 
 @pytest.fixture(scope="module")
-def victim():
-    from robustbench3d.victims import create_victim
-
-    return create_victim("fpointnet-v1-lite")
+def victim(lite_victim):
+    return lite_victim  # the session's shared one (conftest): read only
 
 
 def _image_term(victim, data, image_loss: str) -> tuple[torch.Tensor, torch.Tensor, list[int]]:

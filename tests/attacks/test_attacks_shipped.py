@@ -89,13 +89,12 @@ def _without_checkpoint(config: dict[str, Any]) -> dict[str, Any]:
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory) -> tuple[Path, Path]:
+def trained(tmp_path_factory, shared_split) -> tuple[Path, Path]:
     """(object file, dataset) of a one-step ``attack train adv-object`` run on one generated frame."""
     from robustbench3d.cli import main
-    from robustbench3d.testing import synth_dataset
 
     root = tmp_path_factory.mktemp("trained")
-    dataset = synth_dataset(root / "synth", 2, seed=0, val_fraction=0.5)
+    dataset = shared_split(2, seed=0, val_fraction=0.5)
     out = root / "trained-object.ply"
     code = main(["attack", "train", "adv-object", "--victim", "fpointnet-v1-lite", "--victim-arg", "seed=0",
                  "--data", str(dataset), "--out", str(out), "--steps", "1", "--batch-cars", "1", "--seed", "2",

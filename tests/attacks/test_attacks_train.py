@@ -19,8 +19,6 @@ from robustbench3d.attacks.train_config import TrainConfig, TrainingError
 from robustbench3d.attacks.train_run import checkpoint_path, data_identity, train_universal
 from robustbench3d.cli import main
 from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
-from robustbench3d.testing import synth_dataset
-from robustbench3d.victims import create_victim
 from robustbench3d.victims.cascade import FPointNetCascade
 
 FAST = {"batch_cars": 4, "occlusion": "none", "supersample": 1}
@@ -30,9 +28,9 @@ pytestmark = pytest.mark.usefixtures("cache")  # a fresh cache per test (conftes
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
+def dataset(shared_split) -> Path:
     """Generated frames 0-3; train: 1 and 2 (25 cars)."""
-    return synth_dataset(tmp_path_factory.mktemp("synth"), 4, seed=0, val_fraction=0.5)
+    return shared_split(4, seed=0, val_fraction=0.5)
 
 
 @pytest.fixture(scope="module")
@@ -43,8 +41,8 @@ def data(dataset):
 
 
 @pytest.fixture(scope="module")
-def victim() -> FPointNetCascade:
-    return create_victim("fpointnet-v1-lite")
+def victim(lite_victim) -> FPointNetCascade:
+    return lite_victim  # the session's shared one (conftest): read only
 
 
 def train(victim, data, out: Path, **kw):

@@ -263,10 +263,8 @@ _register()
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    from robustbench3d.testing import synth_dataset
-
-    return synth_dataset(tmp_path_factory.mktemp("synth"), FRAMES, seed=5, val_fraction=1.0)
+def dataset(shared_split) -> Path:
+    return shared_split(FRAMES, seed=5, val_fraction=1.0)
 
 
 def label_rows(dataset: Path, frame_id: str) -> list[list[str]]:

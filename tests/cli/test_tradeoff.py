@@ -17,7 +17,6 @@ from robustbench3d.cli import main
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.eval.kitti_eval import evaluate
 from robustbench3d.kitti.labels import parse_labels
-from robustbench3d.testing import synth_dataset
 from robustbench3d.tradeoff.analysis import Scorer, pareto_front, score
 from robustbench3d.tradeoff.measure import CellMeasure
 from robustbench3d.tradeoff.output import read_doc
@@ -147,9 +146,9 @@ def test_scores_equal_the_evaluator_on_the_same_detections():
 # ------------------------------------------------------------------------------ a tiny real run, end to end
 
 @pytest.fixture(scope="module")
-def tiny_tradeoff(tmp_path_factory) -> tuple[Path, Path]:
+def tiny_tradeoff(tmp_path_factory, shared_split) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("tradeoff")
-    ds = synth_dataset(root / "ds", 3, seed=5, val_fraction=1.0)
+    ds = shared_split(3, seed=5, val_fraction=1.0)
     out = root / "out"
     assert main(["tradeoff", "--out", str(out), "--data", str(ds), "--frames", "3", "--attack", "random-shape",
                  "--sweeps", "frames,azimuth,backend", "--resamples", "50", "--no-progress"]) == 0

@@ -95,18 +95,14 @@ def iou_script() -> ModuleType:
 
 
 @pytest.fixture(scope="module")
-def victim():
-    from robustbench3d.victims import create_victim
-
-    return create_victim("fpointnet-v1-lite")
+def victim(lite_victim):
+    return lite_victim  # the session's shared one (conftest): read only
 
 
 @pytest.fixture(scope="module")
-def synth(tmp_path_factory) -> Path:
+def synth(shared_split) -> Path:
     """Generated frames 0-3; train: 1 and 2."""
-    from robustbench3d.testing import synth_dataset
-
-    return synth_dataset(tmp_path_factory.mktemp("synth"), 4, seed=0, val_fraction=0.5)
+    return shared_split(4, seed=0, val_fraction=0.5)
 
 
 def test_box_gradients_keeps_the_candidate_ious_differentiable(iou_script, victim, synth):

@@ -19,7 +19,6 @@ from robustbench3d.cli import main
 from robustbench3d.errors import RobustBenchError
 from robustbench3d.report import data as rdata
 from robustbench3d.report.page import SectionView, html_page, markdown
-from robustbench3d.testing import synth_dataset
 
 ARTIFACTS = Path(__file__).resolve().parents[2] / ".pytest-artifacts"
 needs_plugin = pytest.mark.skipif(
@@ -31,11 +30,11 @@ needs_plugin = pytest.mark.skipif(
 # ------------------------------------- a tiny real run (3 frames; 3 ok cells, 3 skipped: lidar-cluster has no gt)
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory) -> Path:
+def tiny_run(tmp_path_factory, shared_split) -> Path:
     if importlib.util.find_spec("rb3d_lidar_cluster") is None:
         pytest.skip("example plugin not installed: pip install -c constraints.txt -e examples/lidar_cluster_victim")
     root = tmp_path_factory.mktemp("report")
-    ds = synth_dataset(root / "ds", 3, seed=5, val_fraction=1.0)
+    ds = shared_split(3, seed=5, val_fraction=1.0)
     out = root / "run"
     assert main(["run", "--victims", "lidar-cluster", "--attacks", "none,random-shape,benign-sphere",
                  "--proposals", "detector,gt", "--data", str(ds), "--out", str(out), "--no-progress",

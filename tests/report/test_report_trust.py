@@ -15,7 +15,6 @@ from pathlib import Path
 import pytest
 
 from robustbench3d.cli import main
-from robustbench3d.testing import synth_dataset
 
 pytestmark = pytest.mark.skipif(
     importlib.util.find_spec("rb3d_lidar_cluster") is None,
@@ -27,12 +26,13 @@ FRAME_DIRS = ("label_2", "velodyne", "image_2", "calib")
 
 
 @pytest.fixture(scope="module")
-def partial(tmp_path_factory) -> tuple[Path, Path, list[str]]:
+def partial(tmp_path_factory, shared_split) -> tuple[Path, Path, list[str]]:
     """A 3-frame ``--max-frames`` run of a 6-frame split whose last 3 frames' files were then deleted (as in
     the embedded dataset's cache, generated only for the frames a run evaluates): (dataset, run, split ids).
     ``dataset.parent / "whole"`` is a copy of the dataset with every frame."""
     root = tmp_path_factory.mktemp("partial")
-    ds = synth_dataset(root / "ds", SPLIT_FRAMES, seed=5, val_fraction=1.0)
+    ds = root / "ds"
+    shutil.copytree(shared_split(SPLIT_FRAMES, seed=5, val_fraction=1.0), ds)  # its own copy: frames go below
     run = root / "run"
     assert main(["run", "--victims", "lidar-cluster", "--attacks", "none,random-shape,benign-sphere",
                  "--proposals", "detector", "--data", str(ds), "--out", str(run), "--max-frames", str(EVALUATED),
@@ -253,8 +253,8 @@ def _rendered(md: str) -> tuple[str, str]:
 
 
 @pytest.mark.filterwarnings("ignore:No artists with labels:UserWarning")  # a one-sweep figure
-def test_tradeoff_strings_are_inert_in_markdown_and_html(tmp_path):
-    ds = synth_dataset(tmp_path / "ds", 2, seed=5, val_fraction=1.0)
+def test_tradeoff_strings_are_inert_in_markdown_and_html(tmp_path, shared_split):
+    ds = shared_split(2, seed=5, val_fraction=1.0)
     trade = tmp_path / "trade"
     assert main(["tradeoff", "--out", str(trade), "--data", str(ds), "--frames", "2", "--attack", "random-shape",
                  "--victim", "lidar-cluster", "--sweeps", "frames", "--resamples", "20", "--no-progress"]) == 0

@@ -20,7 +20,6 @@ from robustbench3d.results import read_summary
 from robustbench3d.runner import RunConfig, run_benchmark
 from robustbench3d.runner.executors import LocalExecutor, RayExecutor, make_executor
 from robustbench3d.runner.shards import shard_ranges, worker_setup
-from robustbench3d.testing import synth_dataset
 from robustbench3d.victims import VICTIMS, create_victim
 from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
 
@@ -35,9 +34,9 @@ TIMINGS = ("started", "finished", "seconds", "cpu_seconds", "peak_rss_mb", "exec
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
+def dataset(shared_split) -> Path:
     """Six generated frames, all in the val split."""
-    return synth_dataset(tmp_path_factory.mktemp("synth"), FRAMES, seed=5, val_fraction=1.0)
+    return shared_split(FRAMES, seed=5, val_fraction=1.0)
 
 
 @pytest.fixture

@@ -17,7 +17,6 @@ import pytest
 
 from robustbench3d.cli import main
 from robustbench3d.runner import RunConfig
-from robustbench3d.testing import synth_dataset
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -31,9 +30,9 @@ QUIET = ["--jobs", "1", "--no-progress"]
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
+def dataset(shared_split) -> Path:
     """Three generated frames, all in the val split."""
-    return synth_dataset(tmp_path_factory.mktemp("synth"), 3, seed=5, val_fraction=1.0)
+    return shared_split(3, seed=5, val_fraction=1.0)
 
 
 def print_config(capsys, *argv: str) -> str:

@@ -24,16 +24,15 @@ from robustbench3d.cli import main
 from robustbench3d.logs import LineLog, cli_logging
 from robustbench3d.runner.table import fold_table, summary_table
 from robustbench3d.seed_table import seed_table_text
-from robustbench3d.testing import synth_dataset
 
 VICTIM = "fpointnet-v1-lite"
 NUMBER = re.compile(r"[-+]?\d+\.\d+")
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
+def dataset(shared_split) -> Path:
     """Three generated frames, all in the val split."""
-    return synth_dataset(tmp_path_factory.mktemp("synth"), 3, seed=5, val_fraction=1.0)
+    return shared_split(3, seed=5, val_fraction=1.0)
 
 
 def argv(dataset: Path, out: Path, *extra: str) -> list[str]:

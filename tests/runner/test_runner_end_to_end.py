@@ -25,7 +25,6 @@ from robustbench3d.eval import evaluate_dirs
 from robustbench3d.kitti import read_split
 from robustbench3d.results import load_schema, read_summary
 from robustbench3d.runner import RunConfig, run_benchmark
-from robustbench3d.testing import synth_dataset
 from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
 
@@ -39,9 +38,9 @@ CELL = "lidar-cluster+none+detector"
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
+def dataset(shared_split) -> Path:
     """Four generated frames, all in the val split."""
-    return synth_dataset(tmp_path_factory.mktemp("synth"), FRAMES, seed=5, val_fraction=1.0)
+    return shared_split(FRAMES, seed=5, val_fraction=1.0)
 
 
 def run_cli(dataset: Path, out: Path, *extra: str, victims: str = "lidar-cluster",

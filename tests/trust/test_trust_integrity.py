@@ -25,7 +25,6 @@ from robustbench3d.kitti.dataset import FileImageFrame, KittiDataset, LazyImageF
 from robustbench3d.kitti.labels import Labels
 from robustbench3d.results import read_summary
 from robustbench3d.runner import RunConfig, run_benchmark
-from robustbench3d.testing import synth_dataset
 from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.base import Proposals
 from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
@@ -156,9 +155,9 @@ VICTIMS.register("test-trust-nan", VictimSpec(factory=NanVictim, info=EntryInfo(
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
+def dataset(shared_split) -> Path:
     """Four generated frames, all in the val split (Cars, Vans, Pedestrians, DontCare ...)."""
-    return synth_dataset(tmp_path_factory.mktemp("synth"), FRAMES, seed=5, val_fraction=1.0)
+    return shared_split(FRAMES, seed=5, val_fraction=1.0)
 
 
 def label_rows(dataset: Path, frame_id: str) -> list[list[str]]:

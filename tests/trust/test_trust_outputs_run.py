@@ -24,7 +24,7 @@ from robustbench3d.attacks import ATTACKS, register_attack
 from robustbench3d.attacks.base import Attack
 from robustbench3d.cli import main
 from robustbench3d.kitti import write_split
-from robustbench3d.testing import synth_dataset, write_kitti_frame
+from robustbench3d.testing import write_kitti_frame
 
 REPO = Path(__file__).resolve().parents[2]
 needs_plugin = pytest.mark.skipif(
@@ -47,9 +47,9 @@ class NoopAttack(Attack):
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
+def dataset(shared_split) -> Path:
     """Four generated frames, all in the val split."""
-    return synth_dataset(tmp_path_factory.mktemp("synth"), 4, seed=5, val_fraction=1.0)
+    return shared_split(4, seed=5, val_fraction=1.0)
 
 
 def run_argv(dataset: Path, out: Path, *extra: str, attacks: str = "none") -> list[str]:

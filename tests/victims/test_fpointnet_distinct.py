@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from robustbench3d.datasets import resolve_dataset
-from robustbench3d.testing import synth_dataset
 from robustbench3d.victims.cascade import FPointNetCascade
 from robustbench3d.victims.fpointnet.distinct_stages import (
     COLUMN_BLOCK,
@@ -39,9 +38,9 @@ def victim(request: pytest.FixtureRequest) -> FPointNetCascade:
 
 
 @pytest.fixture(scope="module")
-def val_frames(tmp_path_factory: pytest.TempPathFactory) -> list:
+def val_frames(shared_split) -> list:
     """Three procedural frames (seed 0, all val: the embedded dataset's generator, never trained on)."""
-    root = synth_dataset(tmp_path_factory.mktemp("synth"), 3, seed=0, val_fraction=1.0)
+    root = shared_split(3, seed=0, val_fraction=1.0)
     kitti = resolve_dataset(root, "val", progress=False).kitti()
     return [kitti[i] for i in range(len(kitti))]
 

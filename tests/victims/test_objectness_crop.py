@@ -16,7 +16,6 @@ import torch
 from robustbench3d.attacks.base import target_cars
 from robustbench3d.attacks.losses import SUM_MIN_IOU, best_candidate_scores, image_target_losses
 from robustbench3d.kitti.dataset import KittiDataset
-from robustbench3d.testing import synth_dataset
 from robustbench3d.victims import create_victim
 from robustbench3d.victims.yolo.boxes import box_iou
 from robustbench3d.victims.yolo.detector import candidate_region, candidates_for_targets
@@ -29,15 +28,15 @@ FIELDS = ("objectness_logit", "class_logit", "boxes", "iou", "image_index", "tar
 
 
 @pytest.fixture(scope="module")
-def frames(tmp_path_factory):
-    root = synth_dataset(tmp_path_factory.mktemp("synth"), 2, seed=5, val_fraction=1.0)
+def frames(shared_split):
+    root = shared_split(2, seed=5, val_fraction=1.0)
     ds = KittiDataset(root, split="val")
     return [ds.frame(f) for f in ds.frame_ids]
 
 
 @pytest.fixture(scope="module")
-def victim():
-    v = create_victim("fpointnet-v1-lite")
+def victim(lite_victim):
+    v = lite_victim  # the session's shared one (conftest): read only
     assert v.yolo.cfg.layout == "mini3" and tuple(v.yolo.cfg.input_size) == (960, 288)
     return v
 

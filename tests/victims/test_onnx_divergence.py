@@ -8,7 +8,6 @@ import pytest
 
 from robustbench3d.kitti.dataset import Frame, KittiDataset
 from robustbench3d.kitti.labels import Labels
-from robustbench3d.victims import create_victim
 from robustbench3d.victims.fpointnet.box_coding import NUM_HEADING_BIN
 from robustbench3d.victims.fpointnet.frustum import box_mask, project_scan
 from robustbench3d.victims.fpointnet.model import TorchFrustumStages
@@ -25,15 +24,13 @@ TIE = 2e-4
 
 
 @pytest.fixture(scope="module")
-def victim():
-    return create_victim("fpointnet-v1-lite")
+def victim(lite_victim):
+    return lite_victim  # the session's shared one (conftest): read only
 
 
 @pytest.fixture(scope="module")
-def frame(tmp_path_factory) -> Frame:
-    from robustbench3d.testing import synth_dataset
-
-    root = synth_dataset(tmp_path_factory.mktemp("synth"), 2, seed=0)
+def frame(shared_split) -> Frame:
+    root = shared_split(2, seed=0, val_fraction=0.5)
     ds = KittiDataset(root, split=None)
     frames = [ds.frame(f) for f in ds.frame_ids]
     return max(frames, key=lambda f: int((f.labels.type == "Car").sum()))

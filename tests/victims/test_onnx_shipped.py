@@ -80,11 +80,9 @@ def test_shipped_export_is_reproduced_by_its_command(twin, tmp_path):
     assert [(s.name, s.file, s.sha256) for s in again.stages] == [(s.name, s.file, s.sha256) for s in manifest.stages]
 
 
-def test_shipped_export_matches_the_torch_victim(twin, tmp_path):
-    from robustbench3d.testing import synth_dataset
-
-    synth_dataset(tmp_path / "synth", 3, seed=0)
-    ds = KittiDataset(tmp_path / "synth", split=None)
+def test_shipped_export_matches_the_torch_victim(twin, shared_split):
+    # every frame, whatever the split: a frame's files depend on (seed, index) only, not on val_fraction
+    ds = KittiDataset(shared_split(3, seed=0, val_fraction=1.0), split=None)
     frames = [ds.frame(f) for f in ds.frame_ids]
     _, onnx_dir, torch_name = twin
     victim = create_victim(torch_name)

@@ -94,10 +94,8 @@ def frames(kitti_samples):
 
 
 @pytest.fixture(scope="module")
-def synth(tmp_path_factory) -> Path:
-    from robustbench3d.testing import synth_dataset
-
-    return synth_dataset(tmp_path_factory.mktemp("synth"), 4, seed=0)
+def synth(shared_split) -> Path:
+    return shared_split(4, seed=0, val_fraction=0.5)
 
 
 # ---- export and manifest -------------------------------------------------------------------

@@ -14,7 +14,6 @@ import torch
 
 from robustbench3d.kitti.dataset import Frame, KittiDataset
 from robustbench3d.kitti.labels import Labels
-from robustbench3d.victims import create_victim
 from robustbench3d.victims.base import PlacementRecord, Proposals, gt_proposals, victim_inputs
 from robustbench3d.victims.fpointnet.frustum import ProjectedScan, extract_frustum
 from robustbench3d.victims.onnx.parity import Tolerances, box_parity
@@ -188,20 +187,18 @@ def test_extract_frustum_adds_the_extra_rows_in_front_of_the_camera_once_in_scan
 
 # ---- the shipped lite cascade, torch and ONNX ----------------------------------------------------------
 @pytest.fixture(scope="module")
-def frames(tmp_path_factory) -> list[Frame]:
+def frames(shared_split) -> list[Frame]:
     """Three generated val frames, each scan with three rows appended: in front of the camera but left of
     the image (velodyne (10, 40, 0)), behind it ((-5, 0, 0)) and inside the clip distance ((1.5, 0, -1))."""
-    from robustbench3d.testing import synth_dataset
-
-    root = synth_dataset(tmp_path_factory.mktemp("synth") / "d", 3, seed=0, val_fraction=1.0)
+    root = shared_split(3, seed=0, val_fraction=1.0)
     ds = KittiDataset(root, split="val")
     added = np.array([[10, 40, 0, 0.5], [-5, 0, 0, 0.5], [1.5, 0, -1, 0.5]], dtype=np.float32)
     return [replace(f, scan=np.concatenate([f.scan, added])) for f in (ds.frame(i) for i in ds.frame_ids)]
 
 
 @pytest.fixture(scope="module")
-def lite():
-    return create_victim("fpointnet-v1-lite")
+def lite(lite_victim):
+    return lite_victim  # the session's shared one (conftest): read only
 
 
 @pytest.fixture(scope="module")
