@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from hand_losses import nl, sigmoid
 
 from robustbench3d.attacks.losses import (
     IMAGE_LOSSES,
@@ -21,10 +22,6 @@ from robustbench3d.attacks.losses import (
 )
 from robustbench3d.attacks.object import laplacian_smoothness, template_vertices
 from robustbench3d.victims.base import ObjectnessCandidates
-
-
-def sigmoid(x: float) -> float:
-    return 1.0 / (1.0 + math.exp(-x))
 
 
 def test_lidar_loss_hand_values():
@@ -148,20 +145,6 @@ def test_losses_edge_cases_from_mutation_testing():
 
 
 # ---- the image losses as a table (name -> function and candidate set) -------------------------------------
-
-
-def nl(a: float, b: float | None = None) -> float:
-    """-log(1 - o c) (-log(1 - o) without ``b``) in plain float64 arithmetic."""
-    return -math.log(1.0 - sigmoid(a) * (1.0 if b is None else sigmoid(b)))
-
-
-@pytest.fixture
-def table():
-    """IMAGE_LOSSES, restored to its entries after the test."""
-    saved = dict(IMAGE_LOSSES)
-    yield IMAGE_LOSSES
-    IMAGE_LOSSES.clear()
-    IMAGE_LOSSES.update(saved)
 
 
 def tiny() -> ObjectnessCandidates:

@@ -4,32 +4,13 @@ candidates (the table itself: ``tests/attacks/test_attacks_losses.py``)."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 import torch
+from hand_losses import nl
 
-from robustbench3d.attacks.losses import IMAGE_LOSSES, register_image_loss
+from robustbench3d.attacks.losses import register_image_loss
 from robustbench3d.victims.base import ObjectnessCandidates
-
-
-def sigmoid(x: float) -> float:
-    return 1.0 / (1.0 + math.exp(-x))
-
-
-def nl(a: float, b: float | None = None) -> float:
-    """-log(1 - o c) (-log(1 - o) without ``b``) in plain float64 arithmetic."""
-    return -math.log(1.0 - sigmoid(a) * (1.0 if b is None else sigmoid(b)))
-
-
-@pytest.fixture
-def table():
-    """IMAGE_LOSSES, restored to its entries after the test."""
-    saved = dict(IMAGE_LOSSES)
-    yield IMAGE_LOSSES
-    IMAGE_LOSSES.clear()
-    IMAGE_LOSSES.update(saved)
 
 
 def test_train_config_takes_a_registered_name(table):

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from eval_fixture_generator import load_generator
+from eval_fixture_generator import load_generator, set_labels
 
 from robustbench3d.eval.bootstrap import (
     FrameBootstrap,
@@ -40,14 +40,6 @@ SPECS = {
         "Car": 0.3, "Van": 0.1, "Pedestrian": 0.25, "Person_sitting": 0.05, "Cyclist": 0.2, "DontCare": 0.1}),
     "no_orientation": GEN.SetSpec(seed=404, frames=10, no_orientation=0.1, missing_results=0.3),
 }
-
-
-def _labels(spec) -> tuple[list[Labels], list[Labels]]:
-    ids, gt, dt = GEN.make_set(spec)
-    gts = [parse_labels("\n".join(gt[i]), Path(f"{i}.txt"), scored=False) for i in ids]
-    dts = [parse_labels("\n".join(dt[i]), Path(f"{i}.txt"), scored=True) if i in dt else Labels.empty(True)
-           for i in ids]
-    return gts, dts
 
 
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
@@ -85,7 +77,7 @@ def _assert_rows_equal_loop(prep: FrameBootstrap, w: np.ndarray) -> int:
 
 @pytest.mark.parametrize("name", sorted(SPECS))
 def test_vectorised_aps_equal_the_per_resample_loop_bit_for_bit(name: str) -> None:
-    gts, dts = _labels(SPECS[name])
+    gts, dts = set_labels(SPECS[name])
     prep = FrameBootstrap(gts, dts, classes=CLASSES)
     w = _weights(len(gts), 23, seed=11)
     want = prep._resampled_per_resample(w)
@@ -99,7 +91,7 @@ def test_vectorised_aps_equal_the_per_resample_loop_bit_for_bit(name: str) -> No
 
 @pytest.mark.parametrize("name", sorted(SPECS))
 def test_raw_precision_and_aos_samples_equal_the_loop(name: str) -> None:
-    gts, dts = _labels(SPECS[name])
+    gts, dts = set_labels(SPECS[name])
     prep = FrameBootstrap(gts, dts, classes=CLASSES)
     nonzero = _assert_rows_equal_loop(prep, _weights(len(gts), 17, seed=3))
     if prep._aos:

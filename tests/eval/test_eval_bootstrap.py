@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from eval_fixture_generator import load_generator
+from eval_fixture_generator import load_generator, set_labels
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -44,14 +44,6 @@ SPECS = {
 CLASSES = ("Car", "Pedestrian", "Cyclist")
 
 
-def _labels(spec) -> tuple[list[Labels], list[Labels]]:
-    ids, gt, dt = GEN.make_set(spec)
-    gts = [parse_labels("\n".join(gt[i]), Path(f"{i}.txt"), scored=False) for i in ids]
-    dts = [parse_labels("\n".join(dt[i]), Path(f"{i}.txt"), scored=True) if i in dt else Labels.empty(True)
-           for i in ids]
-    return gts, dts
-
-
 def _reference(gts: list[Labels], dts: list[Labels], w: np.ndarray, keys) -> dict:
     """The full evaluator on the resample's literal frame list."""
     frames = np.repeat(np.arange(len(gts)), w)
@@ -61,7 +53,7 @@ def _reference(gts: list[Labels], dts: list[Labels], w: np.ndarray, keys) -> dic
 
 @pytest.mark.parametrize("name", sorted(SPECS))
 def test_resampled_ap_equals_the_evaluator_on_the_resampled_frame_list(name: str) -> None:
-    gts, dts = _labels(SPECS[name])
+    gts, dts = set_labels(SPECS[name])
     prep = FrameBootstrap(gts, dts, classes=CLASSES)
     w = resample_weights(len(gts), 12, seed=7)
     w[0] = 0
@@ -80,7 +72,7 @@ def test_resampled_ap_equals_the_evaluator_on_the_resampled_frame_list(name: str
 
 
 def test_unit_weights_reproduce_the_full_evaluation() -> None:
-    gts, dts = _labels(SPECS["mixed"])
+    gts, dts = set_labels(SPECS["mixed"])
     prep = FrameBootstrap(gts, dts, classes=CLASSES)
     full = evaluate(gts, dts, classes=CLASSES)
     got = prep.resampled(np.ones((1, len(gts)), dtype=np.int64))
@@ -89,7 +81,7 @@ def test_unit_weights_reproduce_the_full_evaluation() -> None:
 
 
 def test_intervals_are_percentiles_of_the_reference_and_the_drop_is_paired() -> None:
-    gts, dts = _labels(SPECS["mixed"])
+    gts, dts = set_labels(SPECS["mixed"])
     rng = np.random.default_rng(3)
     worse = []
     for d in dts:  # an "attacked" set: a third of the detections removed, scores perturbed
@@ -116,7 +108,7 @@ def test_intervals_are_percentiles_of_the_reference_and_the_drop_is_paired() -> 
 
 
 def test_deterministic_with_an_explicit_seed() -> None:
-    gts, dts = _labels(SPECS["crowded"])
+    gts, dts = set_labels(SPECS["crowded"])
     prep = FrameBootstrap(gts, dts)
     a, b = ap_intervals(prep, 40, seed=1), ap_intervals(prep, 40, seed=1)
     c = ap_intervals(prep, 40, seed=2)
@@ -135,7 +127,7 @@ def test_threshold_positions_equal_the_devkit_walk(m: int, n_gt: int, decimals: 
 
 
 def test_bad_input_is_refused_clearly() -> None:
-    gts, dts = _labels(SPECS["crowded"])
+    gts, dts = set_labels(SPECS["crowded"])
     prep = FrameBootstrap(gts, dts)
     with pytest.raises(ValueError, match="weights must be"):
         prep.resampled(np.ones((2, len(gts) + 1)))
@@ -198,7 +190,7 @@ def test_dontcare_overlap_of_exactly_the_threshold_keeps_the_false_positive() ->
 
 def test_tables_classes_and_metrics_are_passed_on() -> None:
     """Tables work like per-frame labels, and only the requested classes and metrics get intervals."""
-    gts, dts = _labels(SPECS["multiclass"])
+    gts, dts = set_labels(SPECS["multiclass"])
     w = resample_weights(len(gts), 3, seed=2)
     by_table = FrameBootstrap(ObjectTable.from_labels(gts, scored=False), ObjectTable.from_labels(dts, scored=True),
                               classes=("Pedestrian",), metrics=("bev",))

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from cell_builders import hand_provenance
+from seed_cells import attacked, cell
 
 from robustbench3d.results import validate_summary
 from robustbench3d.seed_table import (
@@ -19,54 +19,12 @@ from robustbench3d.seed_table import (
     write_seed_table,
 )
 
-SHA = "ab" * 32
-DIFFS = ("easy", "moderate", "hard")
 LEGEND = ("clean R40 = the 'none' cell with the same proposals; rel. drop = (clean - attacked) / clean at "
           "moderate; ASR = Cars matched clean and missed attacked (moderate, BEV IoU 0.7); seed paper = its "
           "Table 1 (one clean row, beside both proposal sources), its rel. drop against its clean row")
 HEADER_MD = ("| row | proposals | BEV R40 (E M H) | BEV R11 (E M H) | clean R40 (E M H) | rel. drop M % (R40 R11) "
              "| ASR % | seed paper | paper BEV (E M H) | paper rel. drop M % |\n"
              "| --- | --- | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: |")
-
-
-def by_diff(values: tuple[float, ...]) -> dict[str, float]:
-    return dict(zip(DIFFS, values, strict=True))
-
-
-def cell(victim: str, attack: str, proposals: str, r40: tuple[float, ...] | None = None,
-         r11: tuple[float, ...] | None = None, frames: int = 12, status: str = "ok") -> dict:
-    """A schema-valid summary cell with Car BEV AP (percent); ``status`` other than ok has no metrics."""
-    metrics = None
-    if status == "ok":
-        metrics = {"Car": {"bev": {"R40": by_diff(r40), "R11": by_diff(r11)}},
-                   "meta": {"evaluator": "robustbench3d.eval", "version": "1", "ap_unit": "percent", "frames": frames,
-                            "classes": ["Car"], "metrics": ["bev"], "min_overlap": {"Car": {"bev": 0.7}}}}
-    return {
-        "schema_version": 1, "victim": victim, "attack": attack, "proposals": proposals, "status": status,
-        "reason": None if status == "ok" else "victim supports proposals detector only",
-        "dataset": {"root": "/d", "split": "val", "frames": frames, "split_frames": frames, "sha256": SHA,
-                    "embedded": None, "manifest": None},
-        "metrics": metrics,
-        "provenance": hand_provenance(victim, attack, proposals, SHA),
-    }
-
-
-def attacked(victim: str, attack: str, proposals: str, r40: tuple, r11: tuple, clean40: tuple, clean11: tuple,
-             drop40: tuple, drop11: tuple, rel40: tuple, rel11: tuple, matched: int, missed: int) -> dict:
-    """An attacked cell with its ``attack_effect`` written out by hand (clean AP, drop, relative drop, ASR)."""
-    c = cell(victim, attack, proposals, r40, r11)
-
-    def table(r40v: tuple, r11v: tuple) -> dict:
-        return {"Car": {"bev": {"R40": by_diff(r40v), "R11": by_diff(r11v)}}}
-
-    c["attack_effect"] = {
-        "clean_cell": f"{victim}+none+{proposals}", "clean_fingerprint": SHA,
-        "clean": table(clean40, clean11), "drop": table(drop40, drop11), "relative_drop": table(rel40, rel11),
-        "success": {"class": "Car", "metric": "bev", "iou": 0.7, "difficulty": "moderate", "score_threshold": 0.5,
-                    "clean_matched": matched, "attacked_missed": missed,
-                    "rate": missed / matched if matched else None},
-    }
-    return c
 
 
 # victim "fp": clean detector 80/64/50 (R11 81/66/52), clean gt 90/80/70 (R11 91/82/72)

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from kitti_files import label_rows
 
 from robustbench3d.attacks.roof import CameraRender, RoofObjectAttack
 from robustbench3d.cli import main
@@ -160,12 +161,6 @@ def dataset(shared_split) -> Path:
     return shared_split(FRAMES, seed=5, val_fraction=1.0)
 
 
-def label_rows(dataset: Path, frame_id: str) -> list[list[str]]:
-    """The label file's rows as tokens, read independently of the library."""
-    text = (dataset / "training" / "label_2" / f"{frame_id}.txt").read_text()
-    return [line.split() for line in text.splitlines() if line.strip()]
-
-
 def run(dataset: Path, out: Path, proposals: tuple[str, ...], victims: tuple[str, ...] = (SNOOP,),
         log: list[str] | None = None, attacks: tuple[str, ...] = ("none",), **kw: Any):
     config = RunConfig(victims=victims, attacks=attacks, proposals=proposals, out=out, data=dataset,
@@ -242,7 +237,7 @@ def test_frustum_protocols_hand_the_victim_boxes_and_object_rows_only(dataset, t
     """``gt-object`` and ``gt-append``, clean and attacked: no label, path, 3D box or object record reachable;
     the proposals hold boxes, scores, source, types and extra points only; the union boxes are the label file's
     GT box united with the default object's projected box (computed here from the label and calib files)."""
-    from test_frustum_protocols import nominal_boxes_from_files
+    from object_boxes import nominal_boxes_from_files
 
     from robustbench3d.attacks.record import ObjectRecord
 
