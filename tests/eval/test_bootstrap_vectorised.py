@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from eval_fixture_generator import load_generator, set_labels
+from eval_fixture_generator import load_generator
+from eval_sets import set_labels
 
 from robustbench3d.eval.bootstrap import (
     FrameBootstrap,

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from eval_fixture_generator import load_generator, set_labels
+from eval_fixture_generator import load_generator
+from eval_sets import set_labels
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
