@@ -192,7 +192,7 @@ class Adam:
     _single_tensor_adam`` without weight decay, amsgrad, maximize): ``step += 1`` (a float32 tensor),
     ``m.lerp_(g, 1 - b1)``, ``v.mul_(b2).addcmul_(g, g, value=1 - b2)``, then ``p.addcdiv_(m, (v.sqrt() /
     sqrt(1 - b2**t)).add_(eps), value=-lr / (1 - b1**t))`` with the scalars in Python floats.
-    tests/test_attack_train_warm.py compares it with torch.optim.Adam bit for bit over several steps.
+    tests/attacks/test_attack_train_warm.py compares it with torch.optim.Adam bit for bit over several steps.
     """
 
     def __init__(self, groups: list[dict[str, Any]]) -> None:

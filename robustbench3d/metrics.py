@@ -22,7 +22,7 @@ when the run draws intervals.
 (:func:`measure`), ``results.csv`` (:data:`robustbench3d.results.CSV_COLUMNS`, from ``column``),
 :meth:`robustbench3d.results.CellResult.effect_value` and the report's leaderboard (from ``report``) follow from
 the entry; its field must also be added to ``attack_effect`` in ``robustbench3d/schemas/summary.schema.json``
-(tests/test_metrics.py fails, naming that file, until it is).
+(tests/core/test_metrics.py fails, naming that file, until it is).
 
 :data:`HEADLINE` is the AP every one-number summary reads (the seed paper's: target class, BEV, R40, moderate);
 the attack success rate's matching criterion is its class, metric and difficulty.

@@ -3,7 +3,7 @@
 # scratch on the CPU: the embedded dataset, then one `attack train` run per object against the shipped
 # fpointnet-v1-lite cascade, then a benchmark run of the three reproduced objects on the val split.
 # The options of each `attack train` line must equal the `training.command` (and `training.config`) of
-# that object's entry in attacks/objects/manifest.json (tests/test_attacks_shipped.py checks the configs).
+# that object's entry in attacks/objects/manifest.json (tests/attacks/test_attacks_shipped.py checks the configs).
 # --eval-every 0: the first three objects were trained before attack train's held-out curve, on every frame of the
 # split and without evaluation. The same CPU type and thread counts give the same bytes; the script reports
 # whether each reproduced object equals the shipped one. Measured training times (2-core machine shared with

@@ -7,7 +7,8 @@ few thousand hits; in numpy each step costs tens of operations on small arrays, 
 Each kernel does exactly the arithmetic of the numpy code it replaces, in the same order and dtype (numba compiles
 without fast-math: no operation is reassociated or contracted; constants are cast to the arrays' dtype as numpy
 casts Python floats; exp, power and matrix products stay numpy's), so the results are the same bits;
-``tests/test_sensors_kernels.py``, ``tests/test_sensors_lidar_fast_paths.py`` and the camera tests compare each
+``tests/sensors/test_sensors_kernels.py``, ``tests/sensors/test_sensors_lidar_fast_paths.py`` and the camera tests
+compare each
 with its numpy reference (named in its docstring; it lives beside the Python code that calls the kernel). Compiled
 code does not check bounds: the Python wrappers check the indices they pass (pairs, owners, slots, faces, with
 :func:`checked_faces` and :func:`checked_index`). Kernels compile on first use and are cached (``cache=True``:

@@ -2,7 +2,7 @@
 :mod:`robustbench3d.sensors.array_kernels`).
 
 * :func:`face_cull` is the per-face part of :meth:`robustbench3d.sensors.camera_cull.FaceCull.of` (the numpy
-  reference is ``_face_cull_reference`` of ``tests/test_sensors_camera_render.py``); :func:`touching_faces` is
+  reference is ``_face_cull_reference`` of ``tests/sensors/test_sensors_camera_render.py``); :func:`touching_faces` is
   :meth:`~robustbench3d.sensors.camera_cull.FaceCull.touching` (``compiled=False``: its numpy code).
 * :func:`shade_exposure`, :func:`shade_tone` and :func:`shade_grads` are the per-hit arithmetic of the fused
   shading :class:`~robustbench3d.sensors.camera_shade.ShadeHits` (forward and backward).

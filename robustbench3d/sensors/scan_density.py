@@ -14,7 +14,8 @@ sectors the ego vehicle blocks. Which columns are kept depends on the pattern on
 Applied to an attacked scan (rendered object returns lie on the clean scan's rays, :mod:`robustbench3d.sensors.
 lidar_render`), it decimates object returns and scene alike. Points that cannot be matched to a ray (laser
 unknown, or no ray of their laser within 0.09 deg) are dropped for k > 1: no firing of the coarser sensor can
-be shown to have produced them. Generated scans, clean or attacked, have none (tests/test_sensors_scan_density.py);
+be shown to have produced them. Generated scans, clean or attacked, have none
+(tests/sensors/test_sensors_scan_density.py);
 :func:`point_columns` reports them as column -1.
 """
 

@@ -9,7 +9,7 @@ per distinct point (rows compared as bytes), all frustums of a call side by side
 convolution, takes each frustum's max over its own columns and scatters the per-point logits back.
 
 Bit-identity with :class:`~robustbench3d.victims.fpointnet.model.TorchFrustumStages` (one intra-op thread,
-the runner's setting, tests/test_fpointnet_distinct.py on the shipped weights over val frames) rests on two
+the runner's setting, tests/victims/test_fpointnet_distinct.py on the shipped weights over val frames) rests on two
 measured properties of the CPU convolution kernel, each checked by a test: a point's 1x1-convolution result
 does not depend on its column or on the number of columns when that number is a multiple of
 :data:`COLUMN_BLOCK` (the kernel treats a ragged last block of columns differently, so the columns are padded),

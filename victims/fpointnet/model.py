@@ -228,7 +228,7 @@ class FrustumPointNetV1(nn.Module):
     def set_layout(self, layout: Layout) -> FrustumPointNetV1:
         """Run the per-point layers as 1x1 convolutions on (B, C, N) (``"conv"``, the default and the
         ONNX export's) or as ``Linear`` on (B·N, C) rows (``"rows"``, faster to train). Same
-        parameters, same state dict, same outputs to float tolerance (tests/test_fpointnet_fast.py)."""
+        parameters, same state dict, same outputs to float tolerance (tests/victims/test_fpointnet_fast.py)."""
         if layout not in ("conv", "rows"):
             raise ValueError(f"unknown layout {layout!r} (expected 'conv' or 'rows')")
         for net in (self.seg, self.tnet, self.box):

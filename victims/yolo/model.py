@@ -14,7 +14,7 @@ input that gives the cells needed downstream (the needs are propagated back thro
 halves them, routes and shortcuts unite them); later layers read only its outputs whose inputs were all real
 values of that slice or the true border padding of the whole input, and each convolution runs with the
 kernel the whole input gets (:func:`_run_block`), so they are the values of the whole forward, bit for bit
-(tests/test_objectness_crop.py). In mini3 a stride-32 cell reads input px -127..+158 from its corner on each
+(tests/victims/test_objectness_crop.py). In mini3 a stride-32 cell reads input px -127..+158 from its corner on each
 axis (286 px), a stride-16 cell -47..+62 (110 px), a stride-8 cell at most -47..+54 (102 px).
 """
 
@@ -56,7 +56,7 @@ class _MaxPoolSame(nn.Module):
 class _MaxPoolStrided(nn.MaxPool2d):
     """``nn.MaxPool2d``; under ``torch.inference_mode`` a 2x2, stride-2 pool runs as the elementwise maximum
     of its four strided slices: the same maxima (3-6x faster on one core than the pooling kernel on the
-    B x C x H x W layout; tests/test_yolo_pool.py). With autograd, or when exported, it is the plain pooling
+    B x C x H x W layout; tests/victims/test_yolo_pool.py). With autograd, or when exported, it is the plain pooling
     op, whose tie rule decides gradients."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -304,7 +304,7 @@ def _conv_backend(conv: nn.Conv2d, shape: tuple[int, ...]) -> object:
 def _max_pool(x: torch.Tensor, spec: MaxPool) -> torch.Tensor:
     """The strided max-pool of ``spec`` on a channels-last copy of ``x`` (PyTorch's vectorised kernel, ~3x
     faster on one core): the same maxima and, in ties, the same chosen inputs (so the same gradients) as
-    on ``x`` itself (tests/test_objectness_crop.py compares the two paths, ties of the letterbox fill
+    on ``x`` itself (tests/victims/test_objectness_crop.py compares the two paths, ties of the letterbox fill
     included); returned contiguous, as the convolution that follows expects."""
     y = F.max_pool2d(x.contiguous(memory_format=torch.channels_last), spec.size, spec.stride)
     return y.contiguous()

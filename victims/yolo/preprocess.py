@@ -11,7 +11,7 @@ x_in = x·(W'/W) + pad_x (and likewise y).
 
 Imports numpy and numba only (no torch): the ONNX victim runs it. The taps run in one compiled pass
 (:func:`_resize_last_axis`) with the arithmetic of :func:`_resize_axis_numpy`, kept as its reference
-(tests/test_yolo_preprocess_compiled.py compares them bit for bit).
+(tests/victims/test_yolo_preprocess_compiled.py compares them bit for bit).
 """
 
 from __future__ import annotations
