@@ -102,7 +102,7 @@ class FaceCull:
         test's (its rounding widens the scanline margin); ``centre`` the camera centre (rect; computed if None)."""
         uv, depth = calib.rect_to_image(vertices)
         skip = np.zeros(len(faces), bool) if skip is None else skip
-        return cls(*face_cull(uv[faces], depth[faces], vertices[faces], skip,
+        return cls(*face_cull(uv, depth, vertices, faces, skip,
                               camera_centre_rect(calib) if centre is None else centre, near=NEAR_DEPTH_M,
                               box_margin=BOX_MARGIN_PX, span_margin=SPAN_MARGIN,
                               eps64=64 * float(torch.finfo(dtype).eps), depth_ratio=SPAN_DEPTH_RATIO))

@@ -16,27 +16,37 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from robustbench3d.sensors.array_kernels import checked_index
+from robustbench3d.sensors.array_kernels import checked_faces, checked_index
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _face_cull(p: np.ndarray, fd: np.ndarray, v3: np.ndarray, skip: np.ndarray, centre: np.ndarray, near: float,
-               box_margin: float, span_margin: float, eps64: float, depth_ratio: float
+def _face_cull(uv: np.ndarray, depth: np.ndarray, verts: np.ndarray, faces: np.ndarray, skip: np.ndarray,
+               centre: np.ndarray, near: float, box_margin: float, span_margin: float, eps64: float, depth_ratio: float
                ) -> tuple:  # pragma: no cover - compiled
-    n = p.shape[0]
+    n = faces.shape[0]
     lo, hi = np.empty((n, 2)), np.empty((n, 2))
     crossing, unreachable, tight = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.zeros(n, np.bool_)
     edge_fn = np.zeros((n, 3, 3))
     edge = np.empty((3, 2))
     e3 = np.empty((3, 3))
+    p = np.empty((3, 2))
+    v3 = np.empty((3, 3))
     for f in range(n):
-        d0, d1, d2 = fd[f, 0], fd[f, 1], fd[f, 2]
-        unreachable[f] = ((d0 <= 0) and (d1 <= 0) and (d2 <= 0)) or skip[f]
-        crossing[f] = ((d0 <= near) or (d1 <= near) or (d2 <= near)) and not unreachable[f]
+        # a skipped face reads no vertex: unreachable, its box 0 -/+ the margin (what the formulas below give it)
+        if skip[f]:
+            unreachable[f] = True
+        else:
+            d0, d1, d2 = depth[faces[f, 0]], depth[faces[f, 1]], depth[faces[f, 2]]
+            unreachable[f] = (d0 <= 0) and (d1 <= 0) and (d2 <= 0)
+            crossing[f] = ((d0 <= near) or (d1 <= near) or (d2 <= near)) and not unreachable[f]
         ahead = not (crossing[f] or unreachable[f])
+        if ahead:
+            for i in range(3):
+                for a in range(2):
+                    p[i, a] = uv[faces[f, i], a]
         for a in range(2):
             if ahead:
-                x0, x1, x2 = p[f, 0, a], p[f, 1, a], p[f, 2, a]
+                x0, x1, x2 = p[0, a], p[1, a], p[2, a]
                 lo[f, a] = np.minimum(np.minimum(x0, x1), x2)
                 hi[f, a] = np.maximum(np.maximum(x0, x1), x2)
             else:
@@ -47,20 +57,23 @@ def _face_cull(p: np.ndarray, fd: np.ndarray, v3: np.ndarray, skip: np.ndarray, 
             hi[f, a] += margin
         if not ahead:
             continue
+        for i in range(3):
+            for c in range(3):
+                v3[i, c] = verts[faces[f, i], c]
         for k in range(3):  # edge k runs from vertex (k + 1) % 3 to (k + 2) % 3
             i, j = (k + 1) % 3, (k + 2) % 3
-            edge[k, 0], edge[k, 1] = p[f, j, 0] - p[f, i, 0], p[f, j, 1] - p[f, i, 1]
+            edge[k, 0], edge[k, 1] = p[j, 0] - p[i, 0], p[j, 1] - p[i, 1]
             for c in range(3):
-                e3[k, c] = v3[f, j, c] - v3[f, i, c]
+                e3[k, c] = v3[j, c] - v3[i, c]
         area2 = edge[1, 0] * edge[2, 1] - edge[1, 1] * edge[2, 0]
         # n3 = e3[2] x (-e3[1])
         b0, b1, b2 = -e3[1, 0], -e3[1, 1], -e3[1, 2]
         n0 = e3[2, 1] * b2 - e3[2, 2] * b1
         n1 = e3[2, 2] * b0 - e3[2, 0] * b2
         n2 = e3[2, 0] * b1 - e3[2, 1] * b0
-        r0 = (v3[f, 0, 0] + v3[f, 1, 0] + v3[f, 2, 0]) / 3 - centre[0]
-        r1 = (v3[f, 0, 1] + v3[f, 1, 1] + v3[f, 2, 1]) / 3 - centre[1]
-        r2 = (v3[f, 0, 2] + v3[f, 1, 2] + v3[f, 2, 2]) / 3 - centre[2]
+        r0 = (v3[0, 0] + v3[1, 0] + v3[2, 0]) / 3 - centre[0]
+        r1 = (v3[0, 1] + v3[1, 1] + v3[2, 1]) / 3 - centre[1]
+        r2 = (v3[0, 2] + v3[1, 2] + v3[2, 2]) / 3 - centre[2]
         ray2 = r0 * r0 + r1 * r1 + r2 * r2
         cos = np.abs(n0 * r0 + n1 * r1 + n2 * r2) / np.sqrt((n0 * n0 + n1 * n1 + n2 * n2) * ray2)
         sq0 = e3[0, 0] * e3[0, 0] + e3[0, 1] * e3[0, 1] + e3[0, 2] * e3[0, 2]
@@ -71,6 +84,7 @@ def _face_cull(p: np.ndarray, fd: np.ndarray, v3: np.ndarray, skip: np.ndarray, 
         l0 = edge[0, 0] * edge[0, 0] + edge[0, 1] * edge[0, 1]
         l1 = edge[1, 0] * edge[1, 0] + edge[1, 1] * edge[1, 1]
         l2 = edge[2, 0] * edge[2, 0] + edge[2, 1] * edge[2, 1]
+        d0, d1, d2 = depth[faces[f, 0]], depth[faces[f, 1]], depth[faces[f, 2]]
         ok = ((np.maximum(np.maximum(d0, d1), d2) <= depth_ratio * np.minimum(np.minimum(d0, d1), d2))
               and (np.abs(area2) > 1e-6 * np.maximum(np.maximum(l0, l1), l2)) and np.isfinite(delta))
         sign = np.sign(area2)
@@ -79,19 +93,25 @@ def _face_cull(p: np.ndarray, fd: np.ndarray, v3: np.ndarray, skip: np.ndarray, 
             i = (k + 1) % 3
             edge_fn[f, k, 0] = -edge[k, 1] * sign
             edge_fn[f, k, 1] = edge[k, 0] * sign
-            edge_fn[f, k, 2] = (edge[k, 1] * p[f, i, 0] - edge[k, 0] * p[f, i, 1]) * sign + widen
+            edge_fn[f, k, 2] = (edge[k, 1] * p[i, 0] - edge[k, 0] * p[i, 1]) * sign + widen
         tight[f] = ok
     return lo, hi, crossing, unreachable, edge_fn, tight
 
 
-def face_cull(p: np.ndarray, fd: np.ndarray, v3: np.ndarray, skip: np.ndarray, centre: np.ndarray, *, near: float,
-              box_margin: float, span_margin: float, eps64: float, depth_ratio: float) -> tuple[np.ndarray, ...]:
+def face_cull(uv: np.ndarray, depth: np.ndarray, vertices: np.ndarray, faces: np.ndarray, skip: np.ndarray,
+              centre: np.ndarray, *, near: float, box_margin: float, span_margin: float, eps64: float,
+              depth_ratio: float) -> tuple[np.ndarray, ...]:
     """Per face: (lo, hi, crossing, unreachable, edge, tight) of
-    :class:`robustbench3d.sensors.camera_cull.FaceCull` (its docstring) from the faces' projected vertices
-    ``p`` (F, 3, 2) (pixels), camera depths ``fd`` (F, 3) and rect vertices ``v3`` (F, 3, 3) (all float64), the
-    mask ``skip`` (F,) of faces never hit and the camera centre (3,); the constants as named there
-    (``eps64``: 64 machine epsilons of the ray test's dtype)."""
-    return _face_cull(np.ascontiguousarray(p), np.ascontiguousarray(fd), np.ascontiguousarray(v3),
+    :class:`robustbench3d.sensors.camera_cull.FaceCull` (its docstring) of ``faces`` (F, 3) int64 (checked here)
+    into the vertices' projections ``uv`` (V, 2) (pixels), camera depths ``depth`` (V,) and rect positions
+    ``vertices`` (V, 3) (all float64), the mask ``skip`` (F,) of faces never hit (their vertices are not read) and
+    the camera centre (3,); the constants as named there (``eps64``: 64 machine epsilons of the ray test's dtype).
+    Each face reads its own vertices (no (F, 3, .) copies of them are made)."""
+    n = len(depth)
+    if uv.shape != (n, 2) or vertices.shape != (n, 3):
+        raise ValueError(f"face_cull: field 'uv' / 'vertices': {uv.shape} and {vertices.shape} for {n} depths")
+    return _face_cull(np.ascontiguousarray(uv, np.float64), np.ascontiguousarray(depth, np.float64),
+                      np.ascontiguousarray(vertices, np.float64), checked_faces(faces, n, "face_cull"),
                       np.ascontiguousarray(skip, np.bool_), np.ascontiguousarray(centre, np.float64), near, box_margin,
                       span_margin, eps64, depth_ratio)
 

@@ -56,6 +56,7 @@ import numpy as np
 import torch
 
 from robustbench3d.kitti.calib import Calibration
+from robustbench3d.sensors.array_kernels import column_stats
 from robustbench3d.sensors.camera_cull import (
     NEAR_DEPTH_M,
     Box,
@@ -106,8 +107,9 @@ def mesh_box(calib: Calibration, vertices: np.ndarray, image_size: tuple[int, in
         return None, "behind"
     if np.any(depth <= NEAR_DEPTH_M):  # straddles the camera plane: the projection is unbounded
         return (0, 0, w, h), "rendered"
-    u0, v0 = np.ceil(uv.min(axis=0) - 0.5)
-    u1, v1 = np.floor(uv.max(axis=0) + 0.5) + 1
+    lo, hi, _ = column_stats(uv)  # numpy's uv.min / max(axis=0), compiled (exact)
+    u0, v0 = np.ceil(lo - 0.5)
+    u1, v1 = np.floor(hi + 0.5) + 1
     u0, u1 = int(min(max(u0, 0), w)), int(min(max(u1, 0), w))
     v0, v1 = int(min(max(v0, 0), h)), int(min(max(v1, 0), h))
     if u0 >= u1 or v0 >= v1:

@@ -143,6 +143,16 @@ class HitSet:
     origin: np.ndarray
 
 
+def _as_torch(x: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
+    """``torch.from_numpy(x).to(dtype)`` for a float32 / float64 ``dtype``, converted by numpy (the same rounding to
+    nearest, the same bits; torch converts a large array on its thread pool, whose wake-up costs more CPU time than
+    the copy itself on a busy machine)."""
+    want = np.float32 if dtype == torch.float32 else np.float64 if dtype == torch.float64 else None
+    if want is None:
+        return torch.from_numpy(x).to(dtype)
+    return torch.from_numpy(x if x.dtype == want else x.astype(want))
+
+
 class ShadeHits(torch.autograd.Function):
     """The differentiable part of a render, fused, in numpy with a hand-written backward (the per-hit loops
     compiled: :func:`~robustbench3d.sensors.camera_kernels.shade_exposure`, ``shade_tone``, ``shade_grads``, the same
@@ -207,7 +217,7 @@ class ShadeHits(torch.autograd.Function):
         out_v = out_c = out_b = None
         if ctx.needs_input_grad[1]:
             gc = (g_litf * (irr[:, None, :] * lt["exposure"])).reshape(-1, 3)
-            out_c = torch.from_numpy(scatter_rows(hits.faces.reshape(-1), gc, c_shape[0])).to(c_dtype)
+            out_c = _as_torch(scatter_rows(hits.faces.reshape(-1), gc, c_shape[0]), c_dtype)
         if ctx.needs_input_grad[0]:
             g_irr = (g_litf * cf).sum(1) * lt["exposure"]  # (U, 3)
             # irradiance = ambient (0.6 + 0.4 n.up) sky + max(n.sun, 0) sun_color (clamp passes its gradient at 0)
@@ -217,8 +227,8 @@ class ShadeHits(torch.autograd.Function):
             g_n = (g_unit - unit * dot3(unit, g_unit)[:, None]) / m[:, None]  # through n / |n|
             # Möller–Trumbore's t, u, v (FaceRows), plus the shading normal e1 x e2 (for a x b: b x g, g x a)
             g_e1, g_e2, g_t0 = fr.edge_grads(pairs, g_t, g_u, g_v)
-            out_v = torch.from_numpy(fr.vertex_grads(g_e1 + cross_rows(fr.e2, g_n), g_e2 + cross_rows(g_n, fr.e1),
-                                                     g_t0, v_shape[0])).to(v_dtype)
+            out_v = _as_torch(fr.vertex_grads(g_e1 + cross_rows(fr.e2, g_n), g_e2 + cross_rows(g_n, fr.e1), g_t0,
+                                              v_shape[0]), v_dtype)
         if ctx.needs_input_grad[2]:
             covered = scatter_add(hits.owner, hits.weight[None], gn.shape[1])[0]  # then 1 - it in the grad's dtype
             out_b = (grad * (1.0 - torch.from_numpy(covered).to(grad.dtype))[:, None]).to(b_dtype)

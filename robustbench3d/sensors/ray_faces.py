@@ -15,6 +15,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from robustbench3d.sensors.array_kernels import column_stats
 from robustbench3d.sensors.mesh import cross_rows, dot3
 from robustbench3d.sensors.ray_kernels import face_test_table, star_faces
 
@@ -85,8 +86,8 @@ def face_test_geometry(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarr
 
 
 def back_faces(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray) -> np.ndarray | None:
-    """(F,) bool mask of the faces that cannot be the nearest hit of any ray from ``origin``, or None when the
-    mesh does not qualify for back-face culling (then every face must be tested).
+    """(F,) bool mask of the faces (F, 3) of finite ``vertices`` (V, 3) that cannot be the nearest hit of any ray from
+    ``origin``, or None when the mesh does not qualify for back-face culling (then every face must be tested).
 
     Rays from outside a closed surface enter it first: the nearest hit is on a face whose outward normal
     n points towards the origin o, (o - V0) . n > 0; faces with (o - V0) . n <= 0 can be culled. Qualifies:
@@ -104,14 +105,15 @@ def back_faces(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray) -> n
     f = np.asarray(faces, np.int64).reshape(-1, 3)
     if len(f) == 0 or not _closed_oriented(f.tobytes(), len(v)):
         return None
-    c = v.sum(axis=0) / len(v)  # v.mean(axis=0), without its per-call overhead (the same sum and division)
+    lo, hi, total = column_stats(v)  # numpy's v.min / max / sum(axis=0), in one compiled pass
+    c = total / len(v)  # v.mean(axis=0), without its per-call overhead (the same sum and division)
     o = np.asarray(origin, np.float64).reshape(3)
     # per face a, b, cc relative to c: det[a, b, cc] = a . (e1 x e2) > 0, the solid angles 2 atan2(det, den)
     # (den = |a||b||cc| + (a.b)|cc| + (a.cc)|b| + (b.cc)|a|), and the cull (o - c - a) . (e1 x e2) <= 0 (compiled)
     positive, solid_angle, mask = star_faces(v, f, c, o)
     if not positive or abs(solid_angle - 4.0 * np.pi) > np.pi:  # the sum is 4 pi x the sheet count
         return None
-    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    centre = 0.5 * (lo + hi)
     r = v - centre
     if np.linalg.norm(o - centre) <= np.sqrt(dot3(r, r).max()) * (1 + 1e-6):
         return None

@@ -7,12 +7,11 @@ grey; one row of panels per proposal source)."""
 from __future__ import annotations
 
 import io
-import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from robustbench3d.fileio import atomic_write_bytes, atomic_write_text
+from robustbench3d.studies import read_study, write_study
 
 JSON_FILE, CSV_FILE, MD_FILE, PNG_FILE = "sweep.json", "sweep.csv", "sweep.md", "sweep.png"
 #: CSV columns, in order (intervals flattened to _lo/_hi).
@@ -158,31 +157,14 @@ def write_all(out: Path, doc: Mapping[str, Any]) -> list[Path]:
     import pandas as pd
 
     frame = pd.DataFrame(csv_rows(doc), columns=list(CSV_COLUMNS))
-    paths = [out / JSON_FILE, out / CSV_FILE, out / MD_FILE, out / PNG_FILE]
-    atomic_write_text(paths[0], json.dumps(doc, indent=1, default=str) + "\n")
-    atomic_write_text(paths[1], frame.to_csv(index=False, lineterminator="\n"))
-    atomic_write_text(paths[2], markdown(doc))
-    atomic_write_bytes(paths[3], figure(doc))
-    return paths
+    return write_study([out / JSON_FILE, out / CSV_FILE, out / MD_FILE, out / PNG_FILE], doc,
+                       frame.to_csv(index=False, lineterminator="\n"), markdown(doc), figure(doc))
 
 
 def read_doc(path: Path) -> dict[str, Any]:
     """A ``sweep.json`` (a directory holding one, or the file)."""
-    from robustbench3d.errors import DataFormatError
-
-    p = path / JSON_FILE if path.is_dir() else path
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DataFormatError(p, "not found (write it with `robustbench3d sweep --out DIR`)") from None
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise DataFormatError(p, f"not valid JSON: {exc}") from None
-    if not isinstance(doc, dict):
-        raise DataFormatError(p, "not a sweep document")
-    for key in ("format", "config", "points", "scores", "dataset", "seed_point", "sentences", "provenance"):
-        if key not in doc:
-            raise DataFormatError(p, "not a sweep document", field=key)
-    return doc
+    return read_study(path, JSON_FILE, "sweep", "sweep",
+                      ("format", "config", "points", "scores", "dataset", "seed_point", "sentences", "provenance"))
 
 
 __all__ = ["CSV_COLUMNS", "CSV_FILE", "JSON_FILE", "MD_FILE", "PNG_FILE", "RUNTIME_KEYS", "csv_rows", "figure",

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from robustbench3d.fileio import atomic_write_bytes, atomic_write_text
+from robustbench3d.studies import read_study, write_study
 from robustbench3d.victims.spec import PROTOCOL_LABELS
 
 JSON_FILE = "tradeoff.json"
@@ -154,26 +154,11 @@ def write_all(out: Path, doc: dict[str, Any]) -> list[Path]:
 
     frame = pd.DataFrame([{k: (json.dumps(x[k], sort_keys=True) if k == "setting" else x.get(k))
                            for k in CSV_COLUMNS} for x in doc["points"]], columns=list(CSV_COLUMNS))
-    paths = [out / JSON_FILE, out / CSV_FILE, out / MD_FILE, out / PNG_FILE]
-    atomic_write_text(paths[0], json.dumps(doc, indent=1, default=str) + "\n")
-    atomic_write_text(paths[1], frame.to_csv(index=False, lineterminator="\n"))
-    atomic_write_text(paths[2], markdown(doc))
-    atomic_write_bytes(paths[3], figure(doc))
-    return paths
+    return write_study([out / JSON_FILE, out / CSV_FILE, out / MD_FILE, out / PNG_FILE], doc,
+                       frame.to_csv(index=False, lineterminator="\n"), markdown(doc), figure(doc))
 
 
 def read_doc(path: Path) -> dict[str, Any]:
     """A ``tradeoff.json`` (a directory holding one, or the file)."""
-    from robustbench3d.errors import DataFormatError
-
-    p = path / JSON_FILE if path.is_dir() else path
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DataFormatError(p, "not found (write it with `robustbench3d tradeoff --out DIR`)") from None
-    except ValueError as exc:
-        raise DataFormatError(p, f"not valid JSON: {exc}") from None
-    for key in ("points", "config", "dataset", "machine", "ap", "sweeps", "measured_at"):
-        if key not in doc:
-            raise DataFormatError(p, "not a tradeoff document", field=key)
-    return doc
+    return read_study(path, JSON_FILE, "tradeoff", "tradeoff",
+                      ("points", "config", "dataset", "machine", "ap", "sweeps", "measured_at"))

@@ -202,7 +202,7 @@ def test_bad_inputs_are_refused(tmp_path, capsys):
         read_doc(tmp_path / "t")
     assert main(["report", "--tradeoff", str(tmp_path / "t"), "--out", str(tmp_path / "r")]) == 2
     assert main(["report", "--out", str(tmp_path / "r")]) == 2
-    assert "at least one RUN_DIR or --tradeoff" in capsys.readouterr().err
+    assert "at least one RUN_DIR, --tradeoff DIR or --sweep DIR" in capsys.readouterr().err
 
 
 def test_report_section_in_headless_chromium(tiny_tradeoff, tmp_path):

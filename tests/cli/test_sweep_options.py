@@ -77,7 +77,7 @@ def test_points_are_the_grid_plus_the_seed_point_named_by_their_parameters():
 
 
 def test_each_point_trains_with_the_shipped_recipe_but_its_family():
-    manifest = json.loads((Path(__file__).resolve().parent.parent / "attacks/objects/manifest.json").read_text(
+    manifest = json.loads((Path(__file__).resolve().parents[2] / "attacks/objects/manifest.json").read_text(
         encoding="utf-8"))
     shipped = next(o for o in manifest["objects"] if o["name"] == "adv-texture")["training"]["config"]
     cfg = train_config(Point(4, 0.6, "adv-texture"), {"steps": None, "eval_frames": 10})

@@ -38,7 +38,7 @@ from robustbench3d.testing import synth_dataset
 
 pytestmark = pytest.mark.usefixtures("cache")  # a fresh cache per test (conftest)
 
-SHIPPED = Path(__file__).resolve().parents[1] / "attacks" / "objects"
+SHIPPED = Path(__file__).resolve().parents[2] / "attacks" / "objects"
 
 
 # ---- names, bounds, counts --------------------------------------------------------------------

@@ -12,7 +12,7 @@ from browser import chromium_page
 
 from robustbench3d.cli import main
 
-ARTIFACTS = Path(__file__).resolve().parent.parent / ".pytest-artifacts"
+ARTIFACTS = Path(__file__).resolve().parents[2] / ".pytest-artifacts"
 
 
 def _score(name, kind, level, radius, proposals, rel, asr):
