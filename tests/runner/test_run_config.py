@@ -66,7 +66,7 @@ def original(dataset, tmp_path_factory) -> tuple[Path, str]:
 
 def test_run_keys_are_the_provenance_keys(original):
     out, text = original
-    from robustbench3d.commands.run import RUN_KEYS
+    from robustbench3d.runner.runfile import RUN_KEYS
 
     config = RunConfig(victims=("v",), attacks=("none",), proposals=("gt",), out=Path("x"))
     assert list(RUN_KEYS) == list(config.as_dict())
