@@ -98,11 +98,6 @@ class Family:
         object.__setattr__(self, "level", level)
         object.__setattr__(self, "radius", radius)
 
-    def check(self) -> Family:
-        """This family, checked (:func:`check_family`; construction already checks it)."""
-        check_family(self.level, self.radius)
-        return self
-
     @property
     def name(self) -> str:
         """``l<level>-r<radius, 2 decimals>``, e.g. ``l2-r0.40`` for the default family."""

@@ -22,7 +22,8 @@ from __future__ import annotations
 import hashlib
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -410,6 +411,35 @@ def _mean_losses(hist: list[dict[str, float]]) -> dict[str, float] | None:
     if not hist:
         return None
     return {k: float(np.mean([h[k] for h in hist])) for k in hist[0] if k not in COUNTS}
+
+
+def victim_record(name: str, kwargs: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The victim as a trained object's sidecar records it (``made_by.victim``): its registered name, weights
+    sha256 and factory keyword arguments (as strings, sorted)."""
+    from robustbench3d.victims import VICTIMS
+
+    return {"name": name, "weights_sha256": VICTIMS.get(name).info.weights_sha256,
+            "kwargs": {k: str(v) for k, v in sorted((kwargs or {}).items())}}
+
+
+@dataclass(frozen=True)
+class TrainingSplit:
+    """The frames an object is trained on: the dataset, its ground truth and its record (:func:`data_identity`)."""
+
+    dataset: Any
+    gt: Any
+    identity: dict[str, Any]
+
+
+def training_split(data: str | Path | None, split: str, max_frames: int | None, **resolve: Any) -> TrainingSplit:
+    """Resolve the training data (``resolve``: :func:`robustbench3d.datasets.resolve_dataset`'s other options; with
+    ``lazy`` it generates only the first ``max_frames`` frames), load those frames' ground truth and record their
+    identity."""
+    from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
+
+    dataset = resolve_dataset(data, split, max_frames=max_frames, **resolve)
+    gt = load_ground_truth(dataset, max_frames)
+    return TrainingSplit(dataset, gt, data_identity(dataset_identity(dataset, gt), dataset.root))
 
 
 def data_identity(identity: dict[str, Any], root: Path) -> dict[str, Any]:

@@ -1,11 +1,12 @@
 """The four files of a study directory (``tradeoff``, ``sweep``): ``NAME.json`` (the document), ``.csv``,
 ``.md`` and ``.png``, each written atomically, and the document read back with its kind checked.
 
-Standard library only (the caller builds the table, the markdown and the figure).
+Standard library only at module level (the caller builds the table, the markdown and the figure).
 """
 
 from __future__ import annotations
 
+import io
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -13,6 +14,16 @@ from typing import Any
 
 from robustbench3d.errors import DataFormatError
 from robustbench3d.fileio import atomic_write_bytes, atomic_write_text
+
+
+def figure_png(fig: Any, dpi: int) -> bytes:
+    """A study's matplotlib figure as PNG bytes without a creation date (equal figures, equal bytes); closes it."""
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, metadata={"Software": None})
+    plt.close(fig)
+    return buf.getvalue()
 
 
 def write_study(paths: Sequence[Path], doc: Mapping[str, Any], csv_text: str, markdown: str, png: bytes) -> list[Path]:

@@ -139,11 +139,10 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def run(args: argparse.Namespace) -> int:
     from robustbench3d.attacks.spec import check_max_frames
-    from robustbench3d.attacks.train_run import check_outputs, data_identity, train_universal
-    from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
+    from robustbench3d.attacks.train_run import check_outputs, train_universal, training_split, victim_record
     from robustbench3d.errors import RobustBenchError
     from robustbench3d.ranges import PROCESSES_RANGE, check_range, default_processes
-    from robustbench3d.victims import VICTIMS, create_victim
+    from robustbench3d.victims import create_victim
 
     config = config_from_args(args)
     check_max_frames(args.max_frames)
@@ -153,17 +152,13 @@ def run(args: argparse.Namespace) -> int:
     check_outputs(args.out, force=args.force, resume=args.resume, curve=config.eval_every > 0)
     out = Path(args.out)
     kwargs = _victim_kwargs(args.victim_arg)
-    spec = VICTIMS.get(args.victim)
     try:
         victim = create_victim(args.victim, **kwargs)
     except TypeError as exc:
         raise RobustBenchError(f"--victim {args.victim}: {exc}") from None
-    info = {"name": args.victim, "weights_sha256": spec.info.weights_sha256,
-            "kwargs": {k: str(v) for k, v in sorted(kwargs.items())}}
-    dataset = resolve_dataset(args.data, args.split, progress=not args.no_progress)
-    gt = load_ground_truth(dataset, args.max_frames)
-    made_by = train_universal(victim, info, dataset.kitti(), gt.frame_ids, gt.labels, config, out,
-                              data_identity=data_identity(dataset_identity(dataset, gt), dataset.root),
+    train = training_split(args.data, args.split, args.max_frames, progress=not args.no_progress)
+    made_by = train_universal(victim, victim_record(args.victim, kwargs), train.dataset.kitti(), train.gt.frame_ids,
+                              train.gt.labels, config, out, data_identity=train.identity,
                               resume=args.resume, force=args.force, progress=not args.no_progress, log=print,
                               workers=workers)
     last = made_by["losses"]["last_step"] or {}

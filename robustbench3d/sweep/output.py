@@ -6,12 +6,11 @@ grey; one row of panels per proposal source)."""
 
 from __future__ import annotations
 
-import io
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from robustbench3d.studies import read_study, write_study
+from robustbench3d.studies import figure_png, read_study, write_study
 
 JSON_FILE, CSV_FILE, MD_FILE, PNG_FILE = "sweep.json", "sweep.csv", "sweep.md", "sweep.png"
 #: CSV columns, in order (intervals flattened to _lo/_hi).
@@ -146,10 +145,7 @@ def figure(doc: Mapping[str, Any]) -> bytes:
     fig.suptitle(f"{doc['config']['mode']} dose–response, {doc['dataset']['frames']} frames of "
                  f"{doc['dataset']['split']} (95 % bootstrap intervals)")
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100, metadata={"Software": None})
-    plt.close(fig)
-    return buf.getvalue()
+    return figure_png(fig, dpi=100)
 
 
 def write_all(out: Path, doc: Mapping[str, Any]) -> list[Path]:

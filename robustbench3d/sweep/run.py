@@ -138,31 +138,12 @@ def register_benign(radius: float) -> str:
         origin="robustbench3d sweep", taken=f"attack name {name!r} is taken by another attack")
 
 
-def _victim_info(victim: str) -> dict[str, Any]:
-    from robustbench3d.victims import VICTIMS
-
-    spec = VICTIMS.get(victim)
-    return {"name": victim, "weights_sha256": spec.info.weights_sha256, "kwargs": {}}
-
-
-def _training_data(cfg: SweepConfig, progress: bool, log: Callable[[str], None]) -> dict[str, Any]:
-    from robustbench3d.attacks.train_run import data_identity
-    from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
-
-    dataset = resolve_dataset(cfg.data, cfg.train_split, progress=progress, lazy=True, max_frames=cfg.train_max_frames,
-                              log=log)
-    gt = load_ground_truth(dataset, cfg.train_max_frames)
-    return data_identity(dataset_identity(dataset, gt), dataset.root)
-
-
-def train_all(cfg: SweepConfig, ex: Execution, out: Path, pts: list[Point], log: Callable[[str], None],
-              say: Callable[[str], None]) -> set[str]:
+def train_all(cfg: SweepConfig, ex: Execution, out: Path, pts: list[Point], victim: dict[str, Any],
+              data: dict[str, Any], log: Callable[[str], None], say: Callable[[str], None]) -> set[str]:
     """Plan every point (refusals before any training), train those not reused; the names (re)trained."""
     from robustbench3d.sweep.jobs import run_jobs
     from robustbench3d.sweep.train import TrainJob, Wanted, config_record, plan_point, train_config
 
-    victim = _victim_info(cfg.victim)
-    data = _training_data(cfg, ex.progress, log)
     jobs = []
     for p in pts:
         conf = train_config(p, cfg.train)
@@ -254,6 +235,7 @@ def _point_record(p: Point, out: Path) -> dict[str, Any]:
 def run_sweep(cfg: SweepConfig, ex: Execution, out: Path, log: Callable[[str], None] = print,
               say: Callable[[str], None] | None = None) -> tuple[list[Path], dict[str, Any]]:
     """Train, score and write (module doc); the files written and the sweep document."""
+    from robustbench3d.attacks.train_run import training_split, victim_record
     from robustbench3d.datasets import load_ground_truth, resolve_dataset
     from robustbench3d.provenance import host_provenance, library_versions, utc_now
     from robustbench3d.results import CellResult, read_summary
@@ -265,7 +247,10 @@ def run_sweep(cfg: SweepConfig, ex: Execution, out: Path, log: Callable[[str], N
     pts = points(cfg.mode, cfg.levels, cfg.radii)
     check_out_dir(out, cfg.as_dict(), ex.force, say)
     started = utc_now()
-    retrained = train_all(cfg, ex, out, pts, log, say)
+    victim = victim_record(cfg.victim)
+    data = training_split(cfg.data, cfg.train_split, cfg.train_max_frames, progress=ex.progress, lazy=True,
+                          log=log).identity
+    retrained = train_all(cfg, ex, out, pts, victim, data, log, say)
     report = score_all(cfg, ex, out, pts, retrained, log, say)
     summary = read_summary(out / "run" / "summary.json")
     dataset = resolve_dataset(cfg.data, cfg.split, lazy=True, max_frames=cfg.max_frames, log=log)
@@ -285,7 +270,7 @@ def run_sweep(cfg: SweepConfig, ex: Execution, out: Path, log: Callable[[str], N
     seed = next(p for p in pts if p.seed_point)
     doc: dict[str, Any] = {
         "format": FORMAT, "config": cfg.as_dict(), "dataset": report.dataset,
-        "training_data": _training_data(cfg, False, lambda line: None), "victim": _victim_info(cfg.victim),
+        "training_data": data, "victim": victim,
         "seed_point": {"name": seed.name, "level": seed.level, "radius": seed.radius},
         "points": records, "controls": [a for a in attacks.values() if a["kind"] == "benign"], "scores": rows,
         "run": {"dir": "run", "summary": "run/summary.json"},

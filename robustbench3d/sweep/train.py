@@ -183,7 +183,6 @@ def train_point(job: TrainJob, log: Callable[[str], None] | None = None) -> dict
     caller's."""
     from robustbench3d.attacks import train_run
     from robustbench3d.attacks.train_config import TrainConfig
-    from robustbench3d.datasets import dataset_identity, load_ground_truth, resolve_dataset
     from robustbench3d.provenance import utc_now
     from robustbench3d.runner.shards import worker_setup
     from robustbench3d.victims import create_victim
@@ -195,11 +194,10 @@ def train_point(job: TrainJob, log: Callable[[str], None] | None = None) -> dict
     try:
         config = TrainConfig(**{**job.config, "eot": tuple(job.config.get("eot") or ())})
         victim = create_victim(job.victim)
-        dataset = resolve_dataset(job.data, job.split, progress=False)
-        gt = load_ground_truth(dataset, job.max_frames)
+        train = train_run.training_split(job.data, job.split, job.max_frames, progress=False)
         made_by = train_run.train_universal(
-            victim, job.victim_info, dataset.kitti(), gt.frame_ids, gt.labels, config, job.out,
-            data_identity=train_run.data_identity(dataset_identity(dataset, gt), dataset.root), resume=job.resume,
+            victim, job.victim_info, train.dataset.kitti(), train.gt.frame_ids, train.gt.labels, config, job.out,
+            data_identity=train.identity, resume=job.resume,
             force=job.force, progress=job.progress, log=lambda line: say(f"sweep: {job.name}: {line}"),
             workers=job.warm_workers)
         finished = True

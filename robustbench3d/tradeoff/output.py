@@ -5,14 +5,13 @@ interval width for the frames sweep)."""
 
 from __future__ import annotations
 
-import io
 import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from robustbench3d.studies import read_study, write_study
+from robustbench3d.studies import figure_png, read_study, write_study
 from robustbench3d.victims.spec import PROTOCOL_LABELS
 
 JSON_FILE = "tradeoff.json"
@@ -142,10 +141,7 @@ def figure(doc: dict[str, Any]) -> bytes:
     else:
         bx.set_axis_off()
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
-    plt.close(fig)
-    return buf.getvalue()
+    return figure_png(fig, dpi=110)
 
 
 def write_all(out: Path, doc: dict[str, Any]) -> list[Path]:
