@@ -446,6 +446,91 @@ class FrustumBoxOracle(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class AttackedScene:
+    """One attacked frame as a white-box attack holds it (the input of :meth:`TargetScoreOracle.target_scores`).
+
+    Attributes:
+        frame: the attacked frame with ``labels=None``: ``scan`` (N, 4) float32 velodyne rows with the objects'
+            returns in it, ``image`` the attacked uint8 image (or the clean one when the attack does not render
+            the camera), calibration and frame id.
+        points_rect: (N, 4) float64 tensor, row-aligned with ``frame.scan``: rect-frame xyz (m) and reflectance;
+            the rows of the objects' returns carry gradients w.r.t. the objects' parameters.
+        image: (H, W, 3) float64 tensor in [0, 1], the attacked image, differentiable w.r.t. the objects'
+            parameters; None when the attack does not render the camera (LiDAR-only modes).
+        proposals: the frame's :class:`Proposals` as a cell of the attack's frustum protocol gives ``detect``
+            (e.g. ``gt``: the GT boxes; ``gt-append``: with each car's object rows); None for victims that find
+            their own objects. Whole-scene detectors ignore it.
+    """
+
+    frame: Frame
+    points_rect: torch.Tensor
+    image: torch.Tensor | None = None
+    proposals: Proposals | None = None
+
+
+@dataclass(frozen=True)
+class AttackTargets:
+    """The target cars of an attacked frame: the white-box attacker's knowledge, given to
+    :meth:`TargetScoreOracle.target_scores` only (never to ``detect``).
+
+    Attributes:
+        boxes2d: (T, 4) ground-truth image-2 boxes (left, top, right, bottom; px).
+        boxes3d: (T, 7) ground-truth boxes in the rect frame: bottom-centre x, y, z (m), height, width, length
+            (m), rotation_y (rad) -- the KITTI label columns.
+        proposal: (T,) int64 index of each target's box in ``AttackedScene.proposals`` (-1: none there, e.g. the
+            victim's own 2D detector missed it).
+    """
+
+    boxes2d: np.ndarray
+    boxes3d: np.ndarray
+    proposal: np.ndarray
+
+    def __post_init__(self) -> None:
+        b2 = np.asarray(self.boxes2d, dtype=np.float64).reshape(-1, 4)
+        b3 = np.asarray(self.boxes3d, dtype=np.float64).reshape(-1, 7)
+        prop = np.asarray(self.proposal, dtype=np.int64).reshape(-1)
+        if not len(b2) == len(b3) == len(prop):
+            raise ValueError(f"AttackTargets: {len(b2)} 2D boxes, {len(b3)} 3D boxes, {len(prop)} proposal indices")
+        object.__setattr__(self, "boxes2d", b2)
+        object.__setattr__(self, "boxes3d", b3)
+        object.__setattr__(self, "proposal", prop)
+
+    def __len__(self) -> int:
+        return len(self.proposal)
+
+
+@dataclass(frozen=True)
+class TargetScores:
+    """What a victim says about each target of an :class:`AttackTargets` (output of
+    :meth:`TargetScoreOracle.target_scores`).
+
+    Attributes:
+        logit: (T,) detection logit per target, differentiable w.r.t. the scene's differentiable inputs:
+            ``sigmoid(logit)`` is how confidently the victim detects the target (the attack minimises it).
+        present: (T,) bool; False where the victim has nothing for the target (no frustum point, no prediction
+            near it): the attack takes no term there and ``logit`` is ignored.
+        box: None, or (T, 7) the box regressed for each target, differentiable: geometric centre x, y, z (rect
+            frame, m), length, width, height (m), rotation_y (rad).
+    """
+
+    logit: torch.Tensor
+    present: np.ndarray
+    box: torch.Tensor | None = None
+
+
+@runtime_checkable
+class TargetScoreOracle(Protocol):
+    """The one differentiable victim interface every white-box attack trains through."""
+
+    def target_scores(self, scene: AttackedScene, targets: AttackTargets, *,
+                      with_box: bool = False) -> TargetScores:
+        """Per target of ``targets``: the detection logit (and with ``with_box`` the regressed box) the victim
+        gives it on ``scene``, differentiable w.r.t. ``scene.points_rect`` (and ``scene.image`` if the victim
+        uses the camera)."""
+        ...
+
+
 def check_victim(victim: Any, capabilities: Capabilities) -> None:
     """Raise TypeError unless ``victim`` honours the contract its capabilities declare.
 
@@ -479,6 +564,8 @@ __all__ = [
     "PROPOSAL_ORIGINS",
     "PROPOSAL_SOURCES",
     "PROTOCOL_LABELS",
+    "AttackTargets",
+    "AttackedScene",
     "Capabilities",
     "Detector",
     "EntryInfo",
@@ -493,6 +580,8 @@ __all__ = [
     "ProposalSource",
     "Proposals",
     "ProposalsArg",
+    "TargetScoreOracle",
+    "TargetScores",
     "check_victim",
     "empty_detections",
     "gt_proposals",
