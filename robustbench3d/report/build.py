@@ -2,7 +2,9 @@
 
 Writes ``DIR/leaderboard.html`` (one self-contained file: per section the seed paper's Table 1 beside the
 measured rows, a sortable table with an R40/R11 toggle that fits a 1280 px wide page, the cells merged or
-left out and why, figures, transfer heat-map, scene figures, each cell's provenance one click away),
+left out and why, the worst case (victims ranked by their worst attacked AP, :mod:`robustbench3d.report.worst`),
+figures, the transfer matrix (every attack object by every victim, a table and a heat-map), scene figures, each
+cell's provenance one click away),
 ``DIR/leaderboard.md``, the
 figures as ``DIR/figures/*.png`` and ``DIR/report_manifest.json`` (the files written). Runs on different
 datasets, protocols or package versions go to separate sections, each saying what differs; ``--strict``
@@ -47,7 +49,7 @@ def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = pri
     """The report's section views (tables and figures) and page notes."""
     from robustbench3d.report import data, figures
     from robustbench3d.report.scenes import SceneSource, scene
-    from robustbench3d.report.view import Figure, SectionView
+    from robustbench3d.report.view import NO_ATTACK, Figure, SectionView
     from robustbench3d.results import CellResult
 
     check_scenes(scenes)
@@ -71,17 +73,15 @@ def build(runs: list[str], scenes: int = 3, strict: bool = False, log: Any = pri
             view.figures.append(Figure(f"s{k + 1}_drop.png", figures.drop_figure(df),
                                        "BEV AP drop at moderate (R40), clean − attacked, per victim and attack, "
                                        "against the clean cell with the same proposals.", "AP drop per victim"))
-        cells = [rc.cell for rc in sec.cells]
-        matrices = {p: data.transfer_matrix(cells, p) for p in dict.fromkeys(df["proposals"])}
-        if any(len(m) for m in matrices.values()):
-            view.transfer = Figure(f"s{k + 1}_transfer.png", figures.transfer_figure(matrices),
-                                   "Transfer matrix: relative BEV AP drop at moderate (R40, %) of each object (rows: "
-                                   "the victim it was trained against · the attack) on each evaluated victim "
-                                   "(columns); outlined: white-box (trained against the evaluated victim); n/a: "
-                                   "not run or clean AP 0.", "transfer matrix")
+        if view.grids:
+            view.transfer = Figure(f"s{k + 1}_transfer.png", figures.transfer_figure(view.grids),
+                                   "Transfer matrix: relative BEV AP drop at moderate (R40, %) of each attack object "
+                                   "(rows: the victim it was trained against · the object) on each victim of the "
+                                   "section (columns); outlined: white-box (trained against the evaluated victim); "
+                                   "not run: no such cell; other text: why the cell has no relative drop.",
+                                   "transfer matrix")
         else:
-            view.transfer_note = ("No cell evaluates an object trained against a victim (clean cells and controls "
-                                  "only), so there is no transfer matrix.")
+            view.transfer_note = NO_ATTACK
         if not scenes:
             view.scene_notes.append("Scene figures were not asked for (--scenes 0).")
         else:

@@ -221,18 +221,20 @@ def _status(cell: Mapping[str, Any]) -> str:
 
 
 def left_out(section: Section) -> list[str]:
-    """Why cells of ``section`` are missing from its figures or transfer matrix (one sentence per reason,
-    naming each cell and where it comes from): cells with no AP (not ``ok``), and attacked cells without a
-    clean comparison (no ``attack_effect``: no ``ok`` clean cell of the same victim and proposals)."""
+    """Why cells of ``section`` are missing from its figures or have no number in its transfer matrix (one
+    sentence per reason, naming each cell and where it comes from): cells with no AP (not ``ok``), and attacked
+    cells without a clean comparison (no ``attack_effect``: no ``ok`` clean cell of the same victim and proposals)."""
     out = []
     no_ap = [rc for rc in section.cells if not CellResult(rc.cell).ok]
     if no_ap:
-        out.append("No AP, so not in the figures or the transfer matrix (the leaderboard shows their status): "
+        out.append("No AP, so not in the figures (the leaderboard, the worst case and the transfer matrix show their "
+                   "status): "
                    + "; ".join(f"{rc.name} ({rc.source}): {_status(rc.cell)}" for rc in no_ap) + ".")
     lone = [rc for rc in section.cells if (r := CellResult(rc.cell)).ok and r.attack != CLEAN_ATTACK and not r.effect]
     if lone:
         out.append("No clean cell with the same victim and proposals to compare with, so no drop (not in the drop "
-                   "figure or the transfer matrix): " + "; ".join(f"{rc.name} ({rc.source})" for rc in lone) + ".")
+                   "figure; \"no clean cell\" in the transfer matrix): "
+                   + "; ".join(f"{rc.name} ({rc.source})" for rc in lone) + ".")
     return out
 
 
@@ -267,10 +269,39 @@ def cell_ci(cell: Mapping[str, Any], metric: str, recall: str, difficulty: str) 
     return None
 
 
+#: The controls: attack kinds whose object is not optimised (what a mere object costs). Neither they nor the clean
+#: cell (attack ``none``) are attacks: never in a worst case or a row of the transfer matrix. A cell is a control
+#: when its object's ``made_by.attack`` (any size or seed, e.g. the sweep's ``benign-sphere-r0.20``) or its attack
+#: name is one of these.
+CONTROLS: tuple[str, ...] = ("benign-sphere", "random-shape")
+#: :func:`role` values.
+ROLES = ("clean", "control", "attack")
+
+
+def _object(cell: Mapping[str, Any]) -> Mapping[str, Any]:
+    """The cell's object record (``config.attack.object.object``; empty for an attack without an object)."""
+    obj = _get(CellResult(cell).config, "attack", "object", "object")
+    return obj if isinstance(obj, Mapping) else {}
+
+
+def role(cell: Mapping[str, Any]) -> str:
+    """``clean`` (attack ``none``), ``control`` (:data:`CONTROLS`) or ``attack`` (every other attack: an object
+    trained against a victim, an object file, an attack without an object)."""
+    r = CellResult(cell)
+    if r.attack == CLEAN_ATTACK:
+        return "clean"
+    made = _object(cell).get("made_by")
+    kind = made.get("attack") if isinstance(made, Mapping) else None
+    return "control" if r.attack in CONTROLS or kind in CONTROLS else "attack"
+
+
 def trained_against(cell: Mapping[str, Any]) -> str | None:
-    """The victim the cell's attack object was optimised against, or None (clean cell, controls)."""
-    name = _get(CellResult(cell).config, "attack", "object", "object", "made_by", "victim", "name")
-    return name if isinstance(name, str) else None
+    """The victim the cell's attack object was optimised against (its sidecar's ``made_by.victim``, a record with
+    a ``name`` or a bare name), or None (clean cell, controls, an object file made otherwise)."""
+    made = _object(cell).get("made_by")
+    victim = made.get("victim") if isinstance(made, Mapping) else None
+    name = victim.get("name") if isinstance(victim, Mapping) else victim
+    return name if isinstance(name, str) and name else None
 
 
 def ap_column(metric: str, recall: str, difficulty: str) -> str:
@@ -335,50 +366,129 @@ def table(section: Section) -> Any:
     return pd.DataFrame(rows)
 
 
-def transfer_entries(cells: Iterable[Mapping[str, Any]], metric: str = HEADLINE.metric,
-                     recall: str = HEADLINE.recall, difficulty: str = HEADLINE.difficulty) -> list[dict[str, Any]]:
-    """The transfer matrix in long form: one entry per ``ok`` attacked cell whose object was trained against a
-    victim: ``trained_against``, ``object`` (attack name), ``evaluated`` (the cell's victim), ``proposals`` and
-    ``value``, the relative drop of ``metric`` AP (fraction; None where the clean AP is 0). Cells without a
-    training victim (clean, controls) or without a clean comparison are left out. The same (object, evaluated
-    victim, proposals) twice with different values, or one object name standing for two object files, is
-    refused."""
-    out: dict[tuple[str, str, str, str], dict[str, Any]] = {}
-    objects: dict[str, Any] = {}
+@dataclass(frozen=True)
+class TransferRow:
+    """A row of the transfer matrix: an attack object (the cells' attack name), the victim it was trained against
+    (None: an object file made otherwise, or an attack without an object) and whether it places an object file."""
+
+    object: str
+    trained_against: str | None
+    has_file: bool
+
+    @property
+    def label(self) -> str:
+        """``victim · object``; ``(object file) · object`` or ``(no object) · object`` without a training victim."""
+        who = self.trained_against or ("(object file)" if self.has_file else "(no object)")
+        return f"{who} · {self.object}"
+
+
+@dataclass(frozen=True)
+class TransferEntry:
+    """One entry of the transfer matrix: ``value`` the relative drop of the headline AP (a fraction), or None
+    and ``note`` why (:data:`NOT_RUN`, ``clean AP 0``, ``no clean cell``, the cell's status); ``white_box``: the
+    evaluated victim is the one the object was trained against; ``cell``: the cell's name (None when not run)."""
+
+    value: float | None
+    note: str
+    white_box: bool
+    cell: str | None = None
+
+    @property
+    def text(self) -> str:
+        """The relative drop in percent (one decimal), or the note."""
+        return self.note if self.value is None else f"{100 * self.value:.1f}"
+
+
+#: What the transfer matrix and the worst case say of an (object, victim) pair without a cell.
+NOT_RUN = "not run"
+
+
+@dataclass(frozen=True)
+class TransferGrid:
+    """The transfer matrix of one proposal source: every attack object of the cells (rows) on every victim of the
+    cells (columns, in order of first appearance); a pair without a cell is :data:`NOT_RUN`."""
+
+    proposals: str
+    rows: tuple[TransferRow, ...]
+    victims: tuple[str, ...]
+    entries: Mapping[tuple[str, str], TransferEntry]
+
+    def entry(self, row: TransferRow, victim: str) -> TransferEntry:
+        """The entry of ``row`` on ``victim`` (:data:`NOT_RUN` where there is no cell)."""
+        found = self.entries.get((row.object, victim))
+        return found if found is not None else TransferEntry(None, NOT_RUN, row.trained_against == victim)
+
+    def values(self) -> Any:
+        """A DataFrame: rows (victim trained against or "", object), columns the victims, values the relative
+        drop (fraction; NaN where :meth:`entry` has a note instead)."""
+        import pandas as pd
+
+        index = pd.MultiIndex.from_tuples([(r.trained_against or "", r.object) for r in self.rows],
+                                          names=["trained_against", "object"])
+        data = [[float("nan") if (e := self.entry(r, v)).value is None else e.value for v in self.victims]
+                for r in self.rows]
+        return pd.DataFrame(data, index=index, columns=pd.Index(self.victims, name="evaluated"), dtype="float64")
+
+
+def _transfer_entry(c: Mapping[str, Any], white_box: bool, metric: str, recall: str, difficulty: str
+                    ) -> TransferEntry:
+    r = CellResult(c)
+    if not r.ok:
+        return TransferEntry(None, r.status, white_box, r.name)
+    if not r.effect:
+        return TransferEntry(None, "no clean cell", white_box, r.name)
+    try:
+        value = r.drop(CLASS, metric, recall, difficulty, relative=True)
+    except LookupError:
+        return TransferEntry(None, "no such AP", white_box, r.name)
+    return TransferEntry(None if value is None else float(value), "clean AP 0" if value is None else "", white_box,
+                         r.name)
+
+
+def transfer_grids(cells: Iterable[Mapping[str, Any]], metric: str = HEADLINE.metric, recall: str = HEADLINE.recall,
+                   difficulty: str = HEADLINE.difficulty) -> list[TransferGrid]:
+    """The transfer matrix of each proposal source of ``cells`` (in order of first appearance), each over every
+    attack object (:func:`role` ``attack``) and every victim of ``cells``, whatever the proposal source. Rows are
+    ordered by the column of the victim they were trained against (objects trained against a victim that is not
+    a column, then those without one, last), then by first appearance. The same (object, victim, proposals) twice
+    with different results, or one object name standing for two object files, is refused."""
+    cells = list(cells)
+    victims = tuple(dict.fromkeys(CellResult(c).victim for c in cells))
+    objects: dict[str, TransferRow] = {}
+    shas: dict[str, Any] = {}
+    entries: dict[str, dict[tuple[str, str], TransferEntry]] = {}
     for c in cells:
-        source = trained_against(c)
         r = CellResult(c)
-        if source is None or not r.ok or not r.effect:
+        entries.setdefault(r.proposals, {})
+        if role(c) != "attack":
             continue
-        sha = _get(r.config, "attack", "object", "object", "ply_sha256")
-        if objects.setdefault(r.attack, sha) != sha:
+        sha = _object(c).get("ply_sha256")
+        if shas.setdefault(r.attack, sha) != sha:
             raise RobustBenchError(f"report: attack {r.attack!r} names two different object files "
-                                   f"({objects[r.attack]} and {sha}); report their runs separately")
-        try:
-            value = r.drop(CLASS, metric, recall, difficulty, relative=True)
-        except LookupError:
-            value = None
-        entry = {"trained_against": source, "object": r.attack, "evaluated": r.victim,
-                 "proposals": r.proposals, "value": None if value is None else float(value)}
-        k = (source, r.attack, r.victim, r.proposals)
-        if k in out and out[k]["value"] != entry["value"]:
+                                   f"({shas[r.attack]} and {sha}); report their runs separately")
+        row = objects.setdefault(r.attack, TransferRow(r.attack, trained_against(c), sha is not None))
+        entry = _transfer_entry(c, row.trained_against == r.victim, metric, recall, difficulty)
+        known = entries[r.proposals].setdefault((r.attack, r.victim), entry)
+        if (known.value, known.note) != (entry.value, entry.note):
             raise RobustBenchError(f"report: two cells evaluate object {r.attack!r} on {r.victim} with "
                                    f"{r.proposals} proposals with different results")
-        out[k] = entry
-    return list(out.values())
+    first = {name: i for i, name in enumerate(objects)}
+
+    def order(row: TransferRow) -> tuple[int, int]:
+        if row.trained_against is None:
+            return len(victims) + 1, first[row.object]
+        column = victims.index(row.trained_against) if row.trained_against in victims else len(victims)
+        return column, first[row.object]
+
+    rows = tuple(sorted(objects.values(), key=order))
+    return [TransferGrid(p, rows, victims, e) for p, e in entries.items()]
 
 
 def transfer_matrix(cells: Iterable[Mapping[str, Any]], proposals: str, metric: str = HEADLINE.metric,
                     recall: str = HEADLINE.recall, difficulty: str = HEADLINE.difficulty) -> Any:
-    """The transfer matrix of one proposal source: a DataFrame, rows (victim trained against, object), columns
-    the evaluated victims (sorted), values the relative drop (fraction, NaN where not run or undefined).
-    Empty (no rows) when no cell carries an object trained against a victim."""
+    """The transfer matrix of one proposal source as numbers (:meth:`TransferGrid.values`); empty (no rows) when
+    no cell with those proposals runs an attack object."""
     import pandas as pd
 
-    entries = [e for e in transfer_entries(cells, metric, recall, difficulty) if e["proposals"] == proposals]
-    if not entries:
-        return pd.DataFrame()
-    frame = pd.DataFrame(entries)
-    frame["value"] = frame["value"].astype("float64")
-    return frame.pivot(index=["trained_against", "object"], columns="evaluated", values="value").sort_index(
-        axis=0).sort_index(axis=1)
+    grid = next((g for g in transfer_grids(cells, metric, recall, difficulty) if g.proposals == proposals), None)
+    return pd.DataFrame() if grid is None or not grid.entries else grid.values()

@@ -2,8 +2,8 @@
 
 * :func:`ap_figure`: per victim, Car AP per difficulty per attack (BEV and 3D, one panel per proposal source);
 * :func:`drop_figure`: the BEV moderate AP drop per victim and attack (percentage points);
-* :func:`transfer_figure`: the transfer heat-map (rows: the victim an object was trained against and the
-  object; columns: the evaluated victim; value: relative BEV moderate drop in percent).
+* :func:`transfer_figure`: the transfer heat-map (rows: every attack object, with the victim it was trained
+  against; columns: every victim; value: relative BEV moderate drop in percent, or why there is none).
 
 matplotlib is imported inside the functions.
 """
@@ -11,6 +11,7 @@ matplotlib is imported inside the functions.
 from __future__ import annotations
 
 import io
+from collections.abc import Sequence
 from typing import Any
 
 from robustbench3d.report.data import DIFFICULTIES, ap_column, effect_column
@@ -101,35 +102,35 @@ def drop_figure(df: Any, recall: str = "R40") -> bytes:
     return png_bytes(fig)
 
 
-def transfer_figure(matrices: dict[str, Any], recall: str = "R40") -> bytes:
-    """One heat-map per proposal source (``matrices``: source -> :func:`~robustbench3d.report.data.transfer_matrix`),
-    values in percent, diverging around 0, white-box entries (trained against = evaluated) outlined."""
+def transfer_figure(grids: Sequence[Any], recall: str = "R40") -> bytes:
+    """One heat-map per proposal source (``grids``: :class:`~robustbench3d.report.data.TransferGrid`, each every
+    attack object by every victim), values in percent, diverging around 0; white-box entries (trained against =
+    evaluated) outlined; an entry without a number shows why (``not run``, ``clean AP 0``, the cell's status)."""
     import numpy as np
     from matplotlib.colors import TwoSlopeNorm
 
     plt = _pyplot()
-    items = [(p, m) for p, m in matrices.items() if len(m)]
-    values = np.concatenate([m.to_numpy(dtype=float).ravel() * 100 for _, m in items])
+    items = [(g, g.values().to_numpy(dtype=float) * 100) for g in grids if g.rows]
+    values = np.concatenate([v.ravel() for _, v in items])
     span = max(1.0, float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 1.0)
     norm = TwoSlopeNorm(vcenter=0.0, vmin=-span, vmax=span)
     fig, axes = plt.subplots(1, len(items), squeeze=False,
-                             figsize=(sum(2.6 + 1.3 * m.shape[1] for _, m in items),
-                                      1.6 + 0.45 * max(m.shape[0] for _, m in items)))
-    for ax, (prop, m) in zip(axes[0], items, strict=True):
-        data = m.to_numpy(dtype=float) * 100
+                             figsize=(sum(3.2 + 1.3 * len(g.victims) for g, _ in items),
+                                      1.8 + 0.45 * max(len(g.rows) for g, _ in items)))
+    for ax, (grid, data) in zip(axes[0], items, strict=True):
         image = ax.imshow(np.ma.masked_invalid(data), cmap="RdBu_r", norm=norm, aspect="auto")
-        rows = [f"{t} · {o}" for t, o in m.index]
-        ax.set_yticks(range(len(rows)), rows, fontsize=8)
-        ax.set_xticks(range(m.shape[1]), list(m.columns), rotation=20, ha="right", fontsize=8)
+        ax.set_yticks(range(len(grid.rows)), [r.label for r in grid.rows], fontsize=8)
+        ax.set_xticks(range(len(grid.victims)), list(grid.victims), rotation=20, ha="right", fontsize=8)
         ax.set_xlabel("evaluated victim")
         ax.set_ylabel("trained against · object")
-        ax.set_title(f"relative BEV drop, moderate, {recall} (%) · proposals {prop}", fontsize=9)
-        for r in range(data.shape[0]):
-            for c in range(data.shape[1]):
-                text = "n/a" if np.isnan(data[r, c]) else f"{data[r, c]:.1f}"
-                dark = not np.isnan(data[r, c]) and abs(data[r, c]) > 0.6 * span
-                ax.text(c, r, text, ha="center", va="center", fontsize=8, color="white" if dark else "black")
-                if m.index[r][0] == m.columns[c]:
+        ax.set_title(f"relative BEV drop, moderate, {recall} (%) · proposals {grid.proposals}", fontsize=9)
+        for r, row in enumerate(grid.rows):
+            for c, victim in enumerate(grid.victims):
+                entry = grid.entry(row, victim)
+                dark = entry.value is not None and abs(data[r, c]) > 0.6 * span
+                ax.text(c, r, entry.text, ha="center", va="center", fontsize=8 if entry.value is not None else 6.5,
+                        color="white" if dark else "black" if entry.value is not None else "#777777")
+                if entry.white_box:
                     ax.add_patch(plt.Rectangle((c - 0.5, r - 0.5), 1, 1, fill=False, lw=1.5, ec="black"))
         fig.colorbar(image, ax=ax, fraction=0.05, pad=0.02)
     fig.tight_layout()

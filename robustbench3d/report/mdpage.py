@@ -14,7 +14,24 @@ from typing import Any
 
 from robustbench3d.report.table1 import COLUMNS as T1_COLUMNS
 from robustbench3d.report.table1 import Line, Number, Table1, attacks_text
-from robustbench3d.report.view import Column, Figure, SectionView, ci_high, ci_text, fmt, section_facts, section_title
+from robustbench3d.report.view import (
+    NO_ATTACK,
+    TRANSFER_LEGEND,
+    WORST_COLUMNS,
+    WORST_LEGEND,
+    Column,
+    Figure,
+    SectionView,
+    Shown,
+    ci_high,
+    ci_text,
+    fmt,
+    section_facts,
+    section_title,
+    transfer_row,
+    worst_row,
+)
+from robustbench3d.report.worst import objects_text
 
 #: Characters that start markdown markup anywhere in a line (code, emphasis, links and images, tables,
 #: strikethrough) and the backslash itself; each is written backslash-escaped (``_``: see below).
@@ -112,11 +129,55 @@ def _section(view: SectionView, t1: Table1, k: int, figure_dir: str) -> list[str
     lines.append("")
     if notes := view.cell_notes():
         lines += ["### Cells merged or left out", "", *(f"- {md_text(n)}" for n in notes), ""]
-    for fig in [*view.figures, *([view.transfer] if view.transfer else []), *view.scenes]:
+    lines += worst_markdown(view)
+    for fig in view.figures:
         lines += _md_figure(fig, figure_dir)
-    if not view.transfer:
-        lines += [md_text(view.transfer_note), ""]
+    lines += transfer_markdown(view)
+    if view.transfer:
+        lines += _md_figure(view.transfer, figure_dir)
+    for fig in view.scenes:
+        lines += _md_figure(fig, figure_dir)
     lines += [*map(md_text, view.scene_notes), ""] if view.scene_notes else []
+    return lines
+
+
+def _md_shown(cell: Shown) -> str:
+    """A worst-case or transfer cell: a number (the report's own text) as it is, any other text inert."""
+    text = f"{cell.text} {cell.sub}" if cell.sub else cell.text
+    return text if cell.num else md_text(text)
+
+
+def worst_markdown(view: SectionView) -> list[str]:
+    """The worst-case block: per proposal source the ranked table (the worst cell's source last), the line on
+    victims evaluated against fewer attack objects; a line when the section ran no attack object."""
+    lines = ["### Worst case: victims ranked by their worst attacked AP", ""]
+    if not view.worst:
+        return [*lines, md_text(view.transfer_note or NO_ATTACK), ""]
+    lines += [md_text(WORST_LEGEND), ""]
+    for wc in view.worst:
+        rows = [[*map(_md_shown, worst_row(r, wc)), md_code(r.source.source) if r.source else "–"] for r in wc.rows]
+        lines += [f"Proposals {md_code(wc.proposals)}, {objects_text(len(wc.objects))}: "
+                  f"{md_text(', '.join(wc.objects))}.", ""]
+        lines += md_table([*(md_text(t) for t, _ in WORST_COLUMNS), "source"], rows)
+        lines += ["", *([f"⚑ {md_text(wc.unequal)}", ""] if wc.unequal else [])]
+    return lines
+
+
+def transfer_markdown(view: SectionView) -> list[str]:
+    """The transfer-matrix block: per proposal source a table, every attack object by every victim (white-box
+    entries bold), its legend; a line when there is none."""
+    lines = ["### Transfer matrix", ""]
+    if not view.grids:
+        return [*lines, md_text(view.transfer_note or NO_ATTACK), ""]
+    lines += [md_text(TRANSFER_LEGEND), ""]
+    for grid in view.grids:
+        rows = []
+        for row in grid.rows:
+            cells = [f"**{_md_shown(s)}**" if wb else _md_shown(s) for s, wb in transfer_row(grid, row)]
+            rows.append([md_text(row.label), *cells])
+        lines += [f"Proposals {md_code(grid.proposals)} (rel. drop %, R40):", ""]
+        lines += md_table(["trained against · object", *map(md_text, grid.victims)], rows)
+        lines.append("")
     return lines
 
 

@@ -9,7 +9,10 @@ wide page; the 3D AP, the intervals and the run / object columns are shown by to
 then scrolls inside its own box). Each row links to a ``<details>`` block with the cell's full JSON as the
 run wrote it (provenance, dataset, metrics, attack effect, flags). Each section starts with the seed
 paper's Table 1 beside its measured rows (:mod:`robustbench3d.report.table1`); after its leaderboard come the
-cells it merged or left out, each named with its run and why. ``leaderboard.md`` is
+cells it merged or left out, each named with its run and why, then the worst case (per proposal source the
+victims ranked by their worst attacked AP, tables ``#wc-K-J``) and, after the figures, the transfer matrix
+(tables ``#tm-K-J``: every attack object by every victim, the white-box entry highlighted, ``not run`` where
+there is no cell) above its heat-map. ``leaderboard.md`` is
 :func:`robustbench3d.report.mdpage.markdown` (re-exported here).
 
 jinja2 is imported inside :func:`environment`.
@@ -30,6 +33,10 @@ from robustbench3d.report.table1 import build as build_table1
 from robustbench3d.report.view import (
     GROUPS,
     LEGEND,
+    NO_ATTACK,
+    TRANSFER_LEGEND,
+    WORST_COLUMNS,
+    WORST_LEGEND,
     Column,
     Figure,
     SectionView,
@@ -40,7 +47,10 @@ from robustbench3d.report.view import (
     raw,
     section_facts,
     section_title,
+    transfer_row,
+    worst_row,
 )
+from robustbench3d.report.worst import objects_text
 
 TEMPLATE = "leaderboard.html.j2"
 #: Text columns whose long values wrap (at a hyphen or space, at most 12rem wide) instead of widening the table.
@@ -99,6 +109,33 @@ def cell_json(view: SectionView, i: int) -> str:
     return json.dumps(view.section.cells[i].cell, indent=1, sort_keys=False, ensure_ascii=False)
 
 
+def _worst(view: SectionView, k: int, prov_ids: dict[str, str]) -> list[dict[str, Any]]:
+    """The worst-case tables of a section as the template shows them (one per proposal source)."""
+    return [{"id": f"wc-{k}-{j}", "proposals": wc.proposals, "objects": ", ".join(wc.objects),
+             "n": objects_text(len(wc.objects)),
+             "unequal": wc.unequal,
+             "rows": [{"victim": r.victim, "rank": "" if r.rank is None else r.rank, "flagged": r.flagged,
+                       "cells": [vars(c) for c in worst_row(r, wc)],
+                       "prov": prov_ids[r.source.name] if r.source else "",
+                       "source": r.source.source if r.source else ""}
+                      for r in wc.rows]}
+            for j, wc in enumerate(view.worst)]
+
+
+def _grids(view: SectionView, k: int) -> list[dict[str, Any]]:
+    """The transfer tables of a section as the template shows them (one per proposal source)."""
+    out = []
+    for j, g in enumerate(view.grids):
+        rows = [{"object": row.object, "trained": row.trained_against or "", "label": row.label,
+                 "away": row.trained_against is not None and row.trained_against not in g.victims,
+                 "cells": [{"victim": v, "text": c.text, "tip": c.tip,
+                            "cls": " ".join(n for n, on in (("num", c.num), ("nr", not c.num), ("wb", wb)) if on)}
+                           for v, (c, wb) in zip(g.victims, transfer_row(g, row), strict=True)]}
+                for row in g.rows]
+        out.append({"id": f"tm-{k}-{j}", "proposals": g.proposals, "victims": list(g.victims), "rows": rows})
+    return out
+
+
 def _section(view: SectionView, k: int) -> dict[str, Any]:
     """What the template needs of one section (plain values; the template escapes every string)."""
     cols = view.columns()
@@ -113,8 +150,11 @@ def _section(view: SectionView, k: int) -> dict[str, Any]:
                  for i, row in view.df.iterrows()],
         "groups": [g for g, _ in GROUPS if any(c.group == g for c in cols)],
         "legend": LEGEND, "cell_notes": view.cell_notes(),
+        "worst": _worst(view, k, {rc.name: f"prov-{k}-{i}" for i, rc in enumerate(cells)}),
+        "worst_columns": WORST_COLUMNS, "worst_legend": WORST_LEGEND, "grids": _grids(view, k),
+        "transfer_legend": TRANSFER_LEGEND,
         "figures": [image(f) for f in view.figures], "transfer": image(view.transfer) if view.transfer else None,
-        "transfer_note": view.transfer_note, "scenes": [image(s) for s in view.scenes],
+        "transfer_note": view.transfer_note or NO_ATTACK, "scenes": [image(s) for s in view.scenes],
         "scene_notes": view.scene_notes,
         "provenance": [{"id": f"prov-{k}-{i}", "name": rc.name, "source": rc.source, "json": cell_json(view, i)}
                        for i, rc in enumerate(cells)],

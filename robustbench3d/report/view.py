@@ -9,10 +9,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 from robustbench3d.metrics import ATTACK_METRICS, AttackMetric, of_kind
-from robustbench3d.report.data import CLASS, DIFFICULTIES, RECALLS, Section, ap_column, effect_column, left_out
+from robustbench3d.report.data import (
+    CLASS,
+    DIFFICULTIES,
+    RECALLS,
+    Section,
+    TransferGrid,
+    ap_column,
+    effect_column,
+    left_out,
+    transfer_grids,
+)
+from robustbench3d.report.worst import WorstCase, WorstRow, worst_cases
 
 #: Optional column groups of the HTML table: (id, the toggle's label), in toolbar order.
 GROUPS: tuple[tuple[str, str], ...] = (("3d", "3D AP"), ("ci", "intervals"), ("more", "run, object's victim"))
@@ -112,6 +124,11 @@ class Figure:
     alt: str
 
 
+#: What the worst case and the transfer matrix say of a section that ran no attack object.
+NO_ATTACK = ("No attack object was run (clean cells and controls only), so there is no worst case and no transfer "
+             "matrix.")
+
+
 @dataclass
 class SectionView:
     """A section with its table and figures, ready to write."""
@@ -120,7 +137,7 @@ class SectionView:
     df: Any
     figures: list[Figure] = field(default_factory=list)
     transfer: Figure | None = None
-    transfer_note: str = ""
+    transfer_note: str = ""  # why there is no transfer matrix (set when there is none; NO_ATTACK if unset)
     scenes: list[Figure] = field(default_factory=list)
     scene_notes: list[str] = field(default_factory=list)
 
@@ -135,6 +152,17 @@ class SectionView:
     def cell_notes(self) -> list[str]:
         """Every cell given but not shown (a duplicate) or left out of the figures or transfer matrix, and why."""
         return [m.note() for m in self.section.merged] + left_out(self.section)
+
+    @cached_property
+    def worst(self) -> list[WorstCase]:
+        """The worst case of each proposal source that ran an attack object (:mod:`robustbench3d.report.worst`)."""
+        return worst_cases(self.section)
+
+    @cached_property
+    def grids(self) -> list[TransferGrid]:
+        """The transfer matrix of each proposal source that ran an attack object (every attack object of the
+        section by every victim of the section)."""
+        return [g for g in transfer_grids(rc.cell for rc in self.section.cells) if g.entries]
 
 
 def section_title(view: SectionView, k: int) -> str:
@@ -152,3 +180,83 @@ def section_facts(view: SectionView) -> str:
     return (f"Runs: {', '.join(map(str, view.section.runs))}. Car AP in % at IoU {ious}; recall points "
             f"{', '.join(key['protocol']['recall_points'])}; drops and the transfer matrix compare cells "
             "with the same proposal source only.")
+
+
+# ---- the worst case and the transfer matrix, as both pages show them ----------------------------------------
+
+WORST_LEGEND = ("Ranked by the worst attacked AP: the lowest Car BEV AP at moderate (R40, %) over every attack object "
+                "run against the victim with these proposals, highest (most robust) first, as robustness leaderboards "
+                "rank by the strongest evaluated attack. The clean cell and the controls (benign-sphere, random-shape: "
+                "an unoptimised object) are no attacks: shown for reference, never the worst case. Equal recorded APs "
+                "share a rank (2=) and name every object reaching it (drop columns: the first's). drop pts: clean − "
+                "worst attacked, with the run's paired bootstrap interval [95 %] where recorded; rel. drop: drop / "
+                "clean. attack objects: evaluated of those run with these proposals; ⚑: fewer than the others.")
+
+
+@dataclass(frozen=True)
+class Shown:
+    """One cell of the worst-case or transfer table: ``text``, a second line ``sub`` ("" for none), a number
+    (right-aligned) or not, a tooltip and, for a list, its items."""
+
+    text: str
+    sub: str = ""
+    num: bool = False
+    tip: str = ""
+    parts: tuple[str, ...] = ()  # the text's items ("; "-joined), each kept on one line in the page
+
+
+#: The worst-case table's columns: (title, tooltip).
+WORST_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("rank", "by worst attacked AP, highest first; = a tie"),
+    ("victim", ""),
+    ("clean BEV M", "Car BEV AP, moderate, R40, of the clean cell (%)"),
+    ("worst attacked BEV M", "the lowest Car BEV AP, moderate, R40, over the attack objects (%), [95 % interval]"),
+    ("by object", "the attack object(s) reaching the worst attacked AP"),
+    ("rel. drop %", "(clean − worst attacked) / clean (%)"),
+    ("drop pts", "clean − worst attacked (points), [paired bootstrap 95 % interval]"),
+    ("attack objects", "attack objects evaluated against the victim, of those run with these proposals"),
+    ("controls (reference)", "Car BEV AP, moderate, R40, of each control (%): not attacks, not in the worst case"),
+)
+
+
+def _pair(ci: tuple[float, float] | None, sign: str = "") -> str:
+    return "" if ci is None else f"[{ci[0]:{sign}.2f}, {ci[1]:{sign}.2f}]"
+
+
+def worst_row(row: WorstRow, wc: WorstCase) -> list[Shown]:
+    """The worst-case table's cells of ``row`` (:data:`WORST_COLUMNS`): every missing number says why."""
+    rank = "unranked" if row.rank is None else f"{row.rank}{'=' if row.tied else ''}"
+    clean = Shown(fmt(row.clean, "ap") if row.clean is not None else row.clean_note, num=row.clean is not None)
+    if row.worst_ap is None:
+        worst, by = Shown("none evaluated"), Shown("–")
+    else:
+        worst = Shown(fmt(row.worst_ap, "ap"), _pair(row.worst_ci), True)
+        by = Shown(" = ".join(row.by) + (" (tie)" if len(row.by) > 1 else ""))
+    note = row.drop_note
+    rel = Shown(fmt(row.relative_drop, "percent"), num=True) if row.relative_drop is not None else Shown(note)
+    drop = Shown(fmt(row.drop, "points"), _pair(row.drop_ci, "+"), True) if row.drop is not None else Shown(note)
+    count = f"{len(row.evaluated)} of {len(wc.objects)}" + (" ⚑" if row.flagged else "")
+    missing = "; ".join(f"{obj} ({why})" for obj, why in row.missing)
+    objects = Shown(count, f"not evaluated: {missing}" if missing else "",
+                    tip="evaluated: " + (", ".join(row.evaluated) or "none"))
+    parts = tuple(f"{name} {fmt(ap, 'ap') if ap is not None else status}" for name, ap, status in row.controls)
+    controls = Shown("; ".join(parts) or "none run", parts=parts)
+    return [Shown(rank, num=True), Shown(row.victim), clean, worst, by, rel, drop, objects, controls]
+
+
+TRANSFER_LEGEND = ("Relative drop of Car BEV AP at moderate (R40, %) of each attack object (rows: the victim it was "
+                   "trained against · the object; (object file): no training victim recorded) on each victim of the "
+                   "section (columns), against the clean cell of the same victim and proposals. Highlighted (bold in "
+                   "the markdown): the victim the object was trained against (white-box); every other entry is a "
+                   "transfer. not run: no such cell; clean AP 0: the relative drop is undefined; no clean cell: "
+                   "nothing to compare with; skipped, error: the cell's status.")
+
+
+def transfer_row(grid: TransferGrid, row: Any) -> list[tuple[Shown, bool]]:
+    """The transfer table's cells of ``row`` (one per victim of ``grid``) and whether each is white-box."""
+    out = []
+    for victim in grid.victims:
+        e = grid.entry(row, victim)
+        out.append((Shown(e.text, num=e.value is not None, tip=e.cell or f"{victim}+{row.object}+{grid.proposals}: "
+                          "not run"), e.white_box))
+    return out

@@ -239,25 +239,35 @@ def _cell(victim, attack, proposals="detector", trained=None, rel="no effect", s
 def test_transfer_matrix_on_hand_made_cells():
     cells = [
         _cell("A", "none"),  # clean: no object, no effect
-        _cell("D", "objA", trained="A"),  # no clean comparison: left out
-        _cell("A", "random-shape", rel=0.9, trained=None),  # control: no training victim
+        _cell("D", "objA", trained="A"),  # no clean comparison: "no clean cell"
+        _cell("A", "random-shape", rel=0.9, trained=None),  # control: no row
         _cell("A", "objA", trained="A", rel=0.5),
         _cell("B", "objA", trained="A", rel=0.1),
         _cell("A", "objB", trained="B", rel=0.2, sha="b" * 64),
         _cell("C", "objB", trained="B", rel=None, sha="b" * 64),  # clean AP 0: undefined
         _cell("B", "objA", "gt", trained="A", rel=0.3),
-        _cell("C", "objA", trained="A", rel=0.7, status="error"),  # not ok: left out
+        _cell("C", "objA", trained="A", rel=0.7, status="error"),  # not ok: its status
     ]
     m = rdata.transfer_matrix(cells, "detector")
-    assert list(m.index) == [("A", "objA"), ("B", "objB")] and list(m.columns) == ["A", "B", "C"]
-    expect = [[0.5, 0.1, math.nan], [0.2, math.nan, math.nan]]
+    # every attack object (not the control) by every victim of the cells, in order of first appearance
+    assert list(m.index) == [("A", "objA"), ("B", "objB")] and list(m.columns) == ["A", "D", "B", "C"]
+    nan = math.nan
+    expect = [[0.5, nan, 0.1, nan], [0.2, nan, nan, nan]]
     for r, row in enumerate(expect):
         for c, v in enumerate(row):
             got = m.iloc[r, c]
             assert (math.isnan(v) and math.isnan(got)) or got == v, (r, c, got, v)
+    # each entry without a number says why, and the training victim's entries are white-box
+    (grid, gt) = rdata.transfer_grids(cells)
+    texts = [[grid.entry(row, v).text for v in grid.victims] for row in grid.rows]
+    assert texts == [["50.0", "no clean cell", "10.0", "error"], ["20.0", "not run", "not run", "clean AP 0"]]
+    assert [[grid.entry(row, v).white_box for v in grid.victims] for row in grid.rows] == [
+        [True, False, False, False], [False, False, True, False]]
     g = rdata.transfer_matrix(cells, "gt")
-    assert list(g.index) == [("A", "objA")] and list(g.columns) == ["B"] and g.iloc[0, 0] == 0.3
-    assert rdata.transfer_matrix(cells[:2], "detector").empty
+    assert list(g.index) == list(m.index) and list(g.columns) == ["A", "D", "B", "C"]
+    assert g.loc[("A", "objA"), "B"] == 0.3 and int(g.notna().sum().sum()) == 1
+    assert [gt.entry(row, "A").text for row in gt.rows] == ["not run", "not run"]
+    assert rdata.transfer_matrix([cells[0], cells[2]], "detector").empty  # clean and control: no attack object
 
     same_twice = [*cells, copy.deepcopy(cells[2])]
     assert rdata.transfer_matrix(same_twice, "detector").equals(m)
