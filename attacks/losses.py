@@ -10,6 +10,12 @@ in the margin ``m = l1 - l0``, so ``L_k = max(IoU_k, floor) * softplus(max_i m_i
 over the logit margins. ``IoU_k`` is the victim's box IoU with the ground truth, detached; the floor
 (default 0.1) keeps gradient on a car the victim already misses.
 
+Every victim gives the trainer these through one interface,
+:meth:`~robustbench3d.victims.base.TargetScoreOracle.target_scores`: per target car a logit (for the F-PN
+cascades the largest margin ``max_i m_i`` above, in float64) and, for the box terms, the regressed box;
+:func:`lidar_target_terms` turns them into the terms below (``softplus`` of the logit: the seed term of any
+victim), :func:`image_logit_losses` into the image term of a victim without a 2D objectness oracle.
+
 Box (``lidar_loss="box"`` or ``"seed+box"``; not in the seed paper): per target car, the BEV IoU of the
 3D box the victim regresses from the attacked frustum (:class:`~robustbench3d.victims.base.FrustumBoxOracle`)
 with the car's ground-truth box, :func:`~robustbench3d.attacks.box_iou.bev_iou_torch`; minimising it moves
@@ -47,7 +53,7 @@ import torch.nn.functional as F
 from robustbench3d.attacks.object import laplacian_smoothness_torch
 
 if TYPE_CHECKING:
-    from robustbench3d.victims.base import ObjectnessCandidates
+    from robustbench3d.victims.base import ObjectnessCandidates, TargetScores
 
 #: Lower bound of the IoU weight of the LiDAR loss (an undetected car still gets gradient).
 IOU_FLOOR = 0.1
@@ -67,6 +73,50 @@ def lidar_car_loss(logits: torch.Tensor, iou: float, floor: float = IOU_FLOOR) -
     """``-max(iou, floor) * log(1 - p)`` of one car, ``p`` the largest object probability over its
     frustum's (N, 2) logits (module doc); ``iou`` is a plain number (detached)."""
     return max(float(iou), float(floor)) * F.softplus(max_object_margin(logits))
+
+
+def target_logit_loss(logit: torch.Tensor, iou: float, floor: float = IOU_FLOOR) -> torch.Tensor:
+    """``max(iou, floor) * softplus(logit)`` of one target (``logit``: a scalar of
+    :attr:`~robustbench3d.victims.base.TargetScores.logit`); for a frustum victim the same number as
+    :func:`lidar_car_loss` of its frustum's logits. ValueError for a non-finite logit."""
+    if not bool(torch.isfinite(logit)):
+        raise ValueError("field 'logit': NaN or inf (the victim's score diverged)")
+    return max(float(iou), float(floor)) * F.softplus(logit)
+
+
+def lidar_target_terms(scores: TargetScores, iou: np.ndarray, gt_boxes: np.ndarray, *, lidar_loss: str,
+                       lambda_box: float, floor: float = IOU_FLOOR) -> list[torch.Tensor]:
+    """The LiDAR terms of the targets the victim has something for (``scores.present``), in target order:
+    ``"seed"`` :func:`target_logit_loss` with ``iou`` (T,), the detached ``IoU_k``; ``"box"`` ``lambda_box`` x
+    :func:`box_car_loss` of ``scores.box`` with ``gt_boxes`` (T, 5) (:func:`gt_bev_boxes`), whose value then
+    replaces ``iou[n]`` (in place: ``IoU_k`` of a box term is the regressed box's); ``"seed+box"`` both, the seed
+    term weighted by that box IoU. ValueError for a box term without boxes or a non-finite logit."""
+    if lidar_loss != "seed" and scores.box is None:
+        raise ValueError(f"field 'box': the victim's target_scores gave no boxes (needed by lidar_loss {lidar_loss!r})")
+    terms = []
+    for n in np.flatnonzero(scores.present).tolist():
+        if lidar_loss == "seed":
+            terms.append(target_logit_loss(scores.logit[n], float(iou[n]), floor))
+            continue
+        assert scores.box is not None
+        box = scores.box[n]
+        box_iou = box_car_loss(box[:3], box[3:6], box[6], gt_boxes[n])
+        iou[n] = box_iou.item()
+        term = lambda_box * box_iou
+        if lidar_loss == "seed+box":
+            term = term + target_logit_loss(scores.logit[n], float(iou[n]), floor)
+        terms.append(term)
+    return terms
+
+
+def image_logit_losses(scores: TargetScores) -> torch.Tensor:
+    """(T,) image loss of each target of a victim scored through its logits: ``softplus(logit)`` =
+    ``-log(1 - sigmoid(logit))`` where ``scores.present``, else 0. ValueError for a non-finite logit."""
+    index = torch.from_numpy(np.flatnonzero(np.asarray(scores.present, dtype=bool)))
+    logit = scores.logit.to(torch.float64)[index]  # an absent target's logit is ignored, even NaN
+    if not bool(torch.isfinite(logit).all()):
+        raise ValueError("field 'logit': NaN or inf (the victim's score diverged)")
+    return torch.zeros(len(scores.present), dtype=torch.float64).index_put((index,), F.softplus(logit))
 
 
 def box_car_loss(center: torch.Tensor, size_lwh: torch.Tensor, heading: torch.Tensor,

@@ -39,6 +39,26 @@ the batch's cars only:
   (one ``detect`` of the whole frame). A car without a frustum has 0;
 * image: the objectness candidates around the car's ground-truth 2D box.
 
+Every LiDAR term, and the image term of a victim without a 2D objectness oracle, goes through the one
+differentiable victim interface, :meth:`~robustbench3d.victims.base.TargetScoreOracle.target_scores`: per frame
+one :class:`~robustbench3d.victims.base.AttackedScene` (the attacked frame with ``labels=None``, its rect-frame
+points with the object's returns differentiable, the proposals above) and the
+:class:`~robustbench3d.victims.base.AttackTargets` of the chosen cars (GT 2D and 3D boxes, each car's proposal
+index, -1 for none); per present car the seed term ``max(IoU_k, floor) softplus(logit)`` and the box term
+(:func:`~robustbench3d.attacks.losses.lidar_target_terms`). For the F-PN cascades the logit is the frustum's
+largest object margin, so the terms are those above, bit for bit (a victim with the frustum oracles alone is
+scored through :func:`~robustbench3d.victims.base.frustum_target_scores`). The image term of a victim with
+:class:`~robustbench3d.victims.base.ImageObjectnessOracle` stays the objectness loss.
+
+Any victim (one without frustum oracles, e.g. a whole-scene LiDAR detector supporting only the ``detector``
+mode): ``scene.proposals`` is None and every proposal index -1 (the victim finds the cars itself); ``IoU_k`` and
+the detection checks are the BEV IoU of the car with the victim's own ``detect(frames, "detector")`` on the
+attacked frame (clean: on the clean frame); the image term (no objectness oracle) is ``softplus(logit)`` per car
+from a scene whose ``image`` is the differentiable attacked image (points without gradient), the LiDAR term comes
+from one whose points carry gradients (``image`` None). The frame's image and scan are the clean ones where the
+mode renders no image or no LiDAR. Refusals before any work: :func:`~robustbench3d.attacks.train_config.
+check_oracles` (no gradients, a mode whose sensor the victim does not use, ``lidar_boxes`` other than ``gt``).
+
 The loss of a step is the mean over its cars of each term (plus the Laplacian). Randomness comes only
 from (seed, epoch) and (seed, step), and the state saved every ``checkpoint_every`` steps (parameters,
 Adam state, history; written atomically) is all a resumed run needs, so a resumed run ends with the
@@ -66,11 +86,11 @@ import torch
 from robustbench3d.attacks.base import target_cars
 from robustbench3d.attacks.losses import (
     best_candidate_scores,
-    box_car_loss,
     gt_bev_boxes,
+    image_logit_losses,
     image_target_losses,
     laplacian_loss,
-    lidar_car_loss,
+    lidar_target_terms,
 )
 from robustbench3d.attacks.object import (
     NEUTRAL_GREY,
@@ -168,6 +188,15 @@ def _bev_iou_per_target(det: Labels, targets: Labels) -> np.ndarray:
         return np.column_stack([lab.dimensions, lab.location, lab.rotation_y])
 
     return bev_iou(boxes(targets), boxes(det)).max(axis=1)
+
+
+def _attack_targets(targets: Labels, chosen: list[int], index: list[int | None]) -> Any:
+    """The :class:`~robustbench3d.victims.base.AttackTargets` of the ``chosen`` rows of ``targets``: their GT 2D
+    boxes, their 3D boxes (location, dimensions h/w/l, rotation_y) and each one's proposal index (None: -1)."""
+    from robustbench3d.victims.base import AttackTargets
+
+    boxes3d = np.column_stack([targets.location, targets.dimensions, targets.rotation_y])
+    return AttackTargets(targets.bbox[chosen], boxes3d[chosen], [-1 if j is None else j for j in index])
 
 
 #: torch.optim.Adam's defaults, in the order its param groups hold them (after ``params`` and ``lr``).
@@ -295,8 +324,13 @@ class UniversalTrainer:
     def __init__(self, victim: Any, kitti: KittiDataset, frame_ids: list[str], labels: list[Labels],
                  config: TrainConfig) -> None:
         from robustbench3d.attacks.roof import RoofObjectAttack
+        from robustbench3d.victims.base import ImageObjectnessOracle, has_frustum_oracles
 
         self.victim, self.kitti, self.frame_ids, self.labels, self.config = victim, kitti, frame_ids, labels, config
+        #: Whether the LiDAR term goes through per-proposal frustums (the F-PN cascades), and the image term
+        #: through a 2D detector's objectness (else both through ``target_scores`` alone; module doc).
+        self.frustums = has_frustum_oracles(victim)
+        self._objectness = isinstance(victim, ImageObjectnessOracle)
         self.cars = training_cars(labels)
         if not self.cars:
             raise TrainingError(f"the training data ({len(frame_ids)} frame(s) of split {kitti.split!r} under "
@@ -446,7 +480,10 @@ class UniversalTrainer:
         ``when`` names the step in error messages."""
         cfg, m = self.config, self.config.kind
         weights = cfg.weights()
-        frame = self._frame(frame_id, with_image=m.image or cfg.lidar_boxes == "detector", with_scan=m.lidar)
+        if self.frustums:
+            frame = self._frame(frame_id, with_image=m.image or cfg.lidar_boxes == "detector", with_scan=m.lidar)
+        else:  # a victim that finds its own objects sees the clean image and scan where the mode renders neither
+            frame = self._frame(frame_id, with_image=True)
         targets = target_cars(frame.labels)
         verts, colours = self.vertices(), self.colours()  # a fresh graph per frame
         placed, poses = [], []
@@ -460,7 +497,7 @@ class UniversalTrainer:
         sums: dict[str, float] = {}
         frame_loss = torch.zeros((), dtype=torch.float64)
         attacked_image: np.ndarray | None = None
-        if m.image:
+        if m.image and self._objectness:
             terms_t, score, attacked_image = self._image(frame, targets, chosen, placed, colours, as_uint8=m.lidar)
             image = terms_t.sum()
             sums["image"] = image.item()
@@ -468,7 +505,20 @@ class UniversalTrainer:
             ok &= score >= SCORE_DETECTED
             if ref:
                 clean_ok &= self._clean_value(frame, targets, "image")[ref] >= SCORE_DETECTED
-        if m.lidar:
+        if not self.frustums:
+            try:
+                generic, iou = self._generic(frame, targets, chosen, placed, colours, rng, attacked_image,
+                                             m.image and not self._objectness)
+            except ValueError as exc:  # the loss refuses non-finite logits (a diverged victim)
+                raise TrainingError(f"{when}: the loss of frame {frame.frame_id} is not finite ({exc}); "
+                                    f"stopping ({self._resume_hint()})") from exc
+            for key, term in generic.items():
+                sums[key] = term.item()
+                frame_loss = frame_loss + weights[key] / n * term
+            ok &= iou >= BEV_IOU_DETECTED
+            if ref:
+                clean_ok &= self._clean_value(frame, targets, "lidar")[ref] >= BEV_IOU_DETECTED
+        elif m.lidar:
             if cfg.lidar_boxes == "detector" and attacked_image is None:
                 attacked_image = self._render_image(frame, targets, placed, colours)
             try:
@@ -537,19 +587,10 @@ class UniversalTrainer:
         """LiDAR loss terms of the chosen targets and their attacked BEV IoUs (``attacked_image``: the
         attacked camera image, needed for ``lidar_boxes="detector"``; ``poses``: each target's placement, for the
         frustum protocols ``gt-object`` / ``gt-append``, whose proposals are built as the runner builds them)."""
-        from robustbench3d.sensors.lidar_render import render_lidar
-        from robustbench3d.victims.base import gt_proposals
+        from robustbench3d.victims.base import AttackedScene, gt_proposals
 
-        cfg, calib = self.config, frame.calib
-        albedo = colours.detach().numpy()
-        res = render_lidar(frame.scan, [(rect_to_velo(p, calib), self._faces, albedo) for p in placed], rng=rng,
-                           range_noise_m=EOT_RANGE_NOISE_M if "range-noise" in cfg.eot else 0.0,
-                           dropout=EOT_DROPOUT if "dropout" in cfg.eot else 0.0)
-        k = len(res.added)
-        kept = res.scan[:len(res.scan) - k, :3].astype(np.float64)
-        xyz = torch.cat([torch.from_numpy(calib.velo_to_rect_points(kept)),
-                         _velo_to_rect_torch(res.added_torch, calib.velo_to_rect)])
-        points = torch.cat([xyz, torch.from_numpy(res.scan[:, 3:4].astype(np.float64))], dim=1)
+        cfg = self.config
+        res, points = self._render_scan(frame, placed, colours, rng)
         attacked = replace(frame, scan=np.ascontiguousarray(res.scan, dtype=np.float32), labels=None,
                            image=frame.image if attacked_image is None else attacked_image)
         with torch.no_grad():
@@ -572,30 +613,91 @@ class UniversalTrainer:
                 iou = _bev_iou_per_target(self.victim.detect([attacked], [scored])[0], targets)[chosen]
             else:
                 iou = np.zeros(len(chosen))
-        gt_boxes = gt_bev_boxes(targets)
-        terms = []
-        for n, t in enumerate(chosen):
-            j = index[t]
-            if j is None:
-                continue
-            where: dict[str, Any] = dict(frame_id=frame.frame_id, proposal=j)
-            if props.extra_points is not None:  # gt-append: the car's object returns join its frustum
-                where["extra_points"] = props.extra_points[j]
-            if cfg.lidar_loss == "seed":
-                fl = self.victim.frustum_logits(points, calib, frame.image_size, props.boxes[j], **where)
-                if fl is not None:
-                    terms.append(lidar_car_loss(fl.logits.to(torch.float64), float(iou[n]), cfg.iou_floor))
-                continue
-            fb = self.victim.frustum_box(points, calib, frame.image_size, props.boxes[j], **where)
-            if fb is None:
-                continue
-            box_iou = box_car_loss(fb.center, fb.size_lwh, fb.heading, gt_boxes[t])
-            iou[n] = box_iou.item()
-            term = cfg.lambda_box * box_iou
-            if cfg.lidar_loss == "seed+box":
-                term = term + lidar_car_loss(fb.logits.to(torch.float64), float(iou[n]), cfg.iou_floor)
-            terms.append(term)
+        scene = AttackedScene(attacked, points, None, props)
+        scores = self._scores(scene, _attack_targets(targets, chosen, [index[t] for t in chosen]),
+                              with_box=cfg.lidar_loss != "seed")
+        terms = lidar_target_terms(scores, iou, gt_bev_boxes(targets)[chosen], lidar_loss=cfg.lidar_loss,
+                                   lambda_box=cfg.lambda_box, floor=cfg.iou_floor)
         return terms, iou
+
+    def _render_scan(self, frame: Frame, placed: list[torch.Tensor], colours: torch.Tensor,
+                     rng: np.random.Generator) -> tuple[Any, torch.Tensor]:
+        """The attacked scan (a ``LidarRenderResult``: the object on every placed car, EOT noise from ``rng``) and
+        its (N, 4) float64 rect-frame points, row-aligned with ``res.scan``, the object's returns differentiable
+        in the placed vertices."""
+        from robustbench3d.sensors.lidar_render import render_lidar
+
+        cfg, calib = self.config, frame.calib
+        albedo = colours.detach().numpy()
+        res = render_lidar(frame.scan, [(rect_to_velo(p, calib), self._faces, albedo) for p in placed], rng=rng,
+                           range_noise_m=EOT_RANGE_NOISE_M if "range-noise" in cfg.eot else 0.0,
+                           dropout=EOT_DROPOUT if "dropout" in cfg.eot else 0.0)
+        k = len(res.added)
+        kept = res.scan[:len(res.scan) - k, :3].astype(np.float64)
+        xyz = torch.cat([torch.from_numpy(calib.velo_to_rect_points(kept)),
+                         _velo_to_rect_torch(res.added_torch, calib.velo_to_rect)])
+        return res, torch.cat([xyz, torch.from_numpy(res.scan[:, 3:4].astype(np.float64))], dim=1)
+
+    def _scores(self, scene: Any, targets: Any, *, with_box: bool = False) -> Any:
+        """The victim's :class:`~robustbench3d.victims.base.TargetScores` of ``targets`` on ``scene``: its
+        ``target_scores``, or for a victim with the frustum oracles alone
+        :func:`~robustbench3d.victims.base.frustum_target_scores`; TrainingError for an answer of the wrong
+        shape."""
+        from robustbench3d.victims.base import TargetScoreOracle, frustum_target_scores
+
+        if isinstance(self.victim, TargetScoreOracle):
+            out = self.victim.target_scores(scene, targets, with_box=with_box)
+        else:
+            out = frustum_target_scores(self.victim, scene, targets, with_box=with_box)
+        t = len(targets)
+        if with_box and out.box is None:
+            raise TrainingError(f"frame {scene.frame.frame_id}: the victim's target_scores gives no boxes (with_box), "
+                                f"which --lidar-loss {self.config.lidar_loss} needs; train with --lidar-loss seed")
+        shapes = (tuple(out.logit.shape), np.shape(out.present), None if out.box is None else tuple(out.box.shape))
+        if shapes[:2] != ((t,), (t,)) or (with_box and shapes[2] != (t, 7)):
+            raise TrainingError(f"frame {scene.frame.frame_id}: the victim's target_scores gave logit, present and box "
+                                f"of shapes {shapes[0]}, {shapes[1]}, {shapes[2]} for {t} targets (expected ({t},), "
+                                f"({t},){f' and ({t}, 7)' if with_box else ''})")
+        return out
+
+    def _generic(self, frame: Frame, targets: Labels, chosen: list[int], placed: list[torch.Tensor],
+                 colours: torch.Tensor, rng: np.random.Generator, attacked_image: np.ndarray | None,
+                 image_term: bool) -> tuple[dict[str, torch.Tensor], np.ndarray]:
+        """The terms of the chosen targets for a victim without frustum oracles (module doc, "Any victim"): the
+        LiDAR term when the mode has one, the image term (``softplus`` of the logits) with ``image_term``; and each
+        chosen car's BEV IoU with the victim's own ``detect`` on the attacked frame. ``attacked_image``: the
+        attacked uint8 image if one was rendered (else the clean image is the frame's)."""
+        from robustbench3d.victims.base import AttackedScene
+
+        cfg, m = self.config, self.config.kind
+        image_t = None
+        if image_term:
+            image_t = self._rendered(frame, targets, placed, colours)
+            attacked_image = np.clip(np.round(image_t.detach().numpy() * 255.0), 0, 255).astype(np.uint8)
+        if m.lidar:
+            res, points = self._render_scan(frame, placed, colours, rng)
+            scan = np.ascontiguousarray(res.scan, dtype=np.float32)
+        else:  # no LiDAR term: the clean scan, without gradient
+            scan = frame.scan
+            xyz = frame.calib.velo_to_rect_points(scan[:, :3].astype(np.float64))
+            points = torch.from_numpy(np.concatenate([xyz, scan[:, 3:4].astype(np.float64)], axis=1))
+        image = frame.image if attacked_image is None else attacked_image
+        attacked = replace(frame, scan=scan, labels=None, image=image)
+        aimed = _attack_targets(targets, chosen, [None] * len(chosen))
+        with torch.no_grad():
+            iou = _bev_iou_per_target(self.victim.detect([attacked], "detector")[0], targets)[chosen]
+        out: dict[str, torch.Tensor] = {}
+        if image_term:
+            scores = self._scores(AttackedScene(attacked, points.detach(), image_t, None), aimed)
+            out["image"] = image_logit_losses(scores).sum()
+        if m.lidar:
+            box = cfg.lidar_loss != "seed"
+            scores = self._scores(AttackedScene(attacked, points, None, None), aimed, with_box=box)
+            terms = lidar_target_terms(scores, iou.copy(), gt_bev_boxes(targets)[chosen], lidar_loss=cfg.lidar_loss,
+                                       lambda_box=cfg.lambda_box, floor=cfg.iou_floor)
+            if terms:
+                out["lidar"] = torch.stack(terms).sum()
+        return out, iou
 
     def _image(self, frame: Frame, targets: Labels, chosen: list[int], placed: list[torch.Tensor],
                colours: torch.Tensor, as_uint8: bool = True) -> tuple[torch.Tensor, np.ndarray, np.ndarray | None]:
@@ -603,12 +705,8 @@ class UniversalTrainer:
         the LiDAR term's victim is given the attacked frame; else None) the attacked image as uint8 (rounded as
         :func:`~robustbench3d.sensors.camera_render.render_camera` does)."""
         from robustbench3d.attacks.losses import IMAGE_LOSSES
-        from robustbench3d.sensors.camera_render import render_camera_torch
 
-        image = torch.from_numpy(frame.image.astype(np.float64) / 255.0)
-        rendered = render_camera_torch(image, frame.calib, [(p, self._faces, colours) for p in placed],
-                                       scene_depth=self._depth.scene_depth(frame, targets),
-                                       supersample=self.config.supersample)
+        rendered = self._rendered(frame, targets, placed, colours)
         boxes = targets.bbox[chosen]
         # the loss's candidate set (IMAGE_LOSSES: "mean" averages the 0.3 set; "sum", like the scores, reads only IoU
         # >= 0.5, all of which 0.5 returns: the same terms, bit for bit, while a cropping victim reads less image)
@@ -618,6 +716,17 @@ class UniversalTrainer:
                                     self.config.image_loss).to(torch.float64)
         attacked = np.clip(np.round(rendered.detach().numpy() * 255.0), 0, 255).astype(np.uint8) if as_uint8 else None
         return terms, best_candidate_scores(cands, len(chosen), 0, CANDIDATE_IOU), attacked
+
+    def _rendered(self, frame: Frame, targets: Labels, placed: list[torch.Tensor],
+                  colours: torch.Tensor) -> torch.Tensor:
+        """The attacked camera image, (H, W, 3) float64 in [0, 1], differentiable in the placed vertices and the
+        colours (occlusion by the scene as :meth:`RoofObjectAttack.scene_depth`)."""
+        from robustbench3d.sensors.camera_render import render_camera_torch
+
+        image = torch.from_numpy(frame.image.astype(np.float64) / 255.0)
+        return render_camera_torch(image, frame.calib, [(p, self._faces, colours) for p in placed],
+                                   scene_depth=self._depth.scene_depth(frame, targets),
+                                   supersample=self.config.supersample)
 
     def _render_image(self, frame: Frame, targets: Labels, placed: list[torch.Tensor],
                       colours: torch.Tensor) -> np.ndarray:
@@ -656,7 +765,7 @@ class UniversalTrainer:
             with torch.no_grad():
                 if branch == "lidar":
 
-                    source = ("detector" if self.config.lidar_boxes == "detector"
+                    source = ("detector" if self.config.lidar_boxes == "detector" or not self.frustums
                               else [self._clean_proposals(frame, targets)])
                     det = self.victim.detect([replace(frame, labels=None)], source)[0]
                     self._clean[key] = _bev_iou_per_target(det, targets)

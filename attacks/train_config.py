@@ -270,25 +270,99 @@ def comparable_config(config: dict[str, Any]) -> dict[str, Any]:
     return d
 
 
-def check_oracles(victim: Any, mode: str, victim_name: str, lidar_boxes: str = "gt",
-                  lidar_loss: str = "seed") -> None:
-    """Refuse a victim that lacks an oracle ``mode`` (with ``lidar_loss``) needs, or
-    (``lidar_boxes="detector"``) a way to enumerate its own 2D proposals (:class:`TrainingError` naming
-    what is missing)."""
-    from robustbench3d.victims.base import FrustumBoxOracle, FrustumSegmentationOracle, ImageObjectnessOracle
+#: The sensor each mode attacks the victim through (its loss terms' inputs).
+MODE_SENSORS = {"adv-shape": ("lidar",), "adv-texture": ("camera",), "adv-object": ("camera", "lidar")}
+#: What a victim without gradients is told (one line; ``attack train --optimizer cma`` attacks it by queries).
+NO_GRADIENTS = ("{who} has no gradients ({why}): gradient training cannot attack it; --optimizer cma attacks it "
+                "by queries")
 
+
+def registered_capabilities(victim_name: str) -> Any:
+    """The :class:`~robustbench3d.victims.spec.Capabilities` the registry declares for ``victim_name``, None for a
+    name it does not hold (a victim object built outside the registry, e.g. in a test)."""
+    from robustbench3d.victims import VICTIMS
+
+    if victim_name not in VICTIMS:
+        return None
+    return VICTIMS.get(victim_name).info.capabilities
+
+
+def check_oracles(victim: Any, mode: str, victim_name: str, lidar_boxes: str = "gt",
+                  lidar_loss: str = "seed", capabilities: Any = None) -> None:
+    """Refuse, before any work and in one line (:class:`TrainingError`), a victim ``mode`` cannot train against:
+
+    * one without gradients (``capabilities.gradients`` False, or no white-box oracle at all), with the pointer to
+      the query-based optimiser;
+    * a mode whose sensor (:data:`MODE_SENSORS`) the victim does not use (``capabilities.modalities``);
+    * a victim with frustum oracles (the F-PN cascades, :func:`~robustbench3d.victims.base.has_frustum_oracles`)
+      without the one the LiDAR loss uses (``frustum_logits`` for ``seed``, ``frustum_box`` for the box terms),
+      without ``proposals(frames, source)`` for ``lidar_boxes="detector"``, or not accepting ``lidar_boxes`` as a
+      proposal mode;
+    * any other victim without ``target_scores`` (:class:`~robustbench3d.victims.base.TargetScoreOracle`) for a
+      LiDAR term, or for an image term without it or ``objectness``; with a ``lidar_boxes`` that needs frustums
+      (anything but the default ``gt``, which such a victim ignores); or without the ``detector`` proposal mode
+      (its own detections weight and check the attack).
+
+    ``capabilities``: the victim's declared :class:`~robustbench3d.victims.spec.Capabilities`, default those the
+    registry holds for ``victim_name`` (:func:`registered_capabilities`; none: only the oracles are checked)."""
+    from robustbench3d.victims.base import (
+        FrustumBoxOracle,
+        FrustumSegmentationOracle,
+        ImageObjectnessOracle,
+        TargetScoreOracle,
+        has_frustum_oracles,
+    )
+
+    caps = registered_capabilities(victim_name) if capabilities is None else capabilities
+    who, m = f"victim {victim_name!r}", MODES[mode]
+    scores, image, frustums = (isinstance(victim, TargetScoreOracle), isinstance(victim, ImageObjectnessOracle),
+                               has_frustum_oracles(victim))
+    if caps is not None and not caps.gradients:
+        raise TrainingError(NO_GRADIENTS.format(who=who, why="registered with gradients=False"))
+    if not (scores or image or frustums):
+        raise TrainingError(NO_GRADIENTS.format(who=who, why="it implements no white-box oracle: target_scores, "
+                                                          "objectness or frustum_logits"))
+    unused = [s for s in MODE_SENSORS[mode] if caps is not None and s not in caps.modalities]
+    if unused:
+        raise TrainingError(f"{who} cannot be attacked with {mode}: the mode attacks through the "
+                            f"{' and '.join(unused)}, which the victim does not use (modalities: "
+                            f"{', '.join(caps.modalities)})")
     need = []
-    if MODES[mode].lidar and lidar_loss == "seed" and not isinstance(victim, FrustumSegmentationOracle):
-        need.append("FrustumSegmentationOracle (frustum_logits, for the LiDAR loss)")
-    if MODES[mode].lidar and lidar_loss != "seed" and not isinstance(victim, FrustumBoxOracle):
-        need.append(f"FrustumBoxOracle (frustum_box, for the LiDAR loss {lidar_loss!r})")
-    if MODES[mode].image and not isinstance(victim, ImageObjectnessOracle):
-        need.append("ImageObjectnessOracle (objectness, for the image loss)")
-    if MODES[mode].lidar and lidar_boxes == "detector" and not callable(getattr(victim, "proposals", None)):
-        need.append("proposals(frames, source) (its own 2D proposals, for --lidar-boxes detector)")
+    if frustums:
+        if m.lidar and lidar_loss == "seed" and not isinstance(victim, FrustumSegmentationOracle):
+            need.append("FrustumSegmentationOracle (frustum_logits, for the LiDAR loss)")
+        if m.lidar and lidar_loss != "seed" and not isinstance(victim, FrustumBoxOracle):
+            need.append(f"FrustumBoxOracle (frustum_box, for the LiDAR loss {lidar_loss!r})")
+        if m.image and not image:
+            need.append("ImageObjectnessOracle (objectness, for the image loss)")
+        if m.lidar and lidar_boxes == "detector" and not callable(getattr(victim, "proposals", None)):
+            need.append("proposals(frames, source) (its own 2D proposals, for --lidar-boxes detector)")
+    else:
+        if m.lidar and not scores:
+            need.append("TargetScoreOracle (target_scores, for the LiDAR loss)")
+        if m.image and not (scores or image):
+            need.append("TargetScoreOracle (target_scores) or ImageObjectnessOracle (objectness), for the image loss")
     if need:
-        raise TrainingError(f"victim {victim_name!r} cannot be attacked with {mode}: it does not implement "
-                            + " nor ".join(need))
+        raise TrainingError(f"{who} cannot be attacked with {mode}: it does not implement " + " nor ".join(need))
+    _check_proposal_modes(victim, who, m, lidar_boxes, frustums)
+
+
+def _check_proposal_modes(victim: Any, who: str, m: Mode, lidar_boxes: str, frustums: bool) -> None:
+    """Refuse a training that would hand ``victim`` a proposal mode it does not list (one line)."""
+    listed = tuple(getattr(victim, "supported_proposals", ()))
+    if frustums:
+        if m.lidar and lidar_boxes not in listed:
+            raise TrainingError(f"{_field('lidar_boxes')}: {who} does not accept the proposal mode {lidar_boxes!r} "
+                                f"(its supported_proposals: {', '.join(listed) or 'none'})")
+        return
+    if m.lidar and lidar_boxes != "gt":
+        raise TrainingError(f"{_field('lidar_boxes')}: {lidar_boxes!r} builds frustums, but {who} has no frustum "
+                            "oracles (it finds its own objects and is scored through target_scores): keep the default "
+                            "gt")
+    if "detector" not in listed:
+        raise TrainingError(f"{who} cannot be trained against: it finds its own objects (no frustum oracles), but "
+                            f"does not accept proposals 'detector' (its supported_proposals: {', '.join(listed)}), "
+                            "which weight and check the attack")
 
 
 def training_cars(labels: list[Labels]) -> list[tuple[int, int]]:

@@ -74,10 +74,15 @@ def split_held_out(frame_ids: list[str], labels: list[Labels], held_out: int
     return frame_ids[:cut], labels[:cut], frame_ids[cut:], labels[cut:]
 
 
-def eval_proposals(config: TrainConfig) -> str:
+def eval_proposals(config: TrainConfig, victim: Any = None) -> str:
     """The proposal source the curve scores with: the victim's own 2D detector when the mode has an image
     term (the texture works through that detector; with ground-truth boxes it could not show), else the 2D
-    boxes the LiDAR loss trained on (``lidar_boxes``)."""
+    boxes the LiDAR loss trained on (``lidar_boxes``); ``"detector"`` for a ``victim`` without frustum oracles
+    (it finds its own objects, :func:`~robustbench3d.victims.base.has_frustum_oracles`)."""
+    from robustbench3d.victims.base import has_frustum_oracles
+
+    if victim is not None and not has_frustum_oracles(victim):
+        return "detector"
     return "detector" if config.kind.image else config.lidar_boxes
 
 

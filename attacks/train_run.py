@@ -70,15 +70,18 @@ def output_files(out: str | Path) -> tuple[Path, Path, Path]:
     return out, sidecar_path(out), checkpoint_path(out)
 
 
-def check_outputs(out: str | Path, *, force: bool = False, resume: bool = False, curve: bool = False) -> list[str]:
+def check_outputs(out: str | Path, *, force: bool = False, resume: bool = False, curve: bool = False,
+                  ckpt: Path | None = None) -> list[str]:
     """Before any work: refuse an ``--out`` that is not a ``.ply`` name or whose files cannot be written, and
     (the module doc's written-once rule) an existing object file, sidecar, checkpoint or (``curve``: with
     evaluation) curve file unless ``force``; with ``resume`` and a checkpoint the object and curve files are
     decided once the checkpoint is read (:func:`check_resumed`). Returns the lines to print: what ``force``
-    replaces."""
+    replaces. ``ckpt``: the run's checkpoint (default :func:`checkpoint_path`; the black-box optimiser keeps
+    its own, :mod:`~robustbench3d.attacks.blackbox_run`)."""
     from robustbench3d.fileio import check_output_file, replacing_note
 
-    ply, side, ckpt = output_files(out)
+    ply, side, default_ckpt = output_files(out)
+    ckpt = default_ckpt if ckpt is None else ckpt
     if ply.suffix.lower() != ".ply":
         raise TrainingError(f"--out {ply}: an object file must end in .ply")
     curves = curve_paths(ply) if curve else ()
@@ -106,20 +109,21 @@ def check_outputs(out: str | Path, *, force: bool = False, resume: bool = False,
 
 
 def check_resumed(out: Path, made_by: dict[str, Any], force: bool, rows: list[dict[str, Any]] | None = None,
-                  step: int = 0) -> list[str]:
+                  step: int = 0, ckpt: Path | None = None) -> list[str]:
     """After the checkpoint beside ``out`` was read: the lines to print about the object file, sidecar and
     (``rows``: the checkpoint's curve rows, ``step`` its step; None without evaluation) curve files it will
     replace; refuses (unless ``force``) a pair the checkpoint's training did not write (``made_by``: the
     record that training writes, compared on its configuration, victim and training data) and curve files
-    that are not its curve (module doc)."""
+    that are not its curve (module doc). ``ckpt``: as :func:`check_outputs`."""
     import json
 
     from robustbench3d.attacks.objectfile import read_object_file
 
-    ply, side, ckpt = output_files(out)
+    ply, side, default_ckpt = output_files(out)
+    ckpt = default_ckpt if ckpt is None else ckpt
     if force:
         return []
-    notes = _check_resumed_curve(out, rows, step) if rows is not None else []
+    notes = _check_resumed_curve(out, rows, step, ckpt) if rows is not None else []
     if not (ply.exists() or side.exists()):
         return notes
     want = json.loads(json.dumps({"config": comparable_config(made_by["config"]), "victim": made_by["victim"],
@@ -139,11 +143,10 @@ def check_resumed(out: Path, made_by: dict[str, Any], force: bool, rows: list[di
             *notes]
 
 
-def _check_resumed_curve(out: Path, rows: list[dict[str, Any]], step: int) -> list[str]:
+def _check_resumed_curve(out: Path, rows: list[dict[str, Any]], step: int, ckpt: Path) -> list[str]:
     """The line about the curve files a resumed run replaces; refuses files that are not the curve of the
     checkpoint's training (module doc)."""
     csv_path, png_path = curve_paths(out)
-    ckpt = checkpoint_path(out)
     if not csv_path.exists():
         if png_path.exists():
             raise TrainingError(f"--out {out}: {png_path.name} exists without {csv_path.name}, so it is not the curve "
@@ -196,8 +199,9 @@ def train_universal(victim: Any, victim_info: dict[str, Any], kitti: KittiDatase
     say = log if log is not None else (lambda line: None)
     train_ids, train_labels, held_ids, held_labels = split_held_out(frame_ids, labels,
                                                                     config.held_out(len(frame_ids)))
-    heldout = HeldOut(victim, kitti, held_ids, held_labels, eval_proposals(config), config.seed) if held_ids else None
-    held_line = _held_out_line(config, heldout, len(frame_ids))
+    heldout = (HeldOut(victim, kitti, held_ids, held_labels, eval_proposals(config, victim), config.seed)
+               if held_ids else None)
+    held_line = held_out_line(config, heldout, len(frame_ids))
     if heldout is not None and heldout.cars == 0:
         heldout = None
     notes = check_outputs(out, force=force, resume=resume, curve=heldout is not None)
@@ -243,7 +247,7 @@ def warm_depths(trainer: UniversalTrainer, heldout: HeldOut | None, *, workers: 
                              log=log)
 
 
-def _held_out_line(config: TrainConfig, heldout: HeldOut | None, frames: int) -> str:
+def held_out_line(config: TrainConfig, heldout: HeldOut | None, frames: int) -> str:
     """The line saying which frames the curve holds out (or why there is no curve)."""
     if config.eval_every == 0:
         return "no held-out curve (--eval-every 0): training on every frame of the split"
@@ -393,8 +397,8 @@ def _made_by(out: Path, trainer: UniversalTrainer, config: TrainConfig, victim_i
         "parametrisation": {"shape": "tanh box: v = b tanh(atanh(0.999 v0 / b) + delta)" if config.kind.shape
                             else "fixed: the undeformed sphere",
                             "colour": "sigmoid(logits)" if config.kind.colour else "fixed: neutral grey 128/255"},
-        "lidar_proposals": _LIDAR_PROPOSALS.get(config.lidar_boxes, PROTOCOL_LABELS.get(config.lidar_boxes))
-        if config.kind.lidar else None,
+        "lidar_proposals": (_LIDAR_PROPOSALS.get(config.lidar_boxes, PROTOCOL_LABELS.get(config.lidar_boxes))
+                            if trainer.frustums else _OWN_OBJECTS) if config.kind.lidar else None,
         "losses": {"weights": config.weights(), "first_step": hist[0] if hist else None,
                    "last_step": hist[-1] if hist else None,
                    "mean_last_10": _mean_losses(hist[-10:])},
@@ -405,6 +409,8 @@ def _made_by(out: Path, trainer: UniversalTrainer, config: TrainConfig, victim_i
 #: The sidecar's words for the LiDAR loss's 2D boxes (as recorded since the first objects; the frustum protocols
 #: use robustbench3d.victims.spec.PROTOCOL_LABELS).
 _LIDAR_PROPOSALS = {"gt": "ground-truth 2D boxes", "detector": "the victim's 2D detections on the attacked image"}
+#: ``lidar_proposals`` of a victim without frustum oracles (:mod:`~robustbench3d.attacks.train`, "Any victim").
+_OWN_OBJECTS = "none: the victim finds the cars itself (target_scores of the whole scene)"
 
 
 def _mean_losses(hist: list[dict[str, float]]) -> dict[str, float] | None:

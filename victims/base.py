@@ -17,6 +17,11 @@ implements the protocols that make sense for it and declares its :class:`Capabil
 * :class:`FrustumBoxOracle` — the 3D box a frustum's stages regress (centre, size, heading in the
   rect frame), differentiable w.r.t. the point coordinates (the mask and the discrete choices of
   heading bin and size template held fixed), the same box ``detect`` reports.
+* :class:`TargetScoreOracle` — the one interface ``attack train`` trains every white-box victim through:
+  ``target_scores(AttackedScene, AttackTargets) -> TargetScores``, per target car a detection logit (and
+  the regressed box), differentiable w.r.t. the attacked points and image. A whole-scene detector
+  implements only this (and ``detect``); the F-PN cascades implement it through their frustum oracles
+  (:func:`frustum_target_scores`, which also serves a victim that has the frustum oracles alone).
 
 Victims are registered in :data:`robustbench3d.victims.VICTIMS` as
 :class:`~robustbench3d.victims.spec.VictimSpec` objects (a factory plus :class:`EntryInfo` metadata; both in
@@ -458,9 +463,11 @@ class AttackedScene:
             the rows of the objects' returns carry gradients w.r.t. the objects' parameters.
         image: (H, W, 3) float64 tensor in [0, 1], the attacked image, differentiable w.r.t. the objects'
             parameters; None when the attack does not render the camera (LiDAR-only modes).
-        proposals: the frame's :class:`Proposals` as a cell of the attack's frustum protocol gives ``detect``
-            (e.g. ``gt``: the GT boxes; ``gt-append``: with each car's object rows); None for victims that find
-            their own objects. Whole-scene detectors ignore it.
+        proposals: the frame's :class:`Proposals` of the attack's frustum protocol as ``detect`` enumerates them
+            (e.g. ``gt``: the GT boxes, for the F-PN cascades those of ``settings.gt_types``; ``gt-append``: with
+            each car's object rows; ``detector``: the victim's own 2D detections on the attacked image), which
+            :attr:`AttackTargets.proposal` indexes; None for victims that find their own objects (victims without
+            frustum oracles, :func:`has_frustum_oracles`). Whole-scene detectors ignore it.
     """
 
     frame: Frame
@@ -521,22 +528,85 @@ class TargetScores:
 
 @runtime_checkable
 class TargetScoreOracle(Protocol):
-    """The one differentiable victim interface every white-box attack trains through."""
+    """The one differentiable victim interface every white-box attack trains through.
+
+    How ``attack train`` calls it, per attacked frame: ``scene.points_rect`` carries gradients to the object's
+    shape in the modes with a LiDAR term, ``scene.image`` to its shape and colours in those with an image term
+    (None otherwise: ``scene.frame.image`` is then the attacked or clean uint8 image, without gradient). A
+    victim with frustum oracles gets ``scene.proposals`` (the frame's proposals of the training's
+    ``lidar_boxes`` protocol, as ``detect`` enumerates them) and each target's index in them; any other victim
+    gets ``proposals=None`` and indices -1, and finds the targets itself. The losses: LiDAR
+    ``max(IoU_k, floor) * softplus(logit)`` (+ ``lambda_box`` x the BEV IoU of ``box`` with the target's ground
+    truth, ``with_box``), image ``softplus(logit)``; ``IoU_k`` is the BEV IoU of the victim's own ``detect``
+    row for the car (:mod:`robustbench3d.attacks.train`), so ``logit`` should fall where ``detect`` loses the
+    car.
+    """
 
     def target_scores(self, scene: AttackedScene, targets: AttackTargets, *,
                       with_box: bool = False) -> TargetScores:
         """Per target of ``targets``: the detection logit (and with ``with_box`` the regressed box) the victim
         gives it on ``scene``, differentiable w.r.t. ``scene.points_rect`` (and ``scene.image`` if the victim
-        uses the camera)."""
+        uses the camera). ``logit`` and ``present`` have one entry per target, ``box`` (``with_box``) one row."""
         ...
+
+
+def frustum_target_scores(oracle: Any, scene: AttackedScene, targets: AttackTargets, *,
+                          with_box: bool = False) -> TargetScores:
+    """:meth:`TargetScoreOracle.target_scores` of a frustum victim (``oracle``: a
+    :class:`FrustumSegmentationOracle`, and with ``with_box`` a :class:`FrustumBoxOracle`).
+
+    Per target with a proposal index ``j >= 0``: the frustum of ``scene.proposals.boxes[j]`` (``frame_id``,
+    ``proposal=j`` and, for a ``gt-append`` set, ``extra_points[j]``, as ``detect`` builds it) over
+    ``scene.points_rect``; the logit is the largest object-minus-background margin of its segmentation logits
+    in float64, ``(l[:, 1] - l[:, 0]).max()`` (``sigmoid`` of it: the largest object probability of the
+    frustum); with ``with_box`` the logits and the box (centre, l/w/h, heading; float64) of
+    :meth:`FrustumBoxOracle.frustum_box`. ``present`` is False for ``j = -1``, without proposals, or where
+    the frustum holds no point (logit 0 and a zero box there). Raises ValueError for an index outside the
+    proposals."""
+    import torch
+
+    frame, props = scene.frame, scene.proposals
+    zero = torch.zeros((), dtype=torch.float64)
+    logits: list[torch.Tensor] = []
+    boxes: list[torch.Tensor] = []
+    present = np.zeros(len(targets), dtype=bool)
+    for n, j in enumerate(targets.proposal.tolist()):
+        got = None
+        if j >= 0 and props is not None:
+            if j >= len(props.boxes):
+                raise ValueError(f"AttackTargets: target {n} names proposal {j} of {len(props.boxes)}")
+            where: dict[str, Any] = {"frame_id": frame.frame_id, "proposal": j}
+            if props.extra_points is not None:  # gt-append: the car's object returns join its frustum
+                where["extra_points"] = props.extra_points[j]
+            call = oracle.frustum_box if with_box else oracle.frustum_logits
+            got = call(scene.points_rect, frame.calib, frame.image_size, props.boxes[j], **where)
+        if got is None:
+            logits.append(zero)
+            boxes.append(torch.zeros(7, dtype=torch.float64))
+            continue
+        present[n] = True
+        margin = got.logits.to(torch.float64)
+        logits.append((margin[:, 1] - margin[:, 0]).max())
+        if with_box:
+            boxes.append(torch.cat([got.center, got.size_lwh, got.heading.reshape(1)]).to(torch.float64))
+    logit = torch.stack(logits) if logits else torch.zeros(0, dtype=torch.float64)
+    box = (torch.stack(boxes) if boxes else torch.zeros(0, 7, dtype=torch.float64)) if with_box else None
+    return TargetScores(logit=logit, present=present, box=box)
+
+
+def has_frustum_oracles(victim: Any) -> bool:
+    """Whether ``victim`` segments per-proposal frustums (:class:`FrustumSegmentationOracle` or
+    :class:`FrustumBoxOracle`): an attack then hands it proposals and each target's index in them."""
+    return isinstance(victim, (FrustumSegmentationOracle, FrustumBoxOracle))
 
 
 def check_victim(victim: Any, capabilities: Capabilities) -> None:
     """Raise TypeError unless ``victim`` honours the contract its capabilities declare.
 
-    A victim declaring ``gradients`` must implement at least one oracle; one using the camera
-    and declaring gradients must implement :class:`ImageObjectnessOracle`, one using the LiDAR
-    and declaring gradients the point-level :class:`FrustumSegmentationOracle` or another oracle.
+    A victim declaring ``gradients`` must implement :class:`TargetScoreOracle` (the one interface white-box
+    training uses) or one of the older oracles (:class:`ImageObjectnessOracle`,
+    :class:`FrustumSegmentationOracle`, :class:`FrustumBoxOracle`); one using the camera and declaring
+    gradients must give image gradients: :class:`TargetScoreOracle` or :class:`ImageObjectnessOracle`.
     """
     if not isinstance(victim, Detector):
         raise TypeError(f"{type(victim).__name__} does not implement Detector (detect, supported_proposals)")
@@ -545,12 +615,13 @@ def check_victim(victim: Any, capabilities: Capabilities) -> None:
         raise TypeError(f"{type(victim).__name__}.supported_proposals must be a non-empty subset of "
                         f"{PROPOSAL_SOURCES}, got {victim.supported_proposals}")
     if capabilities.gradients:
-        oracles = [isinstance(victim, ImageObjectnessOracle), isinstance(victim, FrustumSegmentationOracle)]
-        if not any(oracles):
-            raise TypeError(f"{type(victim).__name__} declares gradients but implements no oracle protocol")
-        if "camera" in capabilities.modalities and not oracles[0]:
-            raise TypeError(f"{type(victim).__name__} uses the camera and declares gradients but does not "
-                            "implement ImageObjectnessOracle")
+        scores, image = isinstance(victim, TargetScoreOracle), isinstance(victim, ImageObjectnessOracle)
+        if not (scores or image or has_frustum_oracles(victim)):
+            raise TypeError(f"{type(victim).__name__} declares gradients but implements no oracle protocol "
+                            "(TargetScoreOracle.target_scores, or ImageObjectnessOracle / FrustumSegmentationOracle)")
+        if "camera" in capabilities.modalities and not (scores or image):
+            raise TypeError(f"{type(victim).__name__} uses the camera and declares gradients but implements "
+                            "neither TargetScoreOracle nor ImageObjectnessOracle")
 
 
 def empty_detections() -> Labels:
@@ -584,7 +655,9 @@ __all__ = [
     "TargetScores",
     "check_victim",
     "empty_detections",
+    "frustum_target_scores",
     "gt_proposals",
+    "has_frustum_oracles",
     "object_proposals",
     "victim_inputs",
 ]

@@ -2,8 +2,9 @@
 
 Implements :class:`~robustbench3d.victims.base.Detector`,
 :class:`~robustbench3d.victims.base.ImageObjectnessOracle`,
-:class:`~robustbench3d.victims.base.FrustumSegmentationOracle` and
-:class:`~robustbench3d.victims.base.FrustumBoxOracle`.
+:class:`~robustbench3d.victims.base.FrustumSegmentationOracle`,
+:class:`~robustbench3d.victims.base.FrustumBoxOracle` and, through the last two,
+:class:`~robustbench3d.victims.base.TargetScoreOracle` (:func:`~robustbench3d.victims.base.frustum_target_scores`).
 
 ``detect`` is the numpy pipeline of :mod:`robustbench3d.victims.fpointnet.pipeline` (letterbox,
 2D decoding and NMS, frustum extraction, resampling, masking, gather, box decoding — shared with
@@ -43,11 +44,15 @@ from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
 from robustbench3d.victims.base import (
     PROPOSAL_SOURCES,
+    AttackedScene,
+    AttackTargets,
     FrustumBox,
     FrustumLogits,
     ObjectnessCandidates,
     Proposals,
     ProposalsArg,
+    TargetScores,
+    frustum_target_scores,
 )
 from robustbench3d.victims.fpointnet.box_coding import HEADING_BIN_WIDTH, MEAN_SIZES, ONE_HOT_CLASSES
 from robustbench3d.victims.fpointnet.distinct_stages import DistinctPointStages
@@ -369,6 +374,16 @@ class FPointNetCascade:
         center = rotate_to_frustum_torch(out.center[0], -rot)
         return FrustumBox(center=center, size_lwh=size, heading=heading, logits=out.seg_logits[0],
                           mask_count=int(out.mask_count[0]))
+
+    # ---- TargetScoreOracle -------------------------------------------------------------
+    def target_scores(self, scene: AttackedScene, targets: AttackTargets, *,
+                      with_box: bool = False) -> TargetScores:
+        """Per target: the largest object-minus-background margin (float64) of the frustum of its proposal
+        (``targets.proposal`` into ``scene.proposals``) from :meth:`frustum_logits`, or with ``with_box`` the
+        margin and the box of :meth:`frustum_box`; absent without a proposal or a frustum point
+        (:func:`~robustbench3d.victims.base.frustum_target_scores`). The camera term of an attack stays the
+        2D stage's :meth:`objectness`."""
+        return frustum_target_scores(self, scene, targets, with_box=with_box)
 
     def segmentation_logits(self, points: torch.Tensor, one_hot: torch.Tensor) -> torch.Tensor:
         """(B, N, 2) logits of (B, N, 4) frustum-frame points (eval-mode network)."""

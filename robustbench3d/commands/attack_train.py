@@ -4,7 +4,12 @@
         [--level 2|3|4] [--radius R]
         [--data DIR] [--split train] [--steps N] [--batch-cars B] [--seed S] [--eot jitter,range-noise,dropout]
         [--eval-every K] [--eval-frames N] [--plateau-window W] [--plateau-tol T] [--resume] [--force]
-        [--workers W]
+        [--workers W] [--optimizer adam|cma [--query-budget N] [--population P] [--frames-per-candidate F]]
+
+``--optimizer cma`` trains through the victim's ``detect`` alone (any registered victim, gradients or not): CMA-ES
+over the same parameters, the query budget in frame queries (:mod:`robustbench3d.attacks.blackbox`,
+:mod:`robustbench3d.attacks.blackbox_run`; the extra ``blackbox`` installs it); the default ``adam`` is the
+white-box trainer described next.
 
 Writes the object file ``OBJ.ply`` and its sidecar (losses and weights, victim, training data, config,
 seed, steps, wall time, the held-out curve's summary and why training stopped; the object's family, ``--level``
@@ -33,6 +38,9 @@ if TYPE_CHECKING:
     from robustbench3d.attacks.train_config import TrainConfig
 
 MODE_NAMES = ("adv-shape", "adv-texture", "adv-object")
+OPTIMIZERS = ("adam", "cma")
+#: The black-box options (``--optimizer cma`` only).
+CMA_OPTIONS = ("query_budget", "population", "frames_per_candidate")
 EOT_NAMES = ("jitter", "range-noise", "dropout")
 
 
@@ -103,6 +111,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="worker processes computing, before the first step, the exact-occlusion scene depths "
                              "the run will read that are not cached yet (1 to 1024; default: the CPUs)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    parser.add_argument("--optimizer", choices=OPTIMIZERS, default="adam",
+                        help="adam: the white-box trainer through the victim's gradients (default); cma: black-box "
+                             "CMA-ES through its detect alone, for any victim (needs the extra 'blackbox'; a step is "
+                             "then a generation; --steps, --batch-cars, --lr-*, --lambda-img, --lambda-box, "
+                             "--lidar-loss, --image-loss and --no-class-prob do not apply)")
+    parser.add_argument("--query-budget", type=int, default=None, metavar="N",
+                        help="--optimizer cma: frame queries (one detect of one attacked frame) the optimisation "
+                             "may spend, 1 to 100000000; required with cma")
+    parser.add_argument("--population", type=int, default=None, metavar="P",
+                        help="--optimizer cma: candidates per generation, 4 to 4096 (default 4 + 3 ln n for n "
+                             "parameters: 22 for the default family's texture or shape)")
+    parser.add_argument("--frames-per-candidate", type=int, default=None, metavar="F",
+                        help="--optimizer cma: training frames each candidate is scored on per generation, the "
+                             "same for every candidate, 1 to 1024 (default 2)")
 
 
 def _victim_kwargs(items: list[str] | None) -> dict[str, Any]:
@@ -137,14 +159,38 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
                        plateau_tol=args.plateau_tol, level=args.level, radius=args.radius)
 
 
+def blackbox_settings(args: argparse.Namespace) -> Any:
+    """The :class:`~robustbench3d.attacks.blackbox.BlackBoxSettings` of ``--optimizer cma`` (ranges checked, the
+    ``cma`` package present), None for adam; the black-box options without cma are refused (one line)."""
+    from robustbench3d.errors import RobustBenchError
+
+    given = [f"--{name.replace('_', '-')}" for name in CMA_OPTIONS if getattr(args, name, None) is not None]
+    if args.optimizer != "cma":
+        if given:
+            raise RobustBenchError(f"{', '.join(given)}: only with --optimizer cma")
+        return None
+    from robustbench3d.attacks.blackbox import BlackBoxSettings, import_cma
+
+    if args.query_budget is None:
+        raise RobustBenchError("--optimizer cma: --query-budget N is required (frame queries, 1 to 100000000)")
+    frames = {} if args.frames_per_candidate is None else {"frames_per_candidate": args.frames_per_candidate}
+    settings = BlackBoxSettings(args.query_budget, args.population, **frames)
+    import_cma()
+    return settings
+
+
 def run(args: argparse.Namespace) -> int:
     from robustbench3d.attacks.spec import check_max_frames
+    from robustbench3d.attacks.train_config import check_oracles
     from robustbench3d.attacks.train_run import check_outputs, train_universal, training_split, victim_record
     from robustbench3d.errors import RobustBenchError
     from robustbench3d.ranges import PROCESSES_RANGE, check_range, default_processes
     from robustbench3d.victims import create_victim
 
     config = config_from_args(args)
+    blackbox = blackbox_settings(args)
+    if blackbox is not None:
+        return _run_blackbox(args, config, blackbox)
     check_max_frames(args.max_frames)
     workers = default_processes() if args.workers is None else args.workers
     check_range("--workers", workers, *PROCESSES_RANGE, "worker processes")
@@ -156,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
         victim = create_victim(args.victim, **kwargs)
     except TypeError as exc:
         raise RobustBenchError(f"--victim {args.victim}: {exc}") from None
+    check_oracles(victim, config.mode, args.victim, config.lidar_boxes, config.lidar_loss)  # before the data
     train = training_split(args.data, args.split, args.max_frames, progress=not args.no_progress)
     made_by = train_universal(victim, victim_record(args.victim, kwargs), train.dataset.kitti(), train.gt.frame_ids,
                               train.gt.labels, config, out, data_identity=train.identity,
@@ -167,12 +214,54 @@ def run(args: argparse.Namespace) -> int:
           f"({made_by['wall_time_s']:.1f} s); last step: "
           + ", ".join(f"{k} {v:.4g}" for k, v in last.items() if k in ("lidar", "image", "laplacian", "total"))
           + (f"; running drop estimate {drop:.0%}" if drop is not None else ""))
+    _print_curve(out, made_by)
+    return 0
+
+
+def _print_curve(out: Path, made_by: dict[str, Any], step: str = "step") -> None:
+    """The line on the held-out curve's best state (none without a curve)."""
     curve = made_by["curve"]
     if curve is not None:
         best = curve["best"]
         rel = "n/a" if best["relative_drop"] is None else f"{best['relative_drop']:.1%}"
         asr = "n/a" if best["asr"] is None else f"{best['asr']:.1%}"
-        print(f"{out}: the state of step {curve['best_step']} (lowest held-out loss {best['heldout_loss']:.4g}; "
-              f"held-out relative drop {rel}, ASR {asr}); stopped at step {made_by['stopped']['step']} "
+        print(f"{out}: the state of {step} {curve['best_step']} (lowest held-out loss {best['heldout_loss']:.4g}; "
+              f"held-out relative drop {rel}, ASR {asr}); stopped at {step} {made_by['stopped']['step']} "
               f"({made_by['stopped']['reason']}); curve in {curve['files']['csv']} and {curve['files']['png']}")
+
+
+def _run_blackbox(args: argparse.Namespace, config: TrainConfig, settings: Any) -> int:
+    """``--optimizer cma``: :func:`robustbench3d.attacks.blackbox_run.train_blackbox`, refusals first."""
+    from robustbench3d.attacks.blackbox_run import check_victim, cma_checkpoint_path, train_blackbox
+    from robustbench3d.attacks.spec import check_max_frames
+    from robustbench3d.attacks.train_curve import eval_proposals
+    from robustbench3d.attacks.train_run import check_outputs, training_split, victim_record
+    from robustbench3d.errors import RobustBenchError
+    from robustbench3d.ranges import PROCESSES_RANGE, check_range, default_processes
+    from robustbench3d.victims import create_victim
+
+    check_max_frames(args.max_frames)
+    workers = default_processes() if args.workers is None else args.workers
+    check_range("--workers", workers, *PROCESSES_RANGE, "worker processes")
+    out = Path(args.out)
+    # again, with its notes, in train_blackbox
+    check_outputs(out, force=args.force, resume=args.resume, curve=config.eval_every > 0, ckpt=cma_checkpoint_path(out))
+    kwargs = _victim_kwargs(args.victim_arg)
+    try:
+        victim = create_victim(args.victim, **kwargs)
+    except TypeError as exc:
+        raise RobustBenchError(f"--victim {args.victim}: {exc}") from None
+    check_victim(victim, args.victim, eval_proposals(config))  # before the data (again in train_blackbox)
+    train = training_split(args.data, args.split, args.max_frames, progress=not args.no_progress)
+    made_by = train_blackbox(victim, victim_record(args.victim, kwargs), train.dataset.kitti(), train.gt.frame_ids,
+                             train.gt.labels, config, settings, out, data_identity=train.identity,
+                             resume=args.resume, force=args.force, progress=not args.no_progress, log=print,
+                             workers=workers)
+    last = made_by["losses"]["last_step"] or {}
+    q = made_by["queries"]
+    print(f"{out}: {config.name} (cma) after {made_by['steps']} generations, {q['used']} of {q['budget']} queries "
+          f"on {made_by['cars']} cars ({made_by['wall_time_s']:.1f} s; {q['held_out']} held-out queries)"
+          + (f"; last generation: fitness mean {last['fitness_mean']:.4g}, best {last['fitness_best']:.4g}, "
+             f"sigma {last['sigma']:.3g}" if last else ""))
+    _print_curve(out, made_by, "generation")
     return 0

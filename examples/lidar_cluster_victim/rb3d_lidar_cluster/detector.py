@@ -15,7 +15,7 @@ from robustbench3d.geometry import alpha_from_rotation_y, box_corners, project_b
 from robustbench3d.kitti.calib import Calibration
 from robustbench3d.kitti.dataset import Frame
 from robustbench3d.kitti.labels import Labels
-from robustbench3d.victims.base import ProposalsArg
+from robustbench3d.victims.base import AttackedScene, AttackTargets, ProposalsArg, TargetScores
 
 
 @dataclass(frozen=True)
@@ -136,13 +136,45 @@ def velo_yaw_to_rotation_y(yaw: float, calib: Calibration) -> float:
     return float(np.arctan2(-d[2], d[0]))
 
 
+#: Width (m) of the soft edges of :meth:`LidarClusterDetector.target_scores`' footprint and height window.
+SOFT_EDGE = 0.1
+
+
 class LidarClusterDetector:
-    """:class:`robustbench3d.victims.base.Detector` for Cars from the scan alone."""
+    """:class:`robustbench3d.victims.base.Detector` for Cars from the scan alone, with a differentiable
+    surrogate score (:meth:`target_scores`)."""
 
     supported_proposals: tuple[str, ...] = ("detector",)
 
     def __init__(self, settings: ClusterSettings | None = None):
         self.settings = settings or ClusterSettings()
+
+    def target_scores(self, scene: AttackedScene, targets: AttackTargets, *, with_box: bool = False) -> TargetScores:
+        """:class:`~robustbench3d.victims.base.TargetScoreOracle`: per target, a soft count of the scene's points
+        inside its bird's-eye-view footprint between ``min_height`` and ``max_height`` over the fitted ground,
+        minus ``min_points`` -- fewer points than a cluster needs gives a negative logit, as ``detect`` then drops
+        the car. Differentiable in ``scene.points_rect`` (the ground plane, fitted on ``scene.frame.scan``, held
+        fixed); a surrogate of the clustering, not the clustering (no boxes: ``with_box`` gives none)."""
+        import torch
+
+        s, frame = self.settings, scene.frame
+        plane = fit_ground(np.asarray(frame.scan[:, :3], dtype=np.float64), s, np.random.default_rng(s.seed))
+        to_velo = torch.from_numpy(np.array(frame.calib.rect_to_velo, dtype=np.float64))
+        pts = scene.points_rect[:, :3].to(torch.float64)
+        height = (pts @ to_velo[:3, :3].T + to_velo[:3, 3]) @ torch.from_numpy(plane[:3]) + plane[3]
+
+        def soft(margin: torch.Tensor) -> torch.Tensor:  # 1 well inside, 0 well outside
+            return torch.sigmoid(margin / SOFT_EDGE)
+
+        in_height = soft(height - s.min_height) * soft(s.max_height - height)
+        logits = []
+        for x, _, z, _, w, length, ry in targets.boxes3d:  # bottom-centre x, y, z; h, w, l; rotation_y
+            dx, dz = pts[:, 0] - x, pts[:, 2] - z
+            along, across = np.cos(ry) * dx - np.sin(ry) * dz, np.sin(ry) * dx + np.cos(ry) * dz
+            inside = soft(length / 2 - along.abs()) * soft(w / 2 - across.abs()) * in_height
+            logits.append(inside.sum() - s.min_points)
+        logit = torch.stack(logits) if logits else torch.zeros(0, dtype=torch.float64)
+        return TargetScores(logit=logit, present=np.ones(len(targets), dtype=bool))
 
     def detect(self, frames: Sequence[Frame], proposals: ProposalsArg = "detector") -> list[Labels]:
         """Detections per frame from the scan alone. The harness gives frames without labels; a
