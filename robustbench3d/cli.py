@@ -33,6 +33,7 @@ COMMANDS: dict[str, str] = {
     "victims remove": "remove a victim added with victims add-onnx",
     "victims train-yolo": "train the YOLO 2D detector on a KITTI-layout dataset",
     "victims train-fpointnet": "train Frustum-PointNet v1 on GT-box frustums",
+    "victims train-pointpillars": "train the PointPillars-style LiDAR Car detector",
     "victims pack": "join trained YOLO and F-PN weights into one cascade file",
     "victims export-onnx": "export an F-PN cascade victim as per-stage ONNX",
     "victims parity": "torch vs onnxruntime parity: tensors, boxes, AP",

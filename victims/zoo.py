@@ -33,6 +33,7 @@ from robustbench3d.victims.spec import Capabilities
 
 if TYPE_CHECKING:
     from robustbench3d.victims.cascade import FPointNetCascade
+    from robustbench3d.victims.pointpillars.detector import PointPillarsDetector
 
 CASCADE_CAPABILITIES = Capabilities(modalities=("camera", "lidar"), backend="torch", gradients=True,
                                     deterministic=True)
@@ -124,3 +125,32 @@ def fpointnet_v1_lite(weights: str | Path | None = None, *, yolo_weights: str | 
     _check_cascade_args(seed, gather, precision, num_points, input_size)
     return _cascade("fpointnet-v1-lite", "lite", weights, yolo_weights, fpointnet_weights, allow_untrained,
                     seed, gather).with_precision(precision).with_num_points(num_points).with_input_size(input_size)
+
+
+POINTPILLARS_CAPABILITIES = Capabilities(modalities=("lidar",), backend="torch", gradients=True, deterministic=True)
+
+
+@register_victim("pointpillars", capabilities=POINTPILLARS_CAPABILITIES, weights_sha256=shipped_sha256("pointpillars"),
+                 summary="PointPillars-style LiDAR-only detector (0.32 m pillars, centre head), KITTI Car")
+def pointpillars(weights: str | Path | None = None, *, allow_untrained: bool = False, seed: int = 0,
+                 score_threshold: float = 0.05, max_detections: int = 100) -> PointPillarsDetector:
+    """The PointPillars-style victim (:mod:`robustbench3d.victims.pointpillars`): ``weights`` a ``model.pt`` of
+    ``robustbench3d victims train-pointpillars`` (default: the shipped weights); ``score_threshold`` (lowest
+    score kept) and ``max_detections`` (per frame) as in
+    :func:`~robustbench3d.victims.pointpillars.glue.check_args`; ``seed`` initialises an untrained network."""
+    from robustbench3d.victims.pointpillars.detector import PointPillarsDetector, load_pointpillars, untrained
+    from robustbench3d.victims.pointpillars.glue import check_args
+
+    options = check_args(score_threshold, max_detections)
+    int_arg("seed", seed, *SEED_RANGE)
+    if weights is not None:
+        return PointPillarsDetector(load_pointpillars(weights), options)
+    if allow_untrained:
+        return PointPillarsDetector(untrained(int(seed)), options)
+    ship = shipped("pointpillars")
+    if ship is None:
+        raise RobustBenchError("victim 'pointpillars' has no shipped weights: pass weights=FILE (model.pt of "
+                               "`robustbench3d victims train-pointpillars`) or allow_untrained=True")
+    ship.verify()
+    return PointPillarsDetector(load_pointpillars(ship.path, sha256=VICTIMS.get("pointpillars").info.weights_sha256),
+                                options)

@@ -83,11 +83,20 @@ def run(args: argparse.Namespace) -> int:
         raise RobustBenchError(str(exc)) from None
     from robustbench3d.victims import VICTIMS
 
-    cascade = create_cascade(args.victim, kwargs)
+    cascade = create_cascade(args.victim, kwargs, pointpillars=True)
     source: dict[str, Any] = {"victim": args.victim, "kwargs": describe_kwargs(kwargs)}
     if not any(kwargs.get(k) for k in ("weights", "yolo_weights", "fpointnet_weights", "allow_untrained")):
         # no weights given: the victim loaded its shipped file
         source["weights_sha256"] = VICTIMS.get(args.victim).info.weights_sha256
+    if type(cascade).__name__ == "PointPillarsDetector":  # one graph (victims/onnx/pointpillars_export.py)
+        from robustbench3d.victims.onnx.pointpillars_export import export_pointpillars
+
+        if args.share:
+            raise RobustBenchError("--share: a PointPillars export is one graph; there is no stage to share")
+        path = export_pointpillars(cascade, args.out, options, source=source,
+                                   reproduce_command=reproduce_command(args, kwargs))
+        print(f"{path}: exporter {options.exporter} opset {options.opset}")
+        return 0
     manifest = export_cascade(cascade, args.out, options, source=source,
                               reproduce_command=reproduce_command(args, kwargs), share=args.share)
     for st in manifest.stages:

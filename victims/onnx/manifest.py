@@ -33,6 +33,8 @@ from robustbench3d.fileio import read_user_text, sha256_file
 from robustbench3d.victims.onnx import MANIFEST_FILE
 
 FORMAT = "robustbench3d.onnx_cascade/1"
+#: ``format`` of a PointPillars ONNX victim directory (one graph; :mod:`robustbench3d.victims.pointpillars.runtime`).
+POINTPILLARS_FORMAT = "robustbench3d.onnx_pointpillars/1"
 DETECTOR_2D = "detector_2d"
 SEGMENTATION = "instance_segmentation"
 CENTER = "center_regression"
@@ -170,6 +172,21 @@ def _stage(data: Any, index: int, path: Path) -> StageSpec:
         raise DataFormatError(path, f"{where}: needs at least one input and one output")
     return StageSpec(name, file, sha, tuple(TensorSpec.from_dict(t, f"{where} input", path) for t in ins),
                      tuple(TensorSpec.from_dict(t, f"{where} output", path) for t in outs))
+
+
+def stage_spec(data: Any, where: str, path: Path) -> StageSpec:
+    """One ``{name, file, sha256, inputs, outputs}`` graph entry of a manifest, checked (``where`` names it)."""
+    return _stage(data, where, path)  # type: ignore[arg-type]
+
+
+def manifest_format(directory: str | Path) -> str | None:
+    """The ``format`` of the directory's ``manifest.json`` (None if unreadable or absent): which kind of ONNX
+    victim the directory holds."""
+    try:
+        data = json.loads(read_user_text(Path(directory) / MANIFEST_FILE))
+    except (OSError, ValueError, DataFormatError):
+        return None
+    return data.get("format") if isinstance(data, dict) and isinstance(data.get("format"), str) else None
 
 
 def parse_manifest(text: str, path: Path) -> Manifest:

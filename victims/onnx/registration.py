@@ -29,7 +29,7 @@ import json
 import os
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from robustbench3d.errors import DataFormatError, RobustBenchError
 from robustbench3d.fileio import atomic_write_text, read_user_text, sha256_file
@@ -37,6 +37,7 @@ from robustbench3d.paths import cache_dir
 from robustbench3d.registry import RegistryError, sanitise_name
 from robustbench3d.victims import VICTIMS
 from robustbench3d.victims.onnx import MANIFEST_FILE
+from robustbench3d.victims.onnx.manifest import POINTPILLARS_FORMAT, manifest_format
 from robustbench3d.victims.spec import Capabilities, EntryInfo, VictimSpec
 
 if TYPE_CHECKING:
@@ -44,6 +45,7 @@ if TYPE_CHECKING:
 
 REGISTRY_FORMAT = "robustbench3d.onnx_victims/1"
 ONNX_CAPABILITIES = Capabilities(modalities=("camera", "lidar"), backend="onnx", gradients=False, deterministic=True)
+ONNX_LIDAR_CAPABILITIES = Capabilities(modalities=("lidar",), backend="onnx", gradients=False, deterministic=True)
 ORIGIN_SHIPPED = "onnx shipped"
 ORIGIN_USER = "onnx user registry"
 ORIGIN_DIRECTORY = "onnx directory"
@@ -67,7 +69,23 @@ class OnnxVictimFactory:
         self.__module__ = __name__
         self.__qualname__ = f"OnnxVictimFactory[{self.directory}]"
 
-    def __call__(self, *, seed: int | None = None, gather: str | None = None, threads: int = 1) -> OnnxCascade:
+    def __call__(self, *, seed: int | None = None, gather: str | None = None, threads: int = 1,
+                 score_threshold: float | None = None, max_detections: int | None = None) -> OnnxCascade | Any:
+        """The cascade (``seed``, ``gather``, ``threads``) or, for a PointPillars directory, the PointPillars
+        twin (``threads``, ``score_threshold``, ``max_detections``; ``seed``, which the runner passes every
+        victim taking one, is accepted and unused: the twin draws nothing); an argument of the other kind is
+        refused."""
+        if manifest_format(self.directory) == POINTPILLARS_FORMAT:
+            if gather is not None:
+                raise RobustBenchError(f"victim argument 'gather' is for F-PN cascades; {self.directory} holds a "
+                                       "PointPillars graph")
+            from robustbench3d.victims.onnx.pointpillars import PointPillarsOnnx
+
+            return PointPillarsOnnx(self.directory, threads=threads, score_threshold=score_threshold,
+                                    max_detections=max_detections)
+        if score_threshold is not None or max_detections is not None:
+            raise RobustBenchError(f"victim arguments 'score_threshold' and 'max_detections' are for PointPillars "
+                                   f"graphs; {self.directory} holds an F-PN cascade")
         from robustbench3d.victims.onnx.runtime import OnnxCascade
 
         return OnnxCascade(self.directory, seed=seed, gather=gather, threads=threads)
@@ -79,8 +97,12 @@ def victim_spec(directory: str | Path) -> VictimSpec:
     manifest = factory.directory / MANIFEST_FILE
     sha = sha256_file(manifest) if manifest.is_file() else None
     state = "" if sha else " (manifest.json missing)"
-    info = EntryInfo(capabilities=ONNX_CAPABILITIES, weights_sha256=sha,
-                     summary=f"ONNX F-PN cascade in {factory.directory}{state}")
+    if manifest_format(factory.directory) == POINTPILLARS_FORMAT:
+        info = EntryInfo(capabilities=ONNX_LIDAR_CAPABILITIES, weights_sha256=sha,
+                         summary=f"ONNX PointPillars (LiDAR only) in {factory.directory}")
+    else:
+        info = EntryInfo(capabilities=ONNX_CAPABILITIES, weights_sha256=sha,
+                         summary=f"ONNX F-PN cascade in {factory.directory}{state}")
     return VictimSpec(factory=factory, info=info)
 
 
@@ -209,13 +231,15 @@ def _write_user_registry(path: Path, entries: dict[str, str]) -> None:
 #: shipped ONNX victim name -> its directory under :func:`robustbench3d.victims.shipped.weights_dir`
 SHIPPED: dict[str, str] = {"fpointnet-v1-lite-onnx": "fpointnet-v1-lite-onnx",
                            "fpointnet-v1-onnx": "fpointnet-v1-onnx"}
+#: shipped PointPillars ONNX twins (one graph each; :mod:`robustbench3d.victims.onnx.pointpillars`), likewise
+SHIPPED_POINTPILLARS: dict[str, str] = {"pointpillars-onnx": "pointpillars-onnx"}
 
 
 def register_shipped_victims() -> None:
     """Register every shipped ONNX export whose directory is present."""
     from robustbench3d.victims.shipped import weights_dir
 
-    for name, sub in SHIPPED.items():
+    for name, sub in {**SHIPPED, **SHIPPED_POINTPILLARS}.items():
         directory = weights_dir() / sub
         if (directory / MANIFEST_FILE).is_file():
             register_directory(name, directory, ORIGIN_SHIPPED)

@@ -22,7 +22,9 @@ def check_int_option(option: str, value: int | None, lo: int, hi: int | None = N
 
 def add_victim_arguments(parser: argparse.ArgumentParser) -> None:
     """VICTIM and --victim-arg (shared by ``victims export-onnx`` and ``victims parity``)."""
-    parser.add_argument("victim", metavar="VICTIM", help="registered torch victim (an F-PN cascade, e.g. fpointnet-v1)")
+    parser.add_argument("victim", metavar="VICTIM",
+                        help="registered torch victim (an F-PN cascade, e.g. fpointnet-v1; export-onnx also takes "
+                             "pointpillars)")
     parser.add_argument("--victim-arg", action="append", metavar="KEY=VALUE",
                         help="keyword argument of the victim's factory, e.g. weights=cascade.pt or "
                              "allow_untrained=true (repeatable; VALUE is JSON or a string)")
@@ -49,15 +51,20 @@ def check_factory_kwargs(name: str, kwargs: dict[str, Any]) -> None:
                                f"(it takes {', '.join(takes) or 'none'})")
 
 
-def create_cascade(name: str, kwargs: dict[str, Any]) -> Any:
-    """The registered victim ``name``, which must be an F-PN cascade (torch)."""
+def create_cascade(name: str, kwargs: dict[str, Any], pointpillars: bool = False) -> Any:
+    """The registered victim ``name``, which must be an F-PN cascade (torch) or, with ``pointpillars``, the
+    PointPillars detector (one graph, :mod:`robustbench3d.victims.onnx.pointpillars_export`)."""
     from robustbench3d.errors import RobustBenchError
     from robustbench3d.victims import create_victim
     from robustbench3d.victims.cascade import FPointNetCascade
+    from robustbench3d.victims.pointpillars.detector import PointPillarsDetector
 
     check_factory_kwargs(name, kwargs)
     victim = create_victim(name, **kwargs)
+    if pointpillars and isinstance(victim, PointPillarsDetector):
+        return victim
     if not isinstance(victim, FPointNetCascade):
         raise RobustBenchError(f"victim {name!r} is a {type(victim).__name__}; only F-PN cascades "
-                               "(FPointNetCascade) can be exported per stage")
+                               "(FPointNetCascade) can be exported per stage"
+                               + (" (and PointPillars as one graph)" if pointpillars else ""))
     return victim
