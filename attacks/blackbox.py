@@ -25,8 +25,10 @@ detections against the frame's labels itself; the victim gets frames with ``labe
 both sensors exactly as a benchmark cell does (:class:`~robustbench3d.attacks.roof.RoofObjectAttack` with
 the run's EOT, supersample and occlusion settings, exact occlusion on a generated dataset) on every target car
 of each frame, and the frame goes to ``detect`` with the proposals the held-out curve scores with
-(:func:`~robustbench3d.attacks.train_curve.eval_proposals`: the victim's own 2D detector for the modes with a
-texture, else ``--lidar-boxes``; the frustum protocols get the record of the placement, as in a cell). A
+(:func:`~robustbench3d.attacks.blackbox_run.query_proposals`: the victim's own 2D detector for the modes with a
+texture, else ``--lidar-boxes``, whose default ``gt`` becomes ``detector`` for a victim that finds its own
+objects, i.e. lists ``detector`` but not ``gt``; the frustum protocols get the record of the placement, as in a
+cell). A mode the victim does not list in ``supported_proposals`` is refused before any query. A
 generation costs ``population x frames_per_candidate`` queries; the run stops before a generation that would
 pass the query budget, so it uses the budget exactly when it is a multiple of that cost and otherwise leaves
 the remainder (less than one generation) unused. The held-out curve's queries are counted apart.
@@ -278,6 +280,10 @@ class QueryObjective:
 
     def __init__(self, victim: Any, kitti: KittiDataset, frame_ids: list[str], labels: list[Labels],
                  config: TrainConfig, source: str) -> None:
+        listed = tuple(getattr(victim, "supported_proposals", ()))
+        if source not in listed:  # train_blackbox refuses this up front; the guard keeps every caller honest
+            raise TrainingError(f"the queries' proposals {source!r} are not among the victim's supported_proposals "
+                                f"({', '.join(listed) or 'none'})")
         self.victim, self.kitti, self.config, self.source = victim, kitti, config, source
         self.frame_ids, self.labels = frame_ids, labels
         #: Positions (in ``frame_ids``) of the frames with target cars: the ones generations draw.

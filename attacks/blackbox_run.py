@@ -345,6 +345,21 @@ def _identity(config: TrainConfig, settings: BlackBoxSettings, dimension: int, v
                                   "victim": victim_info, "data": data_identity}))
 
 
+def query_proposals(config: TrainConfig, victim: Any) -> str:
+    """The proposal mode of every query and of the held-out curve: the white-box curve's
+    (:func:`~robustbench3d.attacks.train_curve.eval_proposals`: the victim's own 2D detector in the modes with a
+    texture, else ``--lidar-boxes``), except that a victim which finds its own objects (it lists ``"detector"``
+    in ``supported_proposals`` but not ``"gt"``, e.g. ``pointpillars``) gets ``"detector"`` for the default
+    ``--lidar-boxes gt``, as the white-box trainer scores such a victim. Decided by ``supported_proposals``, not
+    by the white-box oracles: a black-box victim that takes proposals (an ONNX cascade) keeps ``--lidar-boxes``.
+    Any other mode the victim does not list is refused by :func:`check_victim`."""
+    source = eval_proposals(config)
+    listed = tuple(getattr(victim, "supported_proposals", ()))
+    if source == "gt" and "gt" not in listed and "detector" in listed:
+        return "detector"
+    return source
+
+
 def check_victim(victim: Any, name: str, source: str) -> None:
     """Refuse a victim that is not a Detector or does not take the queries' proposals."""
     from robustbench3d.victims.base import Detector
@@ -373,7 +388,7 @@ def train_blackbox(victim: Any, victim_info: dict[str, Any], kitti: KittiDataset
     say = log if log is not None else (lambda line: None)
     data_identity = data_identity or {}
     name = str(victim_info.get("name", type(victim).__name__))
-    source = eval_proposals(config)
+    source = query_proposals(config, victim)
     check_victim(victim, name, source)
     space = ParamSpace(config)
     train_ids, train_labels, held_ids, held_labels = split_held_out(frame_ids, labels,

@@ -232,9 +232,8 @@ def _print_curve(out: Path, made_by: dict[str, Any], step: str = "step") -> None
 
 def _run_blackbox(args: argparse.Namespace, config: TrainConfig, settings: Any) -> int:
     """``--optimizer cma``: :func:`robustbench3d.attacks.blackbox_run.train_blackbox`, refusals first."""
-    from robustbench3d.attacks.blackbox_run import check_victim, cma_checkpoint_path, train_blackbox
+    from robustbench3d.attacks.blackbox_run import check_victim, cma_checkpoint_path, query_proposals, train_blackbox
     from robustbench3d.attacks.spec import check_max_frames
-    from robustbench3d.attacks.train_curve import eval_proposals
     from robustbench3d.attacks.train_run import check_outputs, training_split, victim_record
     from robustbench3d.errors import RobustBenchError
     from robustbench3d.ranges import PROCESSES_RANGE, check_range, default_processes
@@ -251,7 +250,7 @@ def _run_blackbox(args: argparse.Namespace, config: TrainConfig, settings: Any) 
         victim = create_victim(args.victim, **kwargs)
     except TypeError as exc:
         raise RobustBenchError(f"--victim {args.victim}: {exc}") from None
-    check_victim(victim, args.victim, eval_proposals(config))  # before the data (again in train_blackbox)
+    check_victim(victim, args.victim, query_proposals(config, victim))  # before the data (again in train_blackbox)
     train = training_split(args.data, args.split, args.max_frames, progress=not args.no_progress)
     made_by = train_blackbox(victim, victim_record(args.victim, kwargs), train.dataset.kitti(), train.gt.frame_ids,
                              train.gt.labels, config, settings, out, data_identity=train.identity,

@@ -1,6 +1,6 @@
 """Black-box training (``attack train --optimizer cma``): the optimiser reaches the known optimum of a synthetic
-victim, the query count is the budget, a resumed run ends with an uninterrupted run's bytes, the refusals, and
-the white-box trainer's output files."""
+victim, the query count is the budget, a resumed run ends with an uninterrupted run's bytes, the refusals, the
+white-box trainer's output files, and the proposals of the queries (a victim only ever gets a mode it lists)."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from robustbench3d.attacks.base import attack_rng, target_cars
-from robustbench3d.attacks.blackbox import BlackBoxSettings, ParamSpace
-from robustbench3d.attacks.blackbox_run import cma_checkpoint_path, train_blackbox
+from robustbench3d.attacks.blackbox import BlackBoxSettings, ParamSpace, QueryObjective
+from robustbench3d.attacks.blackbox_run import cma_checkpoint_path, query_proposals, train_blackbox
 from robustbench3d.attacks.objectfile import load_object, read_object_file
 from robustbench3d.attacks.roof import RoofObjectAttack
 from robustbench3d.attacks.train_config import TrainConfig, TrainingError
@@ -23,7 +23,9 @@ from robustbench3d.cli import main
 from robustbench3d.datasets import load_ground_truth, resolve_dataset
 from robustbench3d.kitti import write_image
 from robustbench3d.kitti.labels import Labels
-from robustbench3d.testing import box_car_dataset
+from robustbench3d.testing import box_car_dataset, synth_dataset
+from robustbench3d.victims import VICTIMS
+from robustbench3d.victims.base import PROPOSAL_SOURCES
 
 REPO = Path(__file__).resolve().parents[2]
 FAST = {"occlusion": "none", "supersample": 1}
@@ -243,8 +245,12 @@ def test_refusals_with_the_data_and_the_victim(data, dataset, tmp_path, capsys, 
         train(red_victim(data), data, tmp_path / "o.ply", budget=7, population=4, frames=2)
     with pytest.raises(TrainingError, match=r"--frames-per-candidate 5: the training frames have only 4"):
         train(red_victim(data), data, tmp_path / "o.ply", budget=100, population=4, frames=5)  # one is held out
-    with pytest.raises(TrainingError, match=r"does not take the proposals 'gt'.*--lidar-boxes"):
-        train(red_victim(data), data, tmp_path / "o.ply", budget=8, mode="adv-shape")
+    with pytest.raises(TrainingError, match=r"does not take the proposals 'gt-object'.*--lidar-boxes"):
+        train(red_victim(data), data, tmp_path / "o.ply", budget=8, mode="adv-shape", lidar_boxes="gt-object")
+    gt_only = red_victim(data)
+    gt_only.supported_proposals = ("gt",)
+    with pytest.raises(TrainingError, match=r"does not take the proposals 'detector' the queries need \(it takes gt\)"):
+        train(gt_only, data, tmp_path / "o.ply", budget=8, mode="adv-texture")
     assert list(tmp_path.iterdir()) == []
     monkeypatch.setitem(sys.modules, "cma", None)  # the package missing
     assert cli(dataset, tmp_path / "o.ply", "--optimizer", "cma", "--query-budget", "8") == 2
@@ -272,10 +278,86 @@ def test_cli_trains_the_lidar_plugin_and_the_onnx_victim(dataset, tmp_path, caps
     assert side["victim"]["name"] == "fpointnet-v1-lite-onnx" and side["queries"]["used"] == 4
 
 
-@pytest.mark.skipif(importlib.util.find_spec("rb3d_lidar_cluster") is None, reason="example plugin not installed")
-def test_cli_refuses_a_victim_without_the_queries_proposals_before_the_data(tmp_path, capsys):
-    code = main(["attack", "train", "adv-shape", "--victim", "lidar-cluster", "--data", str(tmp_path / "none"),
-                 "--out", str(tmp_path / "o.ply"), "--optimizer", "cma", "--query-budget", "8", "--no-progress"])
+@pytest.fixture
+def lidar_cluster(monkeypatch):
+    """The example plugin ``lidar-cluster`` (LiDAR only, gradients False, supported_proposals ("detector",)):
+    the installed one, else registered for this test from examples/lidar_cluster_victim."""
+    if "lidar-cluster" in VICTIMS.names():
+        yield
+        return
+    monkeypatch.syspath_prepend(str(REPO / "examples" / "lidar_cluster_victim"))
+    before = set(sys.modules)
+    import rb3d_lidar_cluster
+
+    VICTIMS.register("lidar-cluster", rb3d_lidar_cluster.SPEC)
+    try:
+        yield
+    finally:
+        VICTIMS.unregister("lidar-cluster")
+        for name in set(sys.modules) - before:
+            if name.startswith("rb3d_lidar_cluster"):
+                del sys.modules[name]
+
+
+def test_cli_refuses_a_victim_without_the_queries_proposals_before_the_data(tmp_path, capsys, lidar_cluster):
+    code = main(["attack", "train", "adv-shape", "--victim", "lidar-cluster", "--lidar-boxes", "gt-object",
+                 "--data", str(tmp_path / "none"), "--out", str(tmp_path / "o.ply"), "--optimizer", "cma",
+                 "--query-budget", "8", "--no-progress"])
     err = capsys.readouterr().err
-    assert code == 2 and "does not take the proposals 'gt' the queries need (it takes detector)" in err
+    assert code == 2 and "does not take the proposals 'gt-object' the queries need (it takes detector)" in err
     assert len(err.strip().splitlines()) == 1 and list(tmp_path.iterdir()) == []
+
+
+class TakesEveryMode:
+    """A black-box victim that takes every proposal mode and has no white-box oracle (as an ONNX cascade)."""
+
+    supported_proposals = PROPOSAL_SOURCES
+
+
+def test_query_proposals_are_a_mode_the_victim_lists(data):
+    """The default --lidar-boxes gt becomes detector for a victim that finds its own objects and stays gt for one
+    that takes proposals (decided by supported_proposals, not by the white-box oracles); the fitness refuses a
+    mode its victim does not list."""
+    red, every = red_victim(data), TakesEveryMode()
+    shape = TrainConfig(mode="adv-shape", **FAST)
+    assert query_proposals(shape, red) == "detector" and query_proposals(shape, every) == "gt"
+    assert query_proposals(replace(shape, lidar_boxes="gt-object"), every) == "gt-object"
+    assert query_proposals(replace(shape, lidar_boxes="gt-object"), red) == "gt-object"  # refused by check_victim
+    assert query_proposals(TrainConfig(mode="adv-texture", **FAST), every) == "detector"
+    resolved_split, gt = data
+    with pytest.raises(TrainingError, match=r"proposals 'gt' are not among the victim's supported_proposals"):
+        QueryObjective(red, resolved_split.kitti(), gt.frame_ids, gt.labels, shape, "gt")
+
+
+@pytest.fixture(scope="module")
+def synth5(tmp_path_factory) -> Path:
+    """Five generated training frames (one of them held out by the curve)."""
+    return synth_dataset(tmp_path_factory.mktemp("synth5") / "d", 5, seed=3, val_fraction=0.0)
+
+
+@pytest.mark.parametrize("name", ["pointpillars", "lidar-cluster"])
+def test_cli_trains_a_victim_that_finds_its_own_objects_with_the_default_lidar_boxes(
+        name, synth5, tmp_path, capsys, monkeypatch, request):
+    """`attack train adv-shape --victim V --optimizer cma` with the default --lidar-boxes gt, V listing only
+    "detector" (pointpillars; the lidar-cluster plugin): it runs, and every detect of the fitness and of the
+    held-out curve gets "detector" (was: refused, the queries asking for "gt")."""
+    if name == "lidar-cluster":
+        request.getfixturevalue("lidar_cluster")
+    seen: list[object] = []
+    victim_class = type(VICTIMS.get(name).create())
+    original = victim_class.detect
+
+    def spy(self, frames, proposals="detector"):
+        seen.extend([proposals] * len(frames))
+        return original(self, frames, proposals)
+
+    monkeypatch.setattr(victim_class, "detect", spy)
+    out = tmp_path / "o.ply"
+    assert main(["attack", "train", "adv-shape", "--victim", name, "--data", str(synth5), "--out", str(out),
+                 "--optimizer", "cma", "--query-budget", "4", "--population", "4", "--frames-per-candidate", "1",
+                 "--eval-every", "1", "--eval-frames", "1", "--occlusion", "none", "--no-progress",
+                 "--workers", "1"]) == 0
+    assert f"{out}: adv-shape (cma) after 1 generations, 4 of 4 queries" in capsys.readouterr().out
+    queries = read_object_file(out).made_by["queries"]
+    assert queries["proposals"] == "detector" and queries["held_out"] > 0
+    assert len(seen) == queries["used"] + queries["held_out"] and set(seen) == {"detector"}

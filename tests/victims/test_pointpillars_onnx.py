@@ -2,12 +2,15 @@
 (output maps within 1e-4, the same detections within stated tolerances), the directory registered like the
 cascade twins (lidar-only ONNX capabilities, cascade-only arguments refused with one line), a graph file that
 does not match its manifest refused, a scan with more pillars than the graph holds refused, the export
-command, and (once they ship) the shipped twin pinned to the shipped weights, reproduced and at parity."""
+command, the parity command (numbers within tolerance, exit 1 beyond it, a wrong --onnx directory refused in one
+line before any work), and (once they ship) the shipped twin pinned to the shipped weights, reproduced and at
+parity."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import re
 import shlex
 from dataclasses import replace
 
@@ -26,7 +29,7 @@ from robustbench3d.victims.onnx.pointpillars_export import export_pointpillars, 
 from robustbench3d.victims.onnx.registration import SHIPPED_POINTPILLARS, victim_spec
 from robustbench3d.victims.pointpillars.config import PointPillarsConfig
 from robustbench3d.victims.pointpillars.detector import PointPillarsDetector
-from robustbench3d.victims.pointpillars.glue import crop_scan
+from robustbench3d.victims.pointpillars.glue import crop_scan, run_scan
 from robustbench3d.victims.pointpillars.model import build_model
 from robustbench3d.victims.pointpillars.pillars import pillarise
 from robustbench3d.victims.shipped import shipped, weights_dir
@@ -38,9 +41,13 @@ TINY = PointPillarsConfig(pillar_channels=8, block_channels=(8, 8, 8), block_lay
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    root = synth_dataset(tmp_path_factory.mktemp("ppo"), 2, seed=7, val_fraction=1.0)
-    ds = KittiDataset(root, split="val")
+def synth_root(tmp_path_factory):
+    return synth_dataset(tmp_path_factory.mktemp("ppo"), 2, seed=7, val_fraction=1.0)
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory, synth_root):
+    ds = KittiDataset(synth_root, split="val")
     frames = [ds.frame(f) for f in ds.frame_ids]
     victim = PointPillarsDetector(build_model(TINY, 2).eval())
     out = tmp_path_factory.mktemp("onnx") / "pp-twin"
@@ -157,3 +164,98 @@ def test_shipped_twin_is_pinned_reproduced_and_at_parity(setup, tmp_path):
     assert main(argv[1:]) == 0
     again = json.loads((tmp_path / "again" / "manifest.json").read_text())
     assert again["graph"]["sha256"] == manifest["graph"]["sha256"]
+
+
+def printed(text: str, check: str) -> str:
+    """The value column of row ``check`` of the parity table in ``text``."""
+    match = re.search(rf"^{re.escape(check)}\s+(\S+)\s", text, re.M)
+    assert match, f"no row {check!r} in:\n{text}"
+    return match.group(1)
+
+
+def save_weights(path, model) -> str:
+    torch.save({"config": TINY.to_dict(), "state_dict": model.state_dict()}, path)
+    return str(path)
+
+
+@pytest.mark.skipif(shipped("pointpillars") is None or "pointpillars-onnx" not in VICTIMS.names(),
+                    reason="no shipped pointpillars weights and twin")
+def test_parity_command_on_the_shipped_twin(setup, synth_root, tmp_path, capsys):
+    """`victims parity pointpillars --onnx victims/weights/pointpillars-onnx`: every number within its tolerance,
+    PASS, exit 0; the map difference and the detection counts are those measured here on the same frames."""
+    _, frames, _ = setup
+    onnx_dir = weights_dir() / SHIPPED_POINTPILLARS["pointpillars-onnx"]
+    report = tmp_path / "parity.json"
+    assert main(["victims", "parity", "pointpillars", "--onnx", str(onnx_dir), "--data", str(synth_root),
+                 "--max-frames", "2", "--json", str(report)]) == 0
+    text = capsys.readouterr().out
+    victim, twin = create_victim("pointpillars"), create_victim("pointpillars-onnx")
+    maps = max(float(np.abs(victim.output(f.scan, f.calib, f.image_size)
+                            - run_scan(twin.network, crop_scan(f.scan, f.calib, f.image_size, twin.cfg.grid),
+                                       twin.cfg)).max()) for f in frames)
+    assert maps <= 1e-4
+    assert float(printed(text, "output maps max |Δ| (9 channels)")) == pytest.approx(maps, rel=1e-3)
+    counts = [(len(a), len(b)) for a, b in zip(victim.detect(frames), twin.detect(frames), strict=True)]
+    assert all(a == b for a, b in counts) and sum(a for a, _ in counts) > 0
+    assert printed(text, "detections per frame equal") == "yes"
+    assert float(printed(text, "score max |Δ|")) <= 1e-5
+    for row in ("location max |Δ| (m)", "dimensions max |Δ| (m)", "rotation_y max |Δ| (rad)"):
+        assert float(printed(text, row)) <= 1e-3
+    aps = re.search(r"^Car BEV AP R40 moderate: torch (\S+), onnx (\S+)$", text, re.M)
+    assert aps and aps.group(1) == aps.group(2)
+    assert text.rstrip().endswith("parity: PASS")
+    data = json.loads(report.read_text())
+    assert data["ok"] and data["parity"]["frames"] == 2
+    assert data["parity"]["max_output_diff"] == pytest.approx(maps, rel=1e-6)
+
+
+def test_parity_command_exports_a_twin_and_fails_beyond_the_tolerance(setup, synth_root, tmp_path, capsys):
+    """Without --onnx the victim is exported to a temporary twin (PASS, exit 0); a twin of other weights differs
+    beyond the tolerance: FAIL, exit 1."""
+    victim, _, out = setup
+    same = save_weights(tmp_path / "same.pt", victim.model)
+    argv = ["victims", "parity", "pointpillars", "--data", str(synth_root), "--max-frames", "1"]
+    assert main([*argv, "--victim-arg", f"weights={same}"]) == 0
+    text = capsys.readouterr().out
+    assert "(torch) vs a temporary dynamo export (onnxruntime) on 1 frames" in text
+    assert float(printed(text, "output maps max |Δ| (9 channels)")) <= 1e-4 and text.rstrip().endswith("PASS")
+    other = save_weights(tmp_path / "other.pt", build_model(TINY, 3).eval())
+    assert main([*argv, "--onnx", str(out), "--victim-arg", f"weights={other}"]) == 1
+    text = capsys.readouterr().out
+    assert float(printed(text, "output maps max |Δ| (9 channels)")) > 1e-4
+    assert re.search(r"^output maps max \|Δ\| \(9 channels\)\s+\S+\s+<= 0.0001\s+NO$", text, re.M)
+    assert text.rstrip().endswith("parity: FAIL")
+
+
+def test_parity_command_refuses_a_wrong_onnx_directory_in_one_line(setup, tmp_path, capsys, monkeypatch):
+    """A directory that is not a PointPillars twin (a cascade export, none, a changed graph), --proposals gt, and
+    the twin given to a cascade: one error line, exit 2, before a victim is built or a dataset read."""
+    _, _, out = setup
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("parity started work before checking its arguments")
+
+    monkeypatch.setattr("robustbench3d.victims.onnx.torch_source.create_cascade", forbidden)
+    monkeypatch.setattr("robustbench3d.datasets.resolve_dataset", forbidden)
+    cascade = tmp_path / "cascade"
+    cascade.mkdir()
+    (cascade / "manifest.json").write_text(json.dumps({"format": "robustbench3d.onnx_cascade/1"}))
+    changed = tmp_path / "changed"
+    changed.mkdir()
+    (changed / "manifest.json").write_text((out / "manifest.json").read_text())
+    (changed / "pointpillars.onnx").write_bytes((out / "pointpillars.onnx").read_bytes() + b"\0")
+    cases = [
+        (["pointpillars", "--onnx", str(cascade)],
+         f"{cascade / 'manifest.json'}: holds an F-PN cascade's stages, not a PointPillars graph"),
+        (["pointpillars", "--onnx", str(tmp_path / "none")], f"{tmp_path / 'none'}: ONNX victim directory not found"),
+        (["pointpillars", "--onnx", str(tmp_path)], f"{tmp_path / 'manifest.json'}: manifest not found"),
+        (["pointpillars", "--onnx", str(changed)], f"{changed / 'pointpillars.onnx'}: sha256 does not match"),
+        (["pointpillars", "--onnx", str(out), "--proposals", "gt,detector"],
+         "--proposals: victim pointpillars finds its own objects; only detector is compared"),
+        (["fpointnet-v1-lite", "--onnx", str(out)],
+         f"{out / 'manifest.json'}: holds a PointPillars graph, not an F-PN cascade's stages"),
+    ]
+    for argv, message in cases:
+        assert main(["victims", "parity", *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"robustbench3d: error: {message}") and len(err.strip().splitlines()) == 1, err

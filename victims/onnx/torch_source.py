@@ -23,8 +23,7 @@ def check_int_option(option: str, value: int | None, lo: int, hi: int | None = N
 def add_victim_arguments(parser: argparse.ArgumentParser) -> None:
     """VICTIM and --victim-arg (shared by ``victims export-onnx`` and ``victims parity``)."""
     parser.add_argument("victim", metavar="VICTIM",
-                        help="registered torch victim (an F-PN cascade, e.g. fpointnet-v1; export-onnx also takes "
-                             "pointpillars)")
+                        help="registered torch victim: an F-PN cascade (e.g. fpointnet-v1) or pointpillars")
     parser.add_argument("--victim-arg", action="append", metavar="KEY=VALUE",
                         help="keyword argument of the victim's factory, e.g. weights=cascade.pt or "
                              "allow_untrained=true (repeatable; VALUE is JSON or a string)")
