@@ -8,7 +8,8 @@
 # split and without evaluation. The same CPU type and thread counts give the same bytes; the script reports
 # whether each reproduced object equals the shipped one. Measured training times (2-core machine shared with
 # other jobs): adv-shape 72 s, adv-texture 1286 s, adv-object 1523 s, adv-shape-gt-object 157 s and
-# adv-shape-gt-append 177 s (both stopped on their held-out plateau; each object's sidecar records its own).
+# adv-shape-gt-append 177 s (both stopped on their held-out plateau; each object's sidecar records its own);
+# adv-shape-pointpillars (against the LiDAR-only pointpillars victim) 749 s, stopped on its plateau at step 200.
 # Usage: bash attacks/objects/reproduce.sh [OUT_DIR]   (default runs/objects)
 set -euo pipefail
 OUT="${1:-runs/objects}"
@@ -22,7 +23,8 @@ robustbench3d attack train adv-texture --victim fpointnet-v1-lite --data "$DATA"
 robustbench3d attack train adv-object --victim fpointnet-v1-lite --data "$DATA" --out "$OUT/adv-object.ply" --steps 400 --seed 0 --batch-cars 4 --eval-every 0 --image-loss sum --lidar-boxes detector --lidar-loss seed+box --lr-color 0.2 --lr-shape 0.02 --no-progress
 robustbench3d attack train adv-shape --victim fpointnet-v1-lite --data "$DATA" --out "$OUT/adv-shape-gt-object.ply" --steps 300 --seed 0 --eval-frames 20 --lidar-boxes gt-object --lidar-loss seed+box --lr-shape 0.02 --no-progress
 robustbench3d attack train adv-shape --victim fpointnet-v1-lite --data "$DATA" --out "$OUT/adv-shape-gt-append.ply" --steps 300 --seed 0 --eval-frames 20 --lidar-boxes gt-append --lidar-loss seed+box --lr-shape 0.02 --no-progress
-for NAME in adv-shape adv-texture adv-object adv-shape-gt-object adv-shape-gt-append; do
+robustbench3d attack train adv-shape --victim pointpillars --data "$DATA" --out "$OUT/adv-shape-pointpillars.ply" --steps 200 --seed 0 --lidar-loss seed+box --lr-shape 0.02 --no-progress
+for NAME in adv-shape adv-texture adv-object adv-shape-gt-object adv-shape-gt-append adv-shape-pointpillars; do
   if cmp -s "$OUT/$NAME.ply" "$SHIPPED/$NAME.ply"; then echo "$NAME: identical to the shipped object"
   else echo "$NAME: differs from the shipped object"; fi
   # the registered names adv-* belong to the shipped objects: the reproduced ones run as reproduced-adv-*
@@ -32,3 +34,4 @@ done
 robustbench3d run --victims fpointnet-v1-lite --attacks "none,$OUT/check/reproduced-adv-shape.ply,$OUT/check/reproduced-adv-texture.ply,$OUT/check/reproduced-adv-object.ply" --proposals detector,gt --out "$OUT/check/run"
 robustbench3d run --victims fpointnet-v1-lite --attacks "none,benign-sphere,$OUT/check/reproduced-adv-shape-gt-object.ply" --proposals gt-object --out "$OUT/check/run-gt-object"
 robustbench3d run --victims fpointnet-v1-lite --attacks "none,benign-sphere,$OUT/check/reproduced-adv-shape-gt-append.ply" --proposals gt-append --out "$OUT/check/run-gt-append"
+robustbench3d run --victims pointpillars --attacks "none,benign-sphere,$OUT/check/reproduced-adv-shape-pointpillars.ply" --proposals detector --full --out "$OUT/check/run-pointpillars"

@@ -139,18 +139,19 @@ def test_reproduce_script_trains_each_object_with_its_manifest_config():
     script = objects_dir() / "reproduce.sh"
     text = script.read_text(encoding="utf-8")
     lines = [ln for ln in text.splitlines() if ln.startswith("robustbench3d attack train")]
-    configs = {}
+    configs, victims = {}, {}
     for line in lines:
         words = shlex.split(line)
         out = words[words.index("--out") + 1]
         name = out.removeprefix("$OUT/").removesuffix(".ply")
         assert out == f"$OUT/{name}.ply" and (name == words[3] or name.startswith(f"{words[3]}-"))
         configs[name] = _train_config(line)
-        assert words[words.index("--victim") + 1] == "fpointnet-v1-lite"
+        victims[name] = words[words.index("--victim") + 1]
     assert sorted(configs) == sorted(e.name for e in shipped_objects()) and len(lines) == len(configs)
     assert set(MODES) <= set(configs)
     for entry in shipped_objects():
         assert configs[entry.name] == _without_checkpoint(entry.record["training"]["config"]), entry.name
+        assert victims[entry.name] == entry.record["training"]["victim"]["name"], entry.name
     weights_script = (REPO / "victims" / "weights" / "reproduce.sh").read_text(encoding="utf-8")
     synth = next(ln for ln in weights_script.splitlines() if ln.startswith("robustbench3d data synth"))
     assert synth in text  # the same dataset as the shipped victim's
