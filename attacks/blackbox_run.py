@@ -29,7 +29,6 @@ uninterrupted one.
 from __future__ import annotations
 
 import json
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -50,17 +49,22 @@ from robustbench3d.attacks.blackbox import (
 )
 from robustbench3d.attacks.train_config import RESUMABLE, TrainConfig, TrainingError, training_cars
 from robustbench3d.attacks.train_curve import (
-    CRITERION,
     HeldOut,
     best_of,
-    curve_paths,
     eval_proposals,
     make_row,
     plateau,
     split_held_out,
     write_curve,
 )
-from robustbench3d.attacks.train_run import check_outputs, check_resumed, held_out_line
+from robustbench3d.attacks.train_run import (
+    check_outputs,
+    check_resumed,
+    curve_record,
+    held_out_line,
+    parametrisation_record,
+    progress_bar,
+)
 from robustbench3d.kitti.dataset import KittiDataset
 from robustbench3d.kitti.labels import Labels
 
@@ -245,7 +249,8 @@ class BlackBoxRun:
                 self._evaluate_regular()
             if s.rows and s.rows[-1]["step"] == s.generation:  # a resumed run that stopped here stops again
                 self.stop = plateau(s.rows, config.plateau_window, config.plateau_tol)
-        bar = _progress(self.generations() * self.per_generation, s.queries, progress, f"{config.name} (cma)")
+        bar = progress_bar(self.generations() * self.per_generation, s.queries, progress, f"{config.name} (cma)",
+                           "query")
         try:
             while self.stop is None and s.queries + self.per_generation <= self.settings.query_budget:
                 t0 = time.perf_counter()
@@ -324,12 +329,6 @@ class BlackBoxRun:
             return self.current_object(), s.generation, rows
         assert s.best is not None and s.best["step"] == best["step"]
         return self.space.object_at(np.asarray(s.best["x"], dtype=np.float64)), best["step"], rows
-
-
-def _progress(total: int, initial: int, enabled: bool, desc: str) -> Any:
-    from tqdm import tqdm
-
-    return tqdm(total=total, initial=initial, disable=not enabled, file=sys.stderr, unit="query", desc=desc)
 
 
 def _identity(config: TrainConfig, settings: BlackBoxSettings, dimension: int, victim_info: dict[str, Any],
@@ -474,13 +473,7 @@ def _made_by(out: Path, run: BlackBoxRun, victim_info: dict[str, Any], data_iden
     else:
         stopped = {"reason": "query budget", "step": s.generation,
                    "line": f"reached --query-budget {settings.query_budget} ({s.queries} queries used)"}
-    curve = None
-    if run.heldout is not None:
-        csv_path, png_path = curve_paths(out)
-        curve = {"eval_every": config.eval_every, "held_out": run.heldout.describe(), "criterion": CRITERION,
-                 "best_step": object_step, "best": best_of(rows), "final": rows[-1], "evaluations": len(rows),
-                 "plateau": {"window": config.plateau_window, "tol": config.plateau_tol},
-                 "files": {"csv": csv_path.name, "png": png_path.name}, "eval_time_s": round(s.eval_s, 3)}
+    curve = None if run.heldout is None else curve_record(out, config, run.heldout, rows, object_step, s.eval_s)
     hist = s.history
     weights = {"car_score": 1.0, **({"laplacian": config.lambda_lap} if config.kind.shape else {})}
     return {
@@ -489,10 +482,7 @@ def _made_by(out: Path, run: BlackBoxRun, victim_info: dict[str, Any], data_iden
         "config": cma_config(config, settings, run.space.dimension),
         "seed": config.seed, "steps": s.generation, "cars": cars,
         "object_step": object_step, "stopped": stopped, "curve": curve,
-        "parametrisation": {"shape": "tanh box: v = b tanh(atanh(0.999 v0 / b) + delta)" if config.kind.shape
-                            else "fixed: the undeformed sphere",
-                            "colour": "sigmoid(logits)" if config.kind.colour else "fixed: neutral grey 128/255",
-                            "object": "the CMA-ES mean"},
+        "parametrisation": parametrisation_record(config, object="the CMA-ES mean"),
         "lidar_proposals": PROTOCOL_LABELS.get(run.objective.source) if config.kind.lidar else None,
         "optimizer": settings.record(run.space.dimension, cma_version()),
         "queries": {"proposals": run.objective.source, "budget": settings.query_budget, "used": s.queries,

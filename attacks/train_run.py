@@ -171,10 +171,11 @@ def _csv_lines(rows: list[dict[str, Any]]) -> list[list[str]]:
     return list(csv.reader(io.StringIO(csv_text(rows))))[1:]
 
 
-def _progress(total: int, initial: int, enabled: bool, desc: str) -> Any:
+def progress_bar(total: int, initial: int, enabled: bool, desc: str, unit: str = "step") -> Any:
+    """The run loops' tqdm bar on stderr (``unit``: step, or query for the black-box loop)."""
     from tqdm import tqdm
 
-    return tqdm(total=total, initial=initial, disable=not enabled, file=sys.stderr, unit="step", desc=desc)
+    return tqdm(total=total, initial=initial, disable=not enabled, file=sys.stderr, unit=unit, desc=desc)
 
 
 def train_universal(victim: Any, victim_info: dict[str, Any], kitti: KittiDataset, frame_ids: list[str],
@@ -291,7 +292,7 @@ class _Run:
                 self._evaluate_regular()
             if self.rows and self.rows[-1]["step"] == trainer.step:  # a resumed run that stopped here stops again
                 self.stop = plateau(self.rows, config.plateau_window, config.plateau_tol)
-        bar = _progress(config.steps, min(trainer.step, config.steps), progress, config.name)
+        bar = progress_bar(config.steps, min(trainer.step, config.steps), progress, config.name)
         try:
             while self.stop is None and trainer.step < config.steps:
                 t0 = time.perf_counter()
@@ -379,24 +380,15 @@ def _made_by(out: Path, trainer: UniversalTrainer, config: TrainConfig, victim_i
         stopped = {"reason": "plateau", "step": trainer.step, "line": run.stop}
     else:
         stopped = {"reason": "steps", "step": trainer.step, "line": f"reached --steps {config.steps}"}
-    curve = None
-    if heldout is not None:
-        csv_path, png_path = curve_paths(out)
-        best = best_of(rows)
-        curve = {"eval_every": config.eval_every, "held_out": heldout.describe(), "criterion": CRITERION,
-                 "best_step": object_step, "best": best, "final": rows[-1], "evaluations": len(rows),
-                 "plateau": {"window": config.plateau_window, "tol": config.plateau_tol},
-                 "files": {"csv": csv_path.name, "png": png_path.name},
-                 "eval_time_s": round(float(trainer.run_state.get("eval_s", 0.0)), 3)}
+    curve = None if heldout is None else curve_record(out, config, heldout, rows, object_step,
+                                                      float(trainer.run_state.get("eval_s", 0.0)))
     return {
         "attack": config.mode, "tool": "robustbench3d attack train", "package_version": __version__,
         "victim": victim_info, "training_data": data_identity,
         "config": config.record(),
         "seed": config.seed, "steps": trainer.step, "cars": len(trainer.cars),
         "object_step": object_step, "stopped": stopped, "curve": curve,
-        "parametrisation": {"shape": "tanh box: v = b tanh(atanh(0.999 v0 / b) + delta)" if config.kind.shape
-                            else "fixed: the undeformed sphere",
-                            "colour": "sigmoid(logits)" if config.kind.colour else "fixed: neutral grey 128/255"},
+        "parametrisation": parametrisation_record(config),
         "lidar_proposals": (_LIDAR_PROPOSALS.get(config.lidar_boxes, PROTOCOL_LABELS.get(config.lidar_boxes))
                             if trainer.frustums else _OWN_OBJECTS) if config.kind.lidar else None,
         "losses": {"weights": config.weights(), "first_step": hist[0] if hist else None,
@@ -404,6 +396,25 @@ def _made_by(out: Path, trainer: UniversalTrainer, config: TrainConfig, victim_i
                    "mean_last_10": _mean_losses(hist[-10:])},
         "drop_estimate": trainer.drop_estimate(), "wall_time_s": round(trainer.elapsed_s, 3),
     }
+
+
+def curve_record(out: Path, config: TrainConfig, heldout: HeldOut, rows: list[dict[str, Any]], object_step: int,
+                 eval_s: float) -> dict[str, Any]:
+    """The sidecar's ``curve`` of a run with a held-out curve (``rows``: its evaluations; ``eval_s``: seconds spent
+    on them), written alike by the white-box and the black-box loops."""
+    csv_path, png_path = curve_paths(out)
+    return {"eval_every": config.eval_every, "held_out": heldout.describe(), "criterion": CRITERION,
+            "best_step": object_step, "best": best_of(rows), "final": rows[-1], "evaluations": len(rows),
+            "plateau": {"window": config.plateau_window, "tol": config.plateau_tol},
+            "files": {"csv": csv_path.name, "png": png_path.name}, "eval_time_s": round(eval_s, 3)}
+
+
+def parametrisation_record(config: TrainConfig, **extra: str) -> dict[str, str]:
+    """The sidecar's ``parametrisation``: how the mode's shape and colours are parametrised (``extra``: further
+    entries, e.g. the black-box loop's ``object``)."""
+    return {"shape": "tanh box: v = b tanh(atanh(0.999 v0 / b) + delta)" if config.kind.shape
+            else "fixed: the undeformed sphere",
+            "colour": "sigmoid(logits)" if config.kind.colour else "fixed: neutral grey 128/255", **extra}
 
 
 #: The sidecar's words for the LiDAR loss's 2D boxes (as recorded since the first objects; the frustum protocols

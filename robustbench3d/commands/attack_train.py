@@ -35,6 +35,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from robustbench3d.attacks.train_config import TrainConfig
 
 MODE_NAMES = ("adv-shape", "adv-texture", "adv-object")
@@ -179,32 +181,43 @@ def blackbox_settings(args: argparse.Namespace) -> Any:
     return settings
 
 
-def run(args: argparse.Namespace) -> int:
+def _prepare(args: argparse.Namespace, config: TrainConfig, check: Callable[[Any], None],
+             ckpt: Path | None = None) -> tuple[Path, int, Any, dict[str, Any], Any]:
+    """What both optimisers start from, every refusal before the data is read: the output path (checked; again,
+    with its notes, in the run loop; ``ckpt``: the black-box checkpoint), the worker count, the victim (``check``
+    refuses it), its record and the training split (:class:`~robustbench3d.attacks.train_run.TrainingSplit`)."""
     from robustbench3d.attacks.spec import check_max_frames
-    from robustbench3d.attacks.train_config import check_oracles
-    from robustbench3d.attacks.train_run import check_outputs, train_universal, training_split, victim_record
+    from robustbench3d.attacks.train_run import check_outputs, training_split, victim_record
     from robustbench3d.errors import RobustBenchError
     from robustbench3d.ranges import PROCESSES_RANGE, check_range, default_processes
     from robustbench3d.victims import create_victim
 
-    config = config_from_args(args)
-    blackbox = blackbox_settings(args)
-    if blackbox is not None:
-        return _run_blackbox(args, config, blackbox)
     check_max_frames(args.max_frames)
     workers = default_processes() if args.workers is None else args.workers
     check_range("--workers", workers, *PROCESSES_RANGE, "worker processes")
-    # again, with its notes, in train_universal
-    check_outputs(args.out, force=args.force, resume=args.resume, curve=config.eval_every > 0)
     out = Path(args.out)
+    check_outputs(out, force=args.force, resume=args.resume, curve=config.eval_every > 0, ckpt=ckpt)
     kwargs = _victim_kwargs(args.victim_arg)
     try:
         victim = create_victim(args.victim, **kwargs)
     except TypeError as exc:
         raise RobustBenchError(f"--victim {args.victim}: {exc}") from None
-    check_oracles(victim, config.mode, args.victim, config.lidar_boxes, config.lidar_loss)  # before the data
+    check(victim)
     train = training_split(args.data, args.split, args.max_frames, progress=not args.no_progress)
-    made_by = train_universal(victim, victim_record(args.victim, kwargs), train.dataset.kitti(), train.gt.frame_ids,
+    return out, workers, victim, victim_record(args.victim, kwargs), train
+
+
+def run(args: argparse.Namespace) -> int:
+    from robustbench3d.attacks.train_config import check_oracles
+    from robustbench3d.attacks.train_run import train_universal
+
+    config = config_from_args(args)
+    blackbox = blackbox_settings(args)
+    if blackbox is not None:
+        return _run_blackbox(args, config, blackbox)
+    out, workers, victim, record, train = _prepare(args, config, lambda victim: check_oracles(
+        victim, config.mode, args.victim, config.lidar_boxes, config.lidar_loss))
+    made_by = train_universal(victim, record, train.dataset.kitti(), train.gt.frame_ids,
                               train.gt.labels, config, out, data_identity=train.identity,
                               resume=args.resume, force=args.force, progress=not args.no_progress, log=print,
                               workers=workers)
@@ -233,26 +246,11 @@ def _print_curve(out: Path, made_by: dict[str, Any], step: str = "step") -> None
 def _run_blackbox(args: argparse.Namespace, config: TrainConfig, settings: Any) -> int:
     """``--optimizer cma``: :func:`robustbench3d.attacks.blackbox_run.train_blackbox`, refusals first."""
     from robustbench3d.attacks.blackbox_run import check_victim, cma_checkpoint_path, query_proposals, train_blackbox
-    from robustbench3d.attacks.spec import check_max_frames
-    from robustbench3d.attacks.train_run import check_outputs, training_split, victim_record
-    from robustbench3d.errors import RobustBenchError
-    from robustbench3d.ranges import PROCESSES_RANGE, check_range, default_processes
-    from robustbench3d.victims import create_victim
 
-    check_max_frames(args.max_frames)
-    workers = default_processes() if args.workers is None else args.workers
-    check_range("--workers", workers, *PROCESSES_RANGE, "worker processes")
-    out = Path(args.out)
-    # again, with its notes, in train_blackbox
-    check_outputs(out, force=args.force, resume=args.resume, curve=config.eval_every > 0, ckpt=cma_checkpoint_path(out))
-    kwargs = _victim_kwargs(args.victim_arg)
-    try:
-        victim = create_victim(args.victim, **kwargs)
-    except TypeError as exc:
-        raise RobustBenchError(f"--victim {args.victim}: {exc}") from None
-    check_victim(victim, args.victim, query_proposals(config, victim))  # before the data (again in train_blackbox)
-    train = training_split(args.data, args.split, args.max_frames, progress=not args.no_progress)
-    made_by = train_blackbox(victim, victim_record(args.victim, kwargs), train.dataset.kitti(), train.gt.frame_ids,
+    out, workers, victim, record, train = _prepare(  # the victim is checked again in train_blackbox
+        args, config, lambda victim: check_victim(victim, args.victim, query_proposals(config, victim)),
+        ckpt=cma_checkpoint_path(args.out))
+    made_by = train_blackbox(victim, record, train.dataset.kitti(), train.gt.frame_ids,
                              train.gt.labels, config, settings, out, data_identity=train.identity,
                              resume=args.resume, force=args.force, progress=not args.no_progress, log=print,
                              workers=workers)
