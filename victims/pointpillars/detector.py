@@ -27,13 +27,13 @@ from robustbench3d.victims.base import AttackedScene, AttackTargets, ProposalsAr
 from robustbench3d.victims.pointpillars.config import PointPillarsConfig, output_shape
 from robustbench3d.victims.pointpillars.glue import (
     DecodeOptions,
+    crop_mask,
     crop_scan,
     decode_output,
-    fov_mask_velo,
     run_scan,
 )
 from robustbench3d.victims.pointpillars.model import PointPillars
-from robustbench3d.victims.pointpillars.pillars import assign_pillars, in_region, pillar_features
+from robustbench3d.victims.pointpillars.pillars import assign_pillars, pillar_features
 from robustbench3d.victims.pointpillars.targets import cell_size
 from robustbench3d.victims.torchfile import build_network, load_torch_data, network_part
 
@@ -114,9 +114,7 @@ class PointPillarsDetector:
         pts = scene.points_rect
         velo = torch.cat([_rect_to_velo_torch(pts, frame.calib), pts[:, 3:4]], dim=1)
         v = velo.detach().numpy()
-        keep = in_region(v, self.cfg.grid)
-        keep[keep] = fov_mask_velo(v[keep], frame.calib, frame.image_size)
-        rows = np.flatnonzero(keep)
+        rows = np.flatnonzero(crop_mask(v, frame.calib, frame.image_size, self.cfg.grid))
         kept = velo[torch.from_numpy(rows)]
         a = assign_pillars(v[rows], self.cfg.grid)
         feats, mask = pillar_features(kept, a, self.cfg.grid, self.dtype)

@@ -53,14 +53,19 @@ def fov_mask_velo(points_velo: np.ndarray, calib: Calibration, image_size: tuple
     return (depth > NEAR) & (uv[:, 0] >= 0) & (uv[:, 0] < image_size[0])
 
 
-def crop_scan(scan: np.ndarray, calib: Calibration, image_size: tuple[int, int], grid: PillarGrid) -> np.ndarray:
-    """The rows of ``scan`` (N, 4 velodyne) in the camera's field of view and the grid's region (float32)."""
+def crop_mask(points: np.ndarray, calib: Calibration, image_size: tuple[int, int], grid: PillarGrid) -> np.ndarray:
+    """(N,) bool: the rows of ``points`` (N, 3+ velodyne) in the grid's region and the camera's field of view."""
     from robustbench3d.victims.pointpillars.pillars import in_region
 
+    keep = in_region(points, grid)
+    keep[keep] = fov_mask_velo(points[keep], calib, image_size)
+    return keep
+
+
+def crop_scan(scan: np.ndarray, calib: Calibration, image_size: tuple[int, int], grid: PillarGrid) -> np.ndarray:
+    """The rows of ``scan`` (N, 4 velodyne) in the camera's field of view and the grid's region (float32)."""
     scan = np.asarray(scan, dtype=np.float32)
-    keep = in_region(scan, grid)
-    keep[keep] = fov_mask_velo(scan[keep], calib, image_size)
-    return scan[keep]
+    return scan[crop_mask(scan, calib, image_size, grid)]
 
 
 NetworkFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
